@@ -1,0 +1,37 @@
+"""Exceptions raised by the engine.
+
+All derive from :class:`SgvlocError`. The HTTP layer maps them to status codes:
+
+- :class:`InputError` (bad data from the caller: wrong shape, NaN, empty scan, malformed
+  file) -> 422 / 400;
+- :class:`EncoderMismatchError` (features from another encoder than the map's) -> 409;
+- :class:`NotFoundError` (unknown keyframe or map) -> 404;
+- :class:`ConflictError` (duplicate name or key) -> 409.
+"""
+
+
+class SgvlocError(Exception):
+    """Base class of every error raised by sgvloc."""
+
+
+class InputError(SgvlocError, ValueError):
+    """The caller's data is malformed; the message names the field and the problem."""
+
+
+class ScanFormatError(InputError):
+    """A scan file cannot be read; the message names the file and the problem."""
+
+
+class EncoderMismatchError(SgvlocError):
+    """Features were produced by an encoder other than the one a map was built with."""
+
+
+class NotFoundError(SgvlocError, KeyError):
+    """An id or name does not exist."""
+
+    def __str__(self) -> str:  # KeyError would quote the message
+        return str(self.args[0]) if self.args else ""
+
+
+class ConflictError(SgvlocError):
+    """The operation conflicts with existing state (duplicate name, key, ...)."""

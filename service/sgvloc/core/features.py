@@ -1,0 +1,123 @@
+"""What an encoder produces for one scan, and how encoders are identified."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .errors import EncoderMismatchError, InputError
+
+
+@dataclass(frozen=True)
+class EncoderIdentity:
+    """Names an encoder and every parameter that changes its output.
+
+    Two feature sets are comparable only if their identities are equal. ``fingerprint``
+    is a short stable hash of the whole identity, recorded with every map.
+    """
+
+    name: str
+    version: str = "1"
+    params: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"name": self.name, "version": self.version, "params": self.params}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> EncoderIdentity:
+        return cls(name=d["name"], version=str(d.get("version", "1")), params=d.get("params", {}))
+
+    @property
+    def fingerprint(self) -> str:
+        blob = json.dumps(self.to_dict(), sort_keys=True, separators=(",", ":"), default=str)
+        return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, EncoderIdentity) and self.fingerprint == other.fingerprint
+
+    def __hash__(self) -> int:
+        return hash(self.fingerprint)
+
+    def require_same(self, other: EncoderIdentity, what: str = "features") -> None:
+        """Raise :class:`EncoderMismatchError` unless ``other`` is this encoder."""
+        if other != self:
+            raise EncoderMismatchError(
+                f"{what} come from encoder {other.name!r} (fingerprint {other.fingerprint}), "
+                f"but this map uses {self.name!r} (fingerprint {self.fingerprint})"
+            )
+
+
+@dataclass(frozen=True)
+class Features:
+    """Everything the localizer needs from one scan.
+
+    - ``global_descriptor``: ``[G]`` float32, L2-normalised (retrieval by inner product);
+    - ``keypoints``: ``[N, 3]`` float32, metres, in the scan's sensor frame;
+    - ``local_features``: ``[N, D]`` float32, one row per keypoint;
+    - ``encoder``: the identity of the encoder that produced them.
+    """
+
+    global_descriptor: np.ndarray
+    keypoints: np.ndarray
+    local_features: np.ndarray
+    encoder: EncoderIdentity
+
+    @classmethod
+    def validated(
+        cls,
+        global_descriptor: Any,
+        keypoints: Any,
+        local_features: Any,
+        encoder: EncoderIdentity,
+        *,
+        global_dim: int | None = None,
+        local_dim: int | None = None,
+    ) -> Features:
+        """Check shapes, dtypes and finiteness, cast to float32 and normalise the descriptor.
+
+        Raises :class:`InputError` naming the offending field.
+        """
+        g = _as_float_array("global_descriptor", global_descriptor, ndim=1)
+        k = _as_float_array("keypoints", keypoints, ndim=2)
+        f = _as_float_array("local_features", local_features, ndim=2)
+        if g.shape[0] == 0:
+            raise InputError("global_descriptor is empty")
+        if global_dim is not None and g.shape[0] != global_dim:
+            raise InputError(f"global_descriptor has length {g.shape[0]}, expected {global_dim}")
+        if k.shape[1] != 3:
+            raise InputError(f"keypoints must have shape [N, 3], got {list(k.shape)}")
+        if f.shape[0] != k.shape[0]:
+            raise InputError(
+                f"local_features has {f.shape[0]} rows but keypoints has {k.shape[0]}; "
+                "one feature row per keypoint is required"
+            )
+        if local_dim is not None and k.shape[0] > 0 and f.shape[1] != local_dim:
+            raise InputError(f"local_features has dimension {f.shape[1]}, expected {local_dim}")
+        norm = float(np.linalg.norm(g))
+        if norm == 0.0:
+            raise InputError("global_descriptor is all zeros and cannot be normalised")
+        return cls((g / norm).astype(np.float32), k, f, encoder)
+
+    @property
+    def num_keypoints(self) -> int:
+        return int(self.keypoints.shape[0])
+
+
+def _as_float_array(name: str, value: Any, ndim: int) -> np.ndarray:
+    try:
+        arr = np.asarray(value)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{name} is not a numeric array: {exc}") from None
+    if arr.dtype.kind not in "fiu":
+        raise InputError(f"{name} must be numeric, got dtype {arr.dtype}")
+    if arr.ndim != ndim:
+        raise InputError(f"{name} must have {ndim} dimension(s), got shape {list(arr.shape)}")
+    arr = np.ascontiguousarray(arr, dtype=np.float32)
+    if not np.isfinite(arr).all():
+        bad = int((~np.isfinite(arr)).sum())
+        raise InputError(f"{name} contains {bad} non-finite value(s) (NaN or inf)")
+    return arr

@@ -1,0 +1,95 @@
+"""Scan clean-up before encoding: finite filter, range crop, voxel grid, ground removal."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from .config import PreprocessConfig
+from .errors import InputError
+
+log = logging.getLogger(__name__)
+
+
+def as_points(points: np.ndarray, name: str = "scan") -> np.ndarray:
+    """Validate a scan array ``[P, 3+]`` and return its xyz as float32 ``[P, 3]``."""
+    arr = np.asarray(points)
+    if arr.ndim != 2 or arr.shape[1] < 3:
+        raise InputError(f"{name} must have shape [P, 3] or [P, 3+C], got {list(arr.shape)}")
+    if arr.dtype.kind not in "fiu":
+        raise InputError(f"{name} must be numeric, got dtype {arr.dtype}")
+    return np.ascontiguousarray(arr[:, :3], dtype=np.float32)
+
+
+def finite(points: np.ndarray) -> np.ndarray:
+    """Drop rows with NaN or inf coordinates."""
+    return points[np.isfinite(points).all(axis=1)]
+
+
+def crop_range(points: np.ndarray, min_range: float, max_range: float) -> np.ndarray:
+    """Keep points whose distance from the sensor is in ``[min_range, max_range]``."""
+    r = np.linalg.norm(points, axis=1)
+    return points[(r >= min_range) & (r <= max_range)]
+
+
+def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
+    """One point per occupied voxel: the centroid of the points that fall in it.
+
+    Deterministic (independent of point order up to float rounding); ``voxel_size <= 0``
+    returns the input.
+    """
+    if voxel_size <= 0 or len(points) == 0:
+        return points
+    cells = np.floor(points / voxel_size).astype(np.int64)  # [P, 3]
+    _, inverse, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
+    inverse = inverse.reshape(-1)
+    sums = np.zeros((len(counts), 3), dtype=np.float64)
+    np.add.at(sums, inverse, points)
+    return (sums / counts[:, None]).astype(np.float32)
+
+
+def remove_ground(
+    points: np.ndarray, distance: float, max_tilt_deg: float, seed: int = 0
+) -> np.ndarray:
+    """Remove the dominant near-horizontal plane (RANSAC plane fit, Open3D).
+
+    If the best plane is tilted more than ``max_tilt_deg`` from horizontal, nothing is
+    removed: a wall is not ground.
+    """
+    if len(points) < 50:
+        return points
+    import open3d as o3d
+
+    o3d.utility.random.seed(seed)
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.astype(np.float64)))
+    plane, inliers = pcd.segment_plane(distance, ransac_n=3, num_iterations=200)
+    normal = np.asarray(plane[:3]) / max(np.linalg.norm(plane[:3]), 1e-12)
+    tilt = np.degrees(np.arccos(min(1.0, abs(normal[2]))))
+    if tilt > max_tilt_deg:
+        log.debug("largest plane tilted %.1f deg: not treated as ground", tilt)
+        return points
+    keep = np.ones(len(points), dtype=bool)
+    keep[np.asarray(inliers, dtype=np.int64)] = False
+    return points[keep]
+
+
+def preprocess(points: np.ndarray, cfg: PreprocessConfig) -> np.ndarray:
+    """Run the whole clean-up on a raw scan ``[P, 3+]`` and return ``[M, 3]`` float32.
+
+    Raises :class:`InputError` if the scan is malformed or nothing is left.
+    """
+    pts = as_points(points)
+    if len(pts) == 0:
+        raise InputError("scan is empty")
+    pts = finite(pts)
+    pts = crop_range(pts, cfg.min_range, cfg.max_range)
+    pts = voxel_downsample(pts, cfg.voxel_size)
+    if cfg.remove_ground:
+        pts = remove_ground(pts, cfg.ground_distance, cfg.ground_max_tilt_deg)
+    if len(pts) == 0:
+        raise InputError(
+            f"scan has no points left after preprocessing (range {cfg.min_range}-"
+            f"{cfg.max_range} m, finite values only)"
+        )
+    return pts
