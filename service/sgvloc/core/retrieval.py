@@ -1,0 +1,278 @@
+"""Retrieval: a FAISS index of global descriptors with stable int64 ids.
+
+Inner product on L2-normalised descriptors (= cosine similarity). Three index kinds:
+
+- ``flat`` (default): exact search, ``IndexIDMap2(IndexFlatIP)``; removal by id.
+- ``ivf``: ``IndexIVFFlat``, trained lazily. Until the map holds ``train_size`` vectors
+  the index is exact (flat); when it crosses that size the vectors are moved into a
+  freshly trained IVF index. ``nprobe`` is fixed at construction: it is index state and
+  must not be varied per request while other threads search.
+- ``hnsw``: ``IndexHNSWFlat``. HNSW cannot remove vectors, so removed ids are hidden
+  (tombstones, filtered from results) and the graph is rebuilt without them once they
+  exceed a quarter of the index or when it is saved.
+
+Concurrency: searches run concurrently, modifications are exclusive (a readers-writer
+lock inside the wrapper). Snapshots are written to a temporary file and moved into
+place with ``os.replace`` so a crash never leaves a half-written index.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import faiss
+import numpy as np
+
+from ._rwlock import RWLock
+from .config import RetrievalConfig
+from .errors import ConflictError, InputError, NotFoundError
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class SearchHit:
+    """One retrieved keyframe: its id and inner-product similarity (higher is closer)."""
+
+    id: int
+    similarity: float
+
+
+class FaissIndex:
+    """A FAISS index of L2-normalised descriptors addressed by stable int64 ids."""
+
+    def __init__(self, dim: int, config: RetrievalConfig | None = None) -> None:
+        if dim <= 0:
+            raise InputError(f"descriptor dimension must be positive, got {dim}")
+        self.dim = int(dim)
+        self.config = config or RetrievalConfig()
+        self._lock = RWLock()
+        self._tombstones: set[int] = set()
+        self._index = self._new_index(trained_ivf=False)
+
+    # -- construction -------------------------------------------------------------------
+
+    @property
+    def train_size(self) -> int:
+        """IVF: vectors needed before the index is trained (FAISS wants ~39 per cell)."""
+        return 39 * self.config.nlist
+
+    @property
+    def kind(self) -> str:
+        """The index kind in use now ('ivf' reports 'flat' until it has been trained)."""
+        inner = faiss.downcast_index(self._index.index) if self._is_idmap() else self._index
+        if isinstance(inner, faiss.IndexHNSW):
+            return "hnsw"
+        if isinstance(inner, faiss.IndexIVF):
+            return "ivf"
+        return "flat"
+
+    def _is_idmap(self) -> bool:
+        return isinstance(self._index, faiss.IndexIDMap2)
+
+    def _new_index(self, trained_ivf: bool) -> faiss.Index:
+        cfg = self.config
+        if cfg.index == "hnsw":
+            hnsw = faiss.IndexHNSWFlat(self.dim, cfg.hnsw_m, faiss.METRIC_INNER_PRODUCT)
+            hnsw.hnsw.efSearch = cfg.ef_search
+            return faiss.IndexIDMap2(hnsw)
+        if cfg.index == "ivf" and trained_ivf:
+            quantizer = faiss.IndexFlatIP(self.dim)
+            ivf = faiss.IndexIVFFlat(quantizer, self.dim, cfg.nlist, faiss.METRIC_INNER_PRODUCT)
+            ivf.nprobe = cfg.nprobe
+            return ivf
+        return faiss.IndexIDMap2(faiss.IndexFlatIP(self.dim))
+
+    # -- inspection ---------------------------------------------------------------------
+
+    def __len__(self) -> int:
+        return int(self._index.ntotal) - len(self._tombstones)
+
+    def ids(self) -> np.ndarray:
+        """All live ids, sorted ``[M]`` int64."""
+        with self._lock.read():
+            return np.sort(self._live_ids())
+
+    def _all_ids(self) -> np.ndarray:
+        if self._is_idmap():
+            return faiss.vector_to_array(self._index.id_map).astype(np.int64)
+        invlists = self._index.invlists
+        out = [
+            faiss.rev_swig_ptr(invlists.get_ids(i), invlists.list_size(i)).copy()
+            for i in range(invlists.nlist)
+            if invlists.list_size(i)
+        ]
+        return np.concatenate(out).astype(np.int64) if out else np.zeros(0, np.int64)
+
+    def _live_ids(self) -> np.ndarray:
+        ids = self._all_ids()
+        if self._tombstones:
+            ids = ids[~np.isin(ids, np.fromiter(self._tombstones, np.int64))]
+        return ids
+
+    def __contains__(self, id_: int) -> bool:
+        with self._lock.read():
+            return int(id_) in set(self._live_ids().tolist())
+
+    def reconstruct(self, ids: np.ndarray) -> np.ndarray:
+        """The stored vectors of ``ids`` ``[M, dim]``."""
+        with self._lock.read():
+            return self._reconstruct(np.asarray(ids, dtype=np.int64))
+
+    def _reconstruct(self, ids: np.ndarray) -> np.ndarray:
+        out = np.empty((len(ids), self.dim), dtype=np.float32)
+        for row, i in enumerate(ids.tolist()):
+            out[row] = self._index.reconstruct(int(i))
+        return out
+
+    # -- modification -------------------------------------------------------------------
+
+    def _prepare(self, vectors: np.ndarray) -> np.ndarray:
+        x = np.asarray(vectors)
+        if x.ndim == 1:
+            x = x[None, :]
+        if x.ndim != 2 or x.shape[1] != self.dim:
+            raise InputError(f"descriptors must have shape [M, {self.dim}], got {list(x.shape)}")
+        x = np.ascontiguousarray(x, dtype=np.float32).copy()
+        if not np.isfinite(x).all():
+            raise InputError("descriptors contain NaN or inf")
+        norms = np.linalg.norm(x, axis=1)
+        if (norms == 0).any():
+            raise InputError("a descriptor is all zeros and cannot be normalised")
+        faiss.normalize_L2(x)
+        return x
+
+    def add(self, ids: np.ndarray, vectors: np.ndarray) -> None:
+        """Add vectors under the given ids; an id already present raises ConflictError."""
+        ids = np.atleast_1d(np.asarray(ids, dtype=np.int64))
+        x = self._prepare(vectors)
+        if len(ids) != len(x):
+            raise InputError(f"{len(ids)} ids for {len(x)} descriptors")
+        if len(np.unique(ids)) != len(ids):
+            raise ConflictError("duplicate ids in one add() call")
+        with self._lock.write():
+            present = np.isin(ids, self._all_ids())
+            if present.any():
+                raise ConflictError(f"id(s) already in the index: {ids[present][:5].tolist()}")
+            self._index.add_with_ids(x, ids)
+            self._maybe_train_ivf()
+
+    def remove(self, ids: np.ndarray) -> int:
+        """Remove ids; unknown ids raise NotFoundError (nothing is removed then)."""
+        ids = np.atleast_1d(np.asarray(ids, dtype=np.int64))
+        with self._lock.write():
+            live = self._live_ids()
+            missing = ids[~np.isin(ids, live)]
+            if len(missing):
+                raise NotFoundError(f"id(s) not in the index: {missing[:5].tolist()}")
+            if self.kind == "hnsw":
+                self._tombstones.update(ids.tolist())
+                if len(self._tombstones) > max(16, self._index.ntotal // 4):
+                    self._compact()
+            else:
+                self._index.remove_ids(faiss.IDSelectorArray(ids))
+            return len(ids)
+
+    def _compact(self) -> None:
+        """Rebuild from the live vectors (drops HNSW tombstones)."""
+        live = self._live_ids()
+        vectors = self._reconstruct(live)
+        self._index = self._new_index(trained_ivf=self.kind == "ivf")
+        if self.kind == "ivf":
+            self._index.train(vectors)
+            self._index.set_direct_map_type(faiss.DirectMap.Hashtable)
+        self._tombstones.clear()
+        if len(live):
+            self._index.add_with_ids(vectors, live)
+
+    def _maybe_train_ivf(self) -> None:
+        if self.config.index != "ivf" or self.kind == "ivf" or self._index.ntotal < self.train_size:
+            return
+        ids = self._all_ids()
+        vectors = self._reconstruct(ids)
+        ivf = self._new_index(trained_ivf=True)
+        ivf.train(vectors)
+        ivf.set_direct_map_type(faiss.DirectMap.Hashtable)
+        ivf.add_with_ids(vectors, ids)
+        self._index = ivf
+        log.info("trained IVF index (nlist=%d) on %d descriptors", self.config.nlist, len(ids))
+
+    # -- search -------------------------------------------------------------------------
+
+    def search(self, queries: np.ndarray, k: int) -> list[list[SearchHit]]:
+        """Top-k by inner product for each query row; fewer hits if the index is smaller."""
+        if k <= 0:
+            raise InputError(f"k must be positive, got {k}")
+        q = self._prepare(queries)
+        with self._lock.read():
+            if self._index.ntotal == 0:
+                return [[] for _ in range(len(q))]
+            fetch = min(k + len(self._tombstones), int(self._index.ntotal))
+            sims, ids = self._index.search(q, fetch)
+            dead = self._tombstones
+        results = []
+        for row_sims, row_ids in zip(sims, ids, strict=True):
+            hits = [
+                SearchHit(int(i), float(s))
+                for s, i in zip(row_sims, row_ids, strict=True)
+                if i >= 0 and int(i) not in dead
+            ]
+            results.append(hits[:k])
+        return results
+
+    # -- persistence --------------------------------------------------------------------
+
+    def save(self, path: str | Path) -> None:
+        """Atomic snapshot: written to a temporary file, then moved into place."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with self._lock.write():
+            if self._tombstones:
+                self._compact()
+            fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
+            os.close(fd)
+            try:
+                faiss.write_index(self._index, tmp)
+                os.replace(tmp, path)
+            finally:
+                if os.path.exists(tmp):
+                    os.unlink(tmp)
+            meta = {"dim": self.dim, "config": self.config.model_dump()}
+            _atomic_write_text(path.with_suffix(path.suffix + ".json"), json.dumps(meta))
+
+    @classmethod
+    def load(cls, path: str | Path) -> FaissIndex:
+        """Load a snapshot written by :meth:`save`; a damaged file raises InputError."""
+        path = Path(path)
+        meta_path = path.with_suffix(path.suffix + ".json")
+        try:
+            meta = json.loads(meta_path.read_text())
+            raw = faiss.read_index(str(path))
+        except (OSError, ValueError, RuntimeError) as exc:
+            raise InputError(f"cannot load index snapshot {path}: {exc}") from None
+        obj = cls(int(meta["dim"]), RetrievalConfig(**meta["config"]))
+        if raw.d != obj.dim:
+            raise InputError(f"index snapshot {path} has dimension {raw.d}, expected {obj.dim}")
+        # read_index returns the outer type; the wrapper keeps that object (it owns the
+        # C++ index), and only touches downcast views of it for search-time parameters.
+        if isinstance(raw, faiss.IndexIDMap2):
+            sub = faiss.downcast_index(raw.index)
+            if isinstance(sub, faiss.IndexHNSW):
+                sub.hnsw.efSearch = obj.config.ef_search
+        elif isinstance(raw, faiss.IndexIVF):
+            raw.nprobe = obj.config.nprobe
+        else:
+            raise InputError(f"index snapshot {path} holds an unsupported index type")
+        obj._index = raw
+        return obj
+
+
+def _atomic_write_text(path: Path, text: str) -> None:
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)

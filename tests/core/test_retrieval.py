@@ -1,0 +1,128 @@
+"""FAISS wrapper: stable ids, removal, persistence, all three index kinds."""
+
+import threading
+
+import numpy as np
+import pytest
+
+from sgvloc.core.config import RetrievalConfig
+from sgvloc.core.errors import ConflictError, InputError, NotFoundError
+from sgvloc.core.retrieval import FaissIndex
+
+KINDS = ["flat", "ivf", "hnsw"]
+
+
+def _vectors(n: int, dim: int = 32, seed: int = 0) -> np.ndarray:
+    x = np.random.default_rng(seed).normal(size=(n, dim)).astype(np.float32)
+    return x / np.linalg.norm(x, axis=1, keepdims=True)
+
+
+def _index(kind: str, dim: int = 32) -> FaissIndex:
+    return FaissIndex(dim, RetrievalConfig(index=kind, nlist=4, nprobe=4))
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_search_returns_stable_ids_and_exact_self_match(kind):
+    x = _vectors(400)
+    ids = np.arange(10_000, 10_400)
+    index = _index(kind)
+    index.add(ids[:150], x[:150])
+    index.add(ids[150:], x[150:])  # ivf: crosses the training size here
+    assert len(index) == 400
+    assert index.kind == kind
+    for row in (0, 199, 399):
+        hit = index.search(x[row], 5)[0][0]
+        assert hit.id == ids[row]
+        assert hit.similarity == pytest.approx(1.0, abs=1e-5)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_remove_hides_the_id_and_keeps_the_others(kind):
+    x = _vectors(300)
+    ids = np.arange(300) * 7 + 3
+    index = _index(kind)
+    index.add(ids, x)
+    index.remove([ids[10], ids[20]])
+    assert len(index) == 298
+    assert ids[10] not in index.ids()
+    hits = index.search(x[10], 10)[0]
+    assert ids[10] not in [h.id for h in hits]
+    assert index.search(x[11], 1)[0][0].id == ids[11]  # other ids did not shift
+    with pytest.raises(NotFoundError):
+        index.remove([ids[10]])
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_save_load_roundtrip(kind, tmp_path):
+    x = _vectors(300, seed=1)
+    ids = np.arange(500, 800)
+    index = _index(kind)
+    index.add(ids, x)
+    index.remove([ids[3]])
+    path = tmp_path / "map.faiss"
+    index.save(path)
+    loaded = FaissIndex.load(path)
+    assert loaded.kind == kind
+    assert np.array_equal(loaded.ids(), index.ids())
+    for row in (0, 150, 299):
+        assert loaded.search(x[row], 3)[0][0].id == ids[row]
+    assert not list(tmp_path.glob("*.tmp"))
+
+
+def test_corrupt_snapshot_is_refused(tmp_path):
+    index = _index("flat")
+    index.add(np.arange(3), _vectors(3))
+    path = tmp_path / "map.faiss"
+    index.save(path)
+    path.write_bytes(b"garbage" * 10)
+    with pytest.raises(InputError, match="map.faiss"):
+        FaissIndex.load(path)
+
+
+def test_bad_inputs():
+    index = _index("flat", dim=8)
+    with pytest.raises(InputError, match=r"\[M, 8\]"):
+        index.add([1], np.ones((1, 9), np.float32))
+    with pytest.raises(InputError, match="NaN"):
+        index.add([1], np.full((1, 8), np.nan, np.float32))
+    with pytest.raises(InputError, match="zeros"):
+        index.add([1], np.zeros((1, 8), np.float32))
+    index.add([1], np.ones((1, 8), np.float32))
+    with pytest.raises(ConflictError):
+        index.add([1], np.ones((1, 8), np.float32))
+    assert len(index) == 1
+    with pytest.raises(InputError):
+        index.search(np.ones(8), 0)
+
+
+def test_fewer_vectors_than_k_and_empty_index():
+    index = _index("flat", dim=8)
+    assert index.search(np.ones(8), 5) == [[]]
+    index.add([4, 5], _vectors(2, dim=8))
+    assert len(index.search(np.ones(8), 5)[0]) == 2
+
+
+def test_concurrent_search_and_add_agree():
+    x = _vectors(2000, seed=3)
+    index = _index("flat")
+    index.add(np.arange(1000), x[:1000])
+    errors = []
+
+    def searcher():
+        try:
+            for row in range(0, 1000, 10):
+                assert index.search(x[row], 1)[0][0].id == row
+        except Exception as exc:  # noqa: BLE001 - reported below
+            errors.append(exc)
+
+    def writer():
+        for start in range(1000, 2000, 100):
+            index.add(np.arange(start, start + 100), x[start : start + 100])
+
+    threads = [threading.Thread(target=searcher) for _ in range(3)] + [threading.Thread(target=writer)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors
+    assert len(index) == 2000
