@@ -1,0 +1,255 @@
+"""Pose estimation: RANSAC on local-feature correspondences, optional ICP refinement.
+
+Frames are named as in ``T_target_source``: the transform that maps points of the source
+(the query scan) into the target (the keyframe), 4x4 float64. The map pose of the query is
+``T_map_sensor = T_map_keyframe @ T_keyframe_sensor``.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .config import PoseConfig
+from .errors import InputError
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class PoseResult:
+    """Outcome of registering a source to a target, with diagnostics.
+
+    ``verdict`` is ``"localized"`` when the estimate passes the configured inlier-count and
+    fitness thresholds, otherwise ``"not_localized"`` with ``reason`` saying why.
+    ``fitness`` is the share of correspondences that are inliers; ``inlier_rmse`` is in
+    metres. ``refined`` tells whether ICP ran and converged into ``T_target_source``.
+    """
+
+    T_target_source: np.ndarray
+    num_correspondences: int
+    inliers: int
+    fitness: float
+    inlier_rmse: float
+    verdict: str
+    reason: str
+    refined: bool = False
+    icp: dict = field(default_factory=dict)
+
+    @property
+    def localized(self) -> bool:
+        return self.verdict == "localized"
+
+
+def is_rigid(T: np.ndarray, tol: float = 1e-4) -> bool:
+    """True if ``T`` is a 4x4 rigid transform (orthonormal R with det +1, last row 0 0 0 1)."""
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4) or not np.isfinite(T).all():
+        return False
+    R = T[:3, :3]
+    return (
+        np.allclose(R.T @ R, np.eye(3), atol=tol)
+        and abs(np.linalg.det(R) - 1.0) < tol
+        and np.allclose(T[3], [0, 0, 0, 1], atol=tol)
+    )
+
+
+def check_rigid(T: np.ndarray, name: str) -> np.ndarray:
+    """Return ``T`` as float64 4x4 or raise :class:`InputError` naming ``name``."""
+    arr = np.asarray(T, dtype=np.float64)
+    if arr.shape != (4, 4):
+        raise InputError(f"{name} must be a 4x4 matrix, got shape {list(arr.shape)}")
+    if not is_rigid(arr):
+        raise InputError(
+            f"{name} is not a rigid transform (rotation must be orthonormal with det +1 and "
+            "the last row 0 0 0 1)"
+        )
+    return arr
+
+
+def to_cloud(points: np.ndarray):
+    import open3d as o3d
+
+    return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
+
+
+def _feature(feats: np.ndarray):
+    import open3d as o3d
+
+    f = o3d.pipelines.registration.Feature()
+    f.data = np.ascontiguousarray(np.asarray(feats, dtype=np.float64).T)  # [D, N]
+    return f
+
+
+def feature_correspondences(
+    src_feats: np.ndarray, dst_feats: np.ndarray, mutual: bool
+) -> np.ndarray:
+    """Nearest neighbours in feature space ``[C, 2]`` (src index, dst index), optionally mutual."""
+    from scipy.spatial import cKDTree
+
+    fwd = cKDTree(dst_feats).query(src_feats, k=1)[1]  # [Ns]
+    pairs = np.stack([np.arange(len(src_feats)), fwd], axis=1)
+    if mutual:
+        back = cKDTree(src_feats).query(dst_feats, k=1)[1]  # [Nd]
+        pairs = pairs[back[fwd] == pairs[:, 0]]
+    return pairs.astype(np.int64)
+
+
+def inlier_ratio(
+    src: np.ndarray, dst: np.ndarray, T_dst_src: np.ndarray, max_distance: float
+) -> tuple[int, float, float]:
+    """Inliers among paired points ``src[i] <-> dst[i]`` under ``T``: (count, ratio, rmse)."""
+    if len(src) == 0:
+        return 0, 0.0, 0.0
+    moved = src @ T_dst_src[:3, :3].T + T_dst_src[:3, 3]
+    err = np.linalg.norm(moved - dst, axis=1)
+    ok = err <= max_distance
+    n_in = int(ok.sum())
+    rmse = float(np.sqrt(np.mean(err[ok] ** 2))) if n_in else 0.0
+    return n_in, n_in / len(src), rmse
+
+
+def _validate(name: str, kp: np.ndarray, feats: np.ndarray) -> None:
+    if kp.ndim != 2 or kp.shape[1] != 3:
+        raise InputError(f"{name} keypoints must have shape [N, 3], got {list(kp.shape)}")
+    if feats.ndim != 2 or feats.shape[0] != kp.shape[0]:
+        raise InputError(f"{name} features must have one row per keypoint")
+
+
+def ransac_pose(
+    src_kp: np.ndarray,
+    src_feats: np.ndarray,
+    dst_kp: np.ndarray,
+    dst_feats: np.ndarray,
+    cfg: PoseConfig | None = None,
+) -> PoseResult:
+    """RANSAC registration of source keypoints onto target keypoints via feature matching.
+
+    Reference settings (SPEC section 4): mutual filter, 0.5 m max correspondence distance,
+    3-point samples, edge-length (0.8) and distance checkers, 10000 iterations, 0.999
+    confidence. Seeded, so the same inputs give the same answer.
+    """
+    import open3d as o3d
+
+    cfg = cfg or PoseConfig()
+    src_kp, dst_kp = np.asarray(src_kp, np.float64), np.asarray(dst_kp, np.float64)
+    src_feats, dst_feats = np.asarray(src_feats), np.asarray(dst_feats)
+    _validate("source", src_kp, src_feats)
+    _validate("target", dst_kp, dst_feats)
+    if min(len(src_kp), len(dst_kp)) < cfg.ransac_n:
+        return PoseResult(
+            np.eye(4), 0, 0, 0.0, 0.0, "not_localized",
+            f"too few keypoints for RANSAC (source {len(src_kp)}, target {len(dst_kp)})",
+        )
+
+    # 1. correspondences: nearest neighbours in feature space (mutual if configured)
+    pairs = feature_correspondences(src_feats, dst_feats, cfg.mutual_filter)  # [C, 2]
+    if len(pairs) < cfg.ransac_n:
+        return PoseResult(
+            np.eye(4), len(pairs), 0, 0.0, 0.0, "not_localized",
+            f"only {len(pairs)} feature correspondences survive the mutual filter",
+        )
+
+    # 2. RANSAC over the correspondences, seeded
+    reg = o3d.pipelines.registration
+    o3d.utility.random.seed(cfg.seed)
+    result = reg.registration_ransac_based_on_correspondence(
+        to_cloud(src_kp),
+        to_cloud(dst_kp),
+        o3d.utility.Vector2iVector(pairs.astype(np.int32)),
+        cfg.max_correspondence_distance,
+        reg.TransformationEstimationPointToPoint(False),
+        cfg.ransac_n,
+        [
+            reg.CorrespondenceCheckerBasedOnEdgeLength(cfg.edge_length_ratio),
+            reg.CorrespondenceCheckerBasedOnDistance(cfg.max_correspondence_distance),
+        ],
+        reg.RANSACConvergenceCriteria(cfg.max_iterations, cfg.confidence),
+    )
+    T = np.asarray(result.transformation, dtype=np.float64).copy()
+    n_in, ratio, rmse = inlier_ratio(
+        src_kp[pairs[:, 0]], dst_kp[pairs[:, 1]], T, cfg.max_correspondence_distance
+    )
+    return judge(T, len(pairs), n_in, ratio, rmse, cfg)
+
+
+def fgr_pose(
+    src_kp: np.ndarray,
+    src_feats: np.ndarray,
+    dst_kp: np.ndarray,
+    dst_feats: np.ndarray,
+    cfg: PoseConfig | None = None,
+) -> PoseResult:
+    """Fast Global Registration (Open3D) on the same feature matches as :func:`ransac_pose`."""
+    import open3d as o3d
+
+    cfg = cfg or PoseConfig()
+    src_kp, dst_kp = np.asarray(src_kp, np.float64), np.asarray(dst_kp, np.float64)
+    _validate("source", src_kp, np.asarray(src_feats))
+    _validate("target", dst_kp, np.asarray(dst_feats))
+    pairs = feature_correspondences(src_feats, dst_feats, cfg.mutual_filter)  # [C, 2]
+    if len(pairs) < cfg.ransac_n:
+        return PoseResult(
+            np.eye(4), len(pairs), 0, 0.0, 0.0, "not_localized",
+            f"only {len(pairs)} feature correspondences survive the mutual filter",
+        )
+    reg = o3d.pipelines.registration
+    o3d.utility.random.seed(cfg.seed)
+    option = reg.FastGlobalRegistrationOption(
+        use_absolute_scale=True, maximum_correspondence_distance=cfg.max_correspondence_distance
+    )
+    result = reg.registration_fgr_based_on_correspondence(
+        to_cloud(src_kp), to_cloud(dst_kp), o3d.utility.Vector2iVector(pairs.astype(np.int32)),
+        option,
+    )
+    T = np.asarray(result.transformation, dtype=np.float64).copy()
+    n_in, ratio, rmse = inlier_ratio(
+        src_kp[pairs[:, 0]], dst_kp[pairs[:, 1]], T, cfg.max_correspondence_distance
+    )
+    return judge(T, len(pairs), n_in, ratio, rmse, cfg)
+
+
+def judge(
+    T: np.ndarray, n_corr: int, n_in: int, ratio: float, rmse: float, cfg: PoseConfig
+) -> PoseResult:
+    """Wrap an estimate in a :class:`PoseResult` with its verdict from the thresholds."""
+    if n_in < cfg.min_inliers:
+        verdict, reason = "not_localized", f"{n_in} inliers < min_inliers {cfg.min_inliers}"
+    elif ratio < cfg.min_fitness:
+        verdict, reason = "not_localized", f"fitness {ratio:.3f} < min_fitness {cfg.min_fitness}"
+    else:
+        verdict, reason = "localized", f"{n_in} of {n_corr} correspondences are inliers"
+    return PoseResult(T, n_corr, n_in, ratio, rmse, verdict, reason)
+
+
+def refine_icp(
+    result: PoseResult, src_cloud: np.ndarray, dst_cloud: np.ndarray, cfg: PoseConfig
+) -> PoseResult:
+    """Point-to-point ICP from the RANSAC estimate on the full (downsampled) clouds.
+
+    The refined transform replaces the RANSAC one only if ICP's fitness is at least
+    RANSAC's share of inliers would suggest; diagnostics are kept in ``result.icp``.
+    """
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    icp = reg.registration_icp(
+        to_cloud(src_cloud),
+        to_cloud(dst_cloud),
+        cfg.icp_max_distance,
+        result.T_target_source,
+        reg.TransformationEstimationPointToPoint(False),
+        reg.ICPConvergenceCriteria(max_iteration=cfg.icp_iterations),
+    )
+    info = {"fitness": float(icp.fitness), "inlier_rmse": float(icp.inlier_rmse)}
+    if icp.fitness <= 0.0:
+        info["used"] = False
+        result.icp = info
+        return result
+    info["used"] = True
+    result.T_target_source = np.asarray(icp.transformation, dtype=np.float64).copy()
+    result.refined = True
+    result.icp = info
+    return result
