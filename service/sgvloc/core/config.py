@@ -83,10 +83,12 @@ RerankMethod = Literal["none", "average-qe", "alpha-qe", "ransac-rir", "fgr-rir"
 
 
 class LocalizerConfig(_Section):
-    """The whole pipeline."""
+    """Retrieval, re-ranking and pose settings of one map.
 
-    preprocess: PreprocessConfig = PreprocessConfig()
-    encoder: HandcraftedEncoderConfig = HandcraftedEncoderConfig()
+    Encoder settings (preprocessing included) live in the encoder's spec
+    (:class:`sgvloc.core.encoders.EncoderSpec`), which is part of the encoder's identity.
+    """
+
     retrieval: RetrievalConfig = RetrievalConfig()
     sgv: SGVConfig = SGVConfig()
     pose: PoseConfig = PoseConfig()
