@@ -1,0 +1,131 @@
+"""The encoder interface, the serialisable spec a map stores, and the factory.
+
+An encoder turns a raw scan into :class:`~sgvloc.core.features.Features`: a global
+descriptor for retrieval plus keypoints and local features for re-ranking and pose. Each
+encoder runs its own preprocessing, so its :class:`EncoderIdentity` covers every
+parameter that changes its output; features are only comparable between equal identities.
+
+Three kinds (see SPEC section 5):
+
+- ``handcrafted`` (default): polar-grid global descriptor + FPFH, no weights;
+- ``precomputed``: the client runs its own network and sends features;
+- ``torchscript``: a learned model loaded from a TorchScript file.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from ..config import HandcraftedEncoderConfig, PreprocessConfig
+from ..errors import InputError
+from ..features import EncoderIdentity, Features
+
+
+class Encoder(ABC):
+    """Turns one scan into :class:`Features` tagged with this encoder's identity.
+
+    Subclasses set ``identity``, ``global_dim`` and ``local_dim`` (attributes or
+    properties) and implement :meth:`encode`. Encoders are stateless after construction
+    and safe to call from several threads.
+    """
+
+    #: name, version and every parameter that changes the output
+    identity: EncoderIdentity
+    #: length ``G`` of the global descriptor
+    global_dim: int
+    #: dimension ``D`` of one local feature row
+    local_dim: int
+
+    @abstractmethod
+    def encode(self, points: np.ndarray) -> Features:
+        """Encode a raw scan ``[P, 3]`` or ``[P, 3+C]`` (x y z, extra columns ignored).
+
+        Raises :class:`InputError` on a malformed or empty scan.
+        """
+
+    def check(self, features: Features) -> None:
+        """Refuse features from another encoder or with the wrong dimensions.
+
+        Raises :class:`EncoderMismatchError` if ``features.encoder`` is not this encoder,
+        :class:`InputError` if the arrays do not have this encoder's shapes.
+        """
+        self.identity.require_same(features.encoder)
+        g, k, f = features.global_descriptor, features.keypoints, features.local_features
+        if g.ndim != 1 or g.shape[0] != self.global_dim:
+            raise InputError(
+                f"global_descriptor has shape {list(g.shape)}, expected [{self.global_dim}]"
+            )
+        if k.ndim != 2 or k.shape[1] != 3:
+            raise InputError(f"keypoints must have shape [N, 3], got {list(k.shape)}")
+        if f.ndim != 2 or f.shape[0] != k.shape[0]:
+            raise InputError(
+                f"local_features has shape {list(f.shape)} but keypoints has "
+                f"{k.shape[0]} rows; one feature row per keypoint is required"
+            )
+        if k.shape[0] > 0 and f.shape[1] != self.local_dim:
+            raise InputError(
+                f"local_features has dimension {f.shape[1]}, expected {self.local_dim}"
+            )
+
+    def __repr__(self) -> str:
+        ident = self.identity
+        return f"{type(self).__name__}(name={ident.name!r}, fingerprint={ident.fingerprint})"
+
+
+class EncoderSpec(BaseModel):
+    """Which encoder a map uses, with its settings; stored with the map (JSON).
+
+    - ``kind="handcrafted"``: uses ``preprocess`` and ``handcrafted``;
+    - ``kind="torchscript"``: uses ``preprocess``, ``model_path`` and ``device``;
+    - ``kind="precomputed"``: uses ``name``, ``global_dim`` and ``local_dim``.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    kind: Literal["handcrafted", "torchscript", "precomputed"] = "handcrafted"
+    preprocess: PreprocessConfig = PreprocessConfig()
+    handcrafted: HandcraftedEncoderConfig = HandcraftedEncoderConfig()
+    model_path: str | None = Field(None, description="torchscript: path of the model file")
+    device: Literal["auto", "cpu", "cuda"] = Field(
+        "cpu", description="torchscript: where the model runs ('auto' = CUDA if present)"
+    )
+    name: str | None = Field(None, description="precomputed: the client's network, e.g. 'egonn'")
+    global_dim: int | None = Field(None, ge=1, description="precomputed: descriptor length")
+    local_dim: int | None = Field(None, ge=1, description="precomputed: local feature dim")
+
+    @model_validator(mode="after")
+    def _check_kind_fields(self) -> EncoderSpec:
+        if self.kind == "torchscript" and not self.model_path:
+            raise ValueError("a torchscript encoder needs model_path")
+        if self.kind == "precomputed":
+            missing = [f for f in ("name", "global_dim", "local_dim") if getattr(self, f) is None]
+            if missing:
+                raise ValueError(f"a precomputed encoder needs {', '.join(missing)}")
+        return self
+
+
+def make_encoder(spec: EncoderSpec) -> Encoder:
+    """Build the encoder a spec describes.
+
+    Raises :class:`InputError` if a torchscript model file is missing or unreadable.
+    """
+    if spec.kind == "handcrafted":
+        from .handcrafted import HandcraftedEncoder
+
+        return HandcraftedEncoder(spec.handcrafted, spec.preprocess)
+    if spec.kind == "precomputed":
+        from .precomputed import PrecomputedEncoder
+
+        assert spec.name is not None and spec.global_dim is not None  # validated
+        assert spec.local_dim is not None
+        return PrecomputedEncoder(spec.name, spec.global_dim, spec.local_dim)
+    if spec.kind == "torchscript":
+        from .torchscript import TorchScriptEncoder
+
+        assert spec.model_path is not None  # validated
+        return TorchScriptEncoder(spec.model_path, spec.preprocess, device=spec.device)
+    raise InputError(f"unknown encoder kind {spec.kind!r}")  # pragma: no cover
