@@ -1,0 +1,205 @@
+"""The asynchronous client: :class:`Client`'s methods as coroutines."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import Mapping, Sequence
+from types import TracebackType
+from typing import Any, TypeVar
+
+import httpx
+
+from ._base import DEFAULT_BASE_URL, BaseClient, Call, WireFormat
+from ._errors import TransportError
+from ._models import InsertResult, Keyframe, KeyframeDeleted, KeyframeIn, Localization, MapInfo
+
+T = TypeVar("T")
+
+
+class AsyncClient(BaseClient):
+    """An asyncio connection to an sgvloc service; mirrors :class:`Client`.
+
+    Args:
+        base_url: where the service listens.
+        timeout: seconds (or an ``httpx.Timeout``) for connecting, sending and reading;
+            None waits forever.
+        retries: how many times a call is resent after a connection error or timeout,
+            with exponential backoff (``backoff * 2**n`` seconds, at most
+            ``max_backoff``). Only calls that are safe to resend are: GET and DELETE,
+            localize, and inserts whose keyframes all carry a ``key``; never
+            ``create_map`` or a keyless insert. Error answers (4xx/5xx) are never retried.
+        api_key: sent as ``Authorization: Bearer <key>``.
+        transport: an ``httpx.AsyncBaseTransport`` to send through (tests, custom TLS).
+        wire_format: ``"msgpack"`` (default; arrays travel as raw float32 bytes) or
+            ``"json"``.
+
+    Use as an async context manager (or await :meth:`aclose`). Errors are the exceptions of
+    :mod:`sgvloc_client._errors` (see :class:`~sgvloc_client.SgvlocError`).
+    """
+
+    def __init__(
+        self,
+        base_url: str = DEFAULT_BASE_URL,
+        timeout: float | httpx.Timeout | None = 30.0,
+        retries: int = 3,
+        api_key: str | None = None,
+        transport: httpx.AsyncBaseTransport | None = None,
+        *,
+        backoff: float = 0.2,
+        max_backoff: float = 5.0,
+        wire_format: WireFormat = "msgpack",
+    ) -> None:
+        super().__init__(
+            base_url,
+            timeout,
+            retries,
+            api_key,
+            backoff=backoff,
+            max_backoff=max_backoff,
+            wire_format=wire_format,
+        )
+        self._http = httpx.AsyncClient(transport=transport, **self._http_options())
+
+    async def __aenter__(self) -> AsyncClient:
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await self.aclose()
+
+    async def aclose(self) -> None:
+        """Close the connection pool."""
+        await self._http.aclose()
+
+    async def _send(self, call: Call[T]) -> T:
+        attempt = 0
+        while True:
+            try:
+                response = await self._http.request(
+                    call.method, call.path, content=call.content, headers=call.headers
+                )
+            except httpx.TransportError as exc:
+                await asyncio.sleep(self._retry_delay(call, attempt, exc))
+                attempt += 1
+                continue
+            return self._finish(call, response)
+
+    # ----------------------------------------------------------------------------------
+    # Probes
+
+    async def health(self) -> dict[str, Any]:
+        """``GET /healthz``: ``{"status": "ok"}`` while the process is alive."""
+        return await self._send(self._health())
+
+    async def ready(self) -> bool:
+        """``GET /readyz``: True once every map is loaded, False while loading (503)."""
+        return await self._send(self._ready())
+
+    async def wait_until_ready(self, timeout: float = 30.0, interval: float = 0.2) -> None:
+        """Poll :meth:`ready` until it is True; raise :class:`TransportError` after
+        ``timeout`` seconds (the service is unreachable or still loading)."""
+        deadline = time.monotonic() + timeout
+        while True:
+            try:
+                if await self._send(self._ready()):
+                    return
+                last = "the service is still loading its maps"
+            except TransportError as exc:
+                last = str(exc)
+            if time.monotonic() >= deadline:
+                raise TransportError(f"{self.base_url} not ready after {timeout} s: {last}")
+            await asyncio.sleep(interval)
+
+    # ----------------------------------------------------------------------------------
+    # Maps
+
+    async def create_map(
+        self,
+        name: str,
+        encoder: str | Mapping[str, Any] | None = None,
+        retrieval: str | Mapping[str, Any] | None = None,
+        localizer: Mapping[str, Any] | None = None,
+    ) -> MapInfo:
+        """Create an empty map.
+
+        ``encoder`` is an EncoderSpec (``{"kind": "handcrafted" | "torchscript" |
+        "precomputed", ...}``) or just its kind; default: the built-in handcrafted
+        encoder. ``retrieval`` is ``{"index": "flat" | "ivf" | "hnsw", ...}`` or just the
+        index name; ``localizer`` the map's default localize settings (``top_k``,
+        ``rerank``, ``sgv``, ``pose``). Raises :class:`Conflict` if the name is taken.
+        """
+        return await self._send(self._create_map(name, encoder, retrieval, localizer))
+
+    async def list_maps(self) -> list[MapInfo]:
+        """All maps."""
+        return await self._send(self._list_maps())
+
+    async def get_map(self, name: str) -> MapInfo:
+        """One map; raises :class:`NotFound` if there is none of that name."""
+        return await self._send(self._get_map(name))
+
+    async def delete_map(self, name: str) -> None:
+        """Delete a map and its keyframes; raises :class:`NotFound` if it does not exist."""
+        await self._send(self._delete_map(name))
+
+    # ----------------------------------------------------------------------------------
+    # Keyframes
+
+    async def insert_keyframes(
+        self, map: str, keyframes: Sequence[KeyframeIn | Mapping[str, Any]]
+    ) -> InsertResult:
+        """Insert keyframes (:class:`KeyframeIn` or dicts with its fields) in one request.
+
+        All or nothing: if one keyframe is bad none is stored, and the
+        :class:`BadRequest` names it (``field = "keyframes[3].points"``). Keyframes whose
+        ``key`` is already in the map are not inserted again (``created`` False).
+        """
+        return await self._send(self._insert_keyframes(map, keyframes))
+
+    async def insert_keyframe(
+        self,
+        map: str,
+        T_map_sensor: Any,
+        points: Any = None,
+        features: Mapping[str, Any] | None = None,
+        key: str | None = None,
+        metadata: Mapping[str, Any] | None = None,
+    ) -> InsertResult:
+        """Insert one keyframe; see :class:`KeyframeIn` for the arguments."""
+        kf = KeyframeIn(T_map_sensor, points, features, key, metadata)
+        return await self._send(self._insert_keyframes(map, [kf]))
+
+    async def get_keyframe(self, map: str, keyframe_id: int) -> Keyframe:
+        """One keyframe's pose, key and metadata."""
+        return await self._send(self._get_keyframe(map, keyframe_id))
+
+    async def delete_keyframe(self, map: str, keyframe_id: int) -> KeyframeDeleted:
+        """Delete one keyframe; returns the map's new version."""
+        return await self._send(self._delete_keyframe(map, keyframe_id))
+
+    # ----------------------------------------------------------------------------------
+    # Localize
+
+    async def localize(
+        self,
+        map: str,
+        points: Any = None,
+        features: Mapping[str, Any] | None = None,
+        top_k: int | None = None,
+        rerank: str | None = None,
+        refine: str | None = None,
+    ) -> Localization:
+        """Localize a scan (``points`` ``[P, 3|4]`` in the sensor frame) or precomputed
+        ``features`` in a map.
+
+        ``top_k``, ``rerank`` (``"none" | "average-qe" | "alpha-qe" | "ransac-rir" |
+        "fgr-rir" | "sgv"``) and ``refine`` (``"none" | "icp"``) override the map's
+        defaults. A scan that cannot be localized returns ``localized=False`` with the
+        reason; it is not an error.
+        """
+        return await self._send(self._localize(map, points, features, top_k, rerank, refine))

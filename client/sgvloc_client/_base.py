@@ -1,0 +1,311 @@
+"""What :class:`Client` and :class:`AsyncClient` share: building requests, parsing answers.
+
+Every API operation is a builder here that returns a :class:`Call` (method, path, encoded
+body, whether it is safe to resend, and how to turn the answer into a result). The two
+client classes only send calls, sync or async, and sleep between retries; all request and
+response logic lives in this module.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from importlib import metadata
+from typing import Any, Generic, Literal, TypeVar
+from urllib.parse import quote
+
+import httpx
+
+from . import wire
+from ._errors import APIError, SgvlocError, TransportError, error_class
+from ._models import (
+    InsertResult,
+    Keyframe,
+    KeyframeDeleted,
+    KeyframeIn,
+    Localization,
+    MapInfo,
+    features_body,
+    points_array,
+)
+
+T = TypeVar("T")
+
+DEFAULT_BASE_URL = "http://127.0.0.1:8470"
+WireFormat = Literal["msgpack", "json"]
+
+try:
+    __version__ = metadata.version("sgvloc")
+except metadata.PackageNotFoundError:  # running from a source tree
+    __version__ = "0+unknown"
+
+# Failures after which resending is worthwhile; others (bad URL scheme, proxy set-up)
+# would fail the same way again.
+_RETRYABLE = (httpx.TimeoutException, httpx.NetworkError, httpx.RemoteProtocolError)
+
+
+@dataclass(frozen=True)
+class Call(Generic[T]):
+    """One request ready to send and the way to read its answer.
+
+    ``idempotent``: resending after a connection error cannot change the outcome, so the
+    client may retry. ``parse(status, body)`` turns a success (or a status listed in
+    ``passthrough``) into the result; any other error status raises an :class:`APIError`.
+    """
+
+    method: str
+    path: str
+    parse: Callable[[int, Any], T]
+    content: bytes | None = None
+    headers: Mapping[str, str] | None = None
+    idempotent: bool = False
+    passthrough: tuple[int, ...] = ()
+
+
+def _body_only(fn: Callable[[Any], T]) -> Callable[[int, Any], T]:
+    return lambda _status, body: fn(body)
+
+
+def _map_path(name: str) -> str:
+    if not isinstance(name, str) or not name:
+        raise ValueError(f"map name must be a non-empty string, got {name!r}")
+    return f"/v1/maps/{quote(name, safe='')}"
+
+
+def _shorthand(value: str | Mapping[str, Any] | None, key: str) -> dict[str, Any] | None:
+    """``"hnsw"`` -> ``{"index": "hnsw"}``; a mapping is copied; None stays None."""
+    if value is None:
+        return None
+    if isinstance(value, str):
+        return {key: value}
+    return dict(value)
+
+
+class BaseClient:
+    """Configuration and request/response logic shared by the sync and async clients."""
+
+    def __init__(
+        self,
+        base_url: str = DEFAULT_BASE_URL,
+        timeout: float | httpx.Timeout | None = 30.0,
+        retries: int = 3,
+        api_key: str | None = None,
+        *,
+        backoff: float = 0.2,
+        max_backoff: float = 5.0,
+        wire_format: WireFormat = "msgpack",
+    ) -> None:
+        if retries < 0:
+            raise ValueError(f"retries must be >= 0, got {retries}")
+        if wire_format not in ("msgpack", "json"):
+            raise ValueError(f"wire_format must be 'msgpack' or 'json', got {wire_format!r}")
+        self.base_url = str(base_url).rstrip("/")
+        self.timeout = timeout if isinstance(timeout, httpx.Timeout) else httpx.Timeout(timeout)
+        self.retries = retries
+        self.backoff = backoff
+        self.max_backoff = max_backoff
+        self.wire_format: WireFormat = wire_format
+        self._api_key = api_key
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.base_url!r})"
+
+    # ----------------------------------------------------------------------------------
+    # Transport settings
+
+    def _http_options(self) -> dict[str, Any]:
+        """Keyword arguments for ``httpx.Client`` / ``httpx.AsyncClient``."""
+        headers = {
+            "Accept": wire.MSGPACK if self.wire_format == "msgpack" else wire.JSON,
+            "User-Agent": f"sgvloc-client/{__version__}",
+        }
+        if self._api_key:
+            headers["Authorization"] = f"Bearer {self._api_key}"
+        return {"base_url": self.base_url, "timeout": self.timeout, "headers": headers}
+
+    def _encode(self, body: Any) -> tuple[bytes, dict[str, str]]:
+        if self.wire_format == "msgpack":
+            return wire.packb(body), {"Content-Type": wire.MSGPACK}
+        return json.dumps(wire.to_jsonable(body)).encode(), {"Content-Type": wire.JSON}
+
+    def _call(
+        self,
+        method: str,
+        path: str,
+        parse: Callable[[int, Any], T],
+        body: Any = None,
+        *,
+        idempotent: bool,
+        passthrough: tuple[int, ...] = (),
+    ) -> Call[T]:
+        content, headers = (None, None) if body is None else self._encode(body)
+        return Call(method, path, parse, content, headers, idempotent, passthrough)
+
+    # ----------------------------------------------------------------------------------
+    # Retries
+
+    def _retry_delay(self, call: Call[Any], attempt: int, exc: httpx.TransportError) -> float:
+        """Seconds to wait before resending ``call`` after failed try number ``attempt``
+        (0-based); raises :class:`TransportError` when the call must not be resent."""
+        tries = attempt + 1
+        if call.idempotent and isinstance(exc, _RETRYABLE) and attempt < self.retries:
+            return min(self.max_backoff, self.backoff * 2**attempt)
+        kind = type(exc).__name__
+        detail = str(exc) or kind
+        raise TransportError(
+            f"{call.method} {self.base_url}{call.path} failed after {tries} "
+            f"attempt{'s' if tries > 1 else ''}: {kind}: {detail}",
+            attempts=tries,
+        ) from exc
+
+    # ----------------------------------------------------------------------------------
+    # Responses
+
+    def _finish(self, call: Call[T], response: httpx.Response) -> T:
+        """Decode ``response`` and return the call's result, or raise its error."""
+        status = response.status_code
+        body = self._decode(response)
+        if status >= 400 and status not in call.passthrough:
+            raise self._error(status, body)
+        return call.parse(status, body)
+
+    @staticmethod
+    def _decode(response: httpx.Response) -> Any:
+        content = response.content
+        if response.status_code == 204 or not content:
+            return None
+        ctype = response.headers.get("content-type", "").split(";")[0].strip().lower()
+        try:
+            if ctype == wire.MSGPACK:
+                return wire.unpackb(content)
+            if ctype == wire.JSON or ctype.endswith("+json"):
+                return json.loads(content)
+        except (wire.WireError, ValueError) as exc:
+            if response.status_code >= 400:
+                return response.text
+            raise SgvlocError(
+                f"cannot decode the {ctype} answer to {response.request.method} "
+                f"{response.request.url}: {exc}"
+            ) from None
+        return response.text
+
+    @staticmethod
+    def _error(status: int, body: Any) -> APIError:
+        err = body.get("error") if isinstance(body, dict) else None
+        if isinstance(err, dict):
+            code = str(err.get("code") or f"http_{status}")
+            message = str(err.get("message") or "")
+            field = err.get("field")
+        else:  # not the service's error shape (framework default, proxy page)
+            code = f"http_{status}"
+            detail = body.get("detail") if isinstance(body, dict) else body
+            message = str(detail or httpx.codes.get_reason_phrase(status))[:500]
+            field = None
+        return error_class(status, code)(status, code, message, field, body)
+
+    # ----------------------------------------------------------------------------------
+    # Requests, one builder per operation (documented on Client)
+
+    def _health(self) -> Call[dict[str, Any]]:
+        return self._call("GET", "/healthz", _body_only(dict), idempotent=True)
+
+    def _ready(self) -> Call[bool]:
+        return self._call(
+            "GET", "/readyz", lambda status, _b: status == 200, idempotent=True, passthrough=(503,)
+        )
+
+    def _create_map(
+        self,
+        name: str,
+        encoder: str | Mapping[str, Any] | None,
+        retrieval: str | Mapping[str, Any] | None,
+        localizer: Mapping[str, Any] | None,
+    ) -> Call[MapInfo]:
+        body: dict[str, Any] = {"name": name}
+        for key, value in (
+            ("encoder", _shorthand(encoder, "kind")),
+            ("retrieval", _shorthand(retrieval, "index")),
+            ("localizer", None if localizer is None else dict(localizer)),
+        ):
+            if value is not None:
+                body[key] = value
+        # Not idempotent: a resent create that had succeeded would answer 409.
+        return self._call("POST", "/v1/maps", _body_only(MapInfo.from_body), body, idempotent=False)
+
+    def _list_maps(self) -> Call[list[MapInfo]]:
+        return self._call(
+            "GET",
+            "/v1/maps",
+            _body_only(lambda b: [MapInfo.from_body(m) for m in b["maps"]]),
+            idempotent=True,
+        )
+
+    def _get_map(self, name: str) -> Call[MapInfo]:
+        return self._call("GET", _map_path(name), _body_only(MapInfo.from_body), idempotent=True)
+
+    def _delete_map(self, name: str) -> Call[None]:
+        return self._call("DELETE", _map_path(name), lambda _s, _b: None, idempotent=True)
+
+    def _insert_keyframes(
+        self, map: str, keyframes: Sequence[KeyframeIn | Mapping[str, Any]]
+    ) -> Call[InsertResult]:
+        if isinstance(keyframes, KeyframeIn | Mapping):
+            raise TypeError("keyframes must be a list; use insert_keyframe for one")
+        kfs = [KeyframeIn.coerce(k) for k in keyframes]
+        if not kfs:
+            raise ValueError("keyframes is empty")
+        # Keyed inserts are idempotent on the service, so a resend is harmless.
+        keyed = all(k.key is not None for k in kfs)
+        body = {"keyframes": [k.to_body() for k in kfs]}
+        return self._call(
+            "POST",
+            f"{_map_path(map)}/keyframes",
+            _body_only(InsertResult.from_body),
+            body,
+            idempotent=keyed,
+        )
+
+    def _get_keyframe(self, map: str, keyframe_id: int) -> Call[Keyframe]:
+        return self._call(
+            "GET",
+            f"{_map_path(map)}/keyframes/{int(keyframe_id)}",
+            _body_only(Keyframe.from_body),
+            idempotent=True,
+        )
+
+    def _delete_keyframe(self, map: str, keyframe_id: int) -> Call[KeyframeDeleted]:
+        return self._call(
+            "DELETE",
+            f"{_map_path(map)}/keyframes/{int(keyframe_id)}",
+            _body_only(KeyframeDeleted.from_body),
+            idempotent=True,
+        )
+
+    def _localize(
+        self,
+        map: str,
+        points: Any,
+        features: Mapping[str, Any] | None,
+        top_k: int | None,
+        rerank: str | None,
+        refine: str | None,
+    ) -> Call[Localization]:
+        if (points is None) == (features is None):
+            raise ValueError("give exactly one of points or features")
+        body: dict[str, Any] = {}
+        if points is not None:
+            body["points"] = points_array(points)
+        else:
+            body["features"] = features_body(features)
+        for key, value in (("top_k", top_k), ("rerank", rerank), ("refine", refine)):
+            if value is not None:
+                body[key] = value
+        # Localizing reads the map and changes nothing: safe to resend.
+        return self._call(
+            "POST",
+            f"{_map_path(map)}/localize",
+            _body_only(Localization.from_body),
+            body,
+            idempotent=True,
+        )

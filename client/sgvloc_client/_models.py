@@ -1,0 +1,306 @@
+"""Typed request and result objects of the client.
+
+Results are built from the service's response bodies (JSON or MessagePack, see
+``docs/API.md``). Transforms are 4x4 row-major float64 ndarrays named by their frames:
+``T_map_sensor`` maps points of the sensor frame into the map frame. Quaternions are
+``[x, y, z, w]`` (scalar last). Each result keeps the decoded body in ``raw`` so fields
+added by newer services stay reachable.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+
+def _pose(value: Any) -> np.ndarray | None:
+    """A 4x4 float64 transform (writable copy), or None."""
+    if value is None:
+        return None
+    return np.array(value, dtype=np.float64).reshape(4, 4)
+
+
+def _vector(value: Any) -> np.ndarray | None:
+    return None if value is None else np.array(value, dtype=np.float64).reshape(-1)
+
+
+# --------------------------------------------------------------------------------------
+# Requests
+
+
+@dataclass
+class KeyframeIn:
+    """One keyframe to insert into a map.
+
+    - ``T_map_sensor``: ``[4, 4]`` pose of the scan in the map frame (sent as float64);
+    - ``points``: ``[P, 3]`` or ``[P, 4]`` (x y z [intensity]) scan in the sensor frame
+      (sent as float32); or
+    - ``features``: precomputed ``{"global_descriptor": [G], "keypoints": [N, 3],
+      "local_features": [N, D]}`` for maps with a ``precomputed`` encoder;
+    - ``key``: optional client-chosen unique key; a keyframe whose key is already in the
+      map is not inserted again (``created: false``), which makes retries safe;
+    - ``metadata``: optional ``{"timestamp": float, "sequence": str, "tags": {str: str}}``.
+
+    Exactly one of ``points`` / ``features`` must be given; shapes and values are checked
+    by the service, whose error names the offending field.
+    """
+
+    T_map_sensor: Any
+    points: Any = None
+    features: Mapping[str, Any] | None = None
+    key: str | None = None
+    metadata: Mapping[str, Any] | None = None
+
+    def to_body(self) -> dict[str, Any]:
+        """The request body of this keyframe, with arrays as little-endian ndarrays."""
+        body: dict[str, Any] = {"T_map_sensor": np.asarray(self.T_map_sensor, dtype=np.float64)}
+        if self.points is not None:
+            body["points"] = points_array(self.points)
+        if self.features is not None:
+            body["features"] = features_body(self.features)
+        if self.key is not None:
+            body["key"] = self.key
+        if self.metadata is not None:
+            body["metadata"] = dict(self.metadata)
+        return body
+
+    @classmethod
+    def coerce(cls, value: KeyframeIn | Mapping[str, Any]) -> KeyframeIn:
+        """Accept a :class:`KeyframeIn` or a dict with the same fields."""
+        if isinstance(value, KeyframeIn):
+            return value
+        if not isinstance(value, Mapping):
+            kind = type(value).__name__
+            raise TypeError(f"a keyframe must be a KeyframeIn or a dict, got {kind}")
+        unknown = set(value) - {"T_map_sensor", "points", "features", "key", "metadata"}
+        if unknown:
+            raise TypeError(f"unknown keyframe field(s): {', '.join(sorted(unknown))}")
+        if "T_map_sensor" not in value:
+            raise TypeError("a keyframe needs T_map_sensor")
+        return cls(**value)
+
+
+def points_array(points: Any) -> np.ndarray:
+    """A scan as a float32 array (shape unchecked: the service names shape errors)."""
+    arr = np.asarray(points)
+    if arr.dtype.kind not in "fiub":
+        raise TypeError(f"points must be a numeric array, got dtype {arr.dtype}")
+    return arr.astype(np.float32, copy=False)
+
+
+def features_body(features: Mapping[str, Any]) -> dict[str, Any]:
+    """Precomputed features with float32 arrays; other entries are passed through."""
+    return {
+        k: np.asarray(v, dtype=np.float32)
+        if k in ("global_descriptor", "keypoints", "local_features")
+        else v
+        for k, v in features.items()
+    }
+
+
+# --------------------------------------------------------------------------------------
+# Results
+
+
+@dataclass(frozen=True)
+class EncoderInfo:
+    """The encoder a map was built with; ``fingerprint`` identifies it exactly."""
+
+    kind: str
+    name: str
+    fingerprint: str
+    global_dim: int | None
+    local_dim: int | None
+    spec: dict[str, Any]
+
+    @classmethod
+    def from_body(cls, d: Mapping[str, Any]) -> EncoderInfo:
+        return cls(
+            kind=d.get("kind", ""),
+            name=d.get("name", ""),
+            fingerprint=d.get("fingerprint", ""),
+            global_dim=d.get("global_dim"),
+            local_dim=d.get("local_dim"),
+            spec=dict(d.get("spec") or {}),
+        )
+
+
+@dataclass(frozen=True)
+class MapInfo:
+    """A map: name, version (changes on every insert/delete), size and settings."""
+
+    name: str
+    version: int
+    keyframes: int
+    encoder: EncoderInfo
+    retrieval: dict[str, Any]
+    index_kind: str
+    created_at: Any
+    raw: dict[str, Any] = field(repr=False, compare=False, default_factory=dict)
+
+    @classmethod
+    def from_body(cls, d: Mapping[str, Any]) -> MapInfo:
+        return cls(
+            name=d["name"],
+            version=int(d["version"]),
+            keyframes=int(d["keyframes"]),
+            encoder=EncoderInfo.from_body(d.get("encoder") or {}),
+            retrieval=dict(d.get("retrieval") or {}),
+            index_kind=d.get("index_kind", ""),
+            created_at=d.get("created_at"),
+            raw=dict(d),
+        )
+
+
+@dataclass(frozen=True)
+class InsertResult:
+    """Result of an insert: per keyframe, in request order, its id and whether it is new."""
+
+    ids: list[int]
+    created: list[bool]
+    map_version: int
+
+    @property
+    def num_created(self) -> int:
+        """How many keyframes were actually added (the others had known keys)."""
+        return sum(self.created)
+
+    @classmethod
+    def from_body(cls, d: Mapping[str, Any]) -> InsertResult:
+        return cls(
+            ids=[int(i) for i in d["ids"]],
+            created=[bool(c) for c in d["created"]],
+            map_version=int(d["map_version"]),
+        )
+
+
+@dataclass(frozen=True)
+class Keyframe:
+    """A stored keyframe (``GET /v1/maps/{map}/keyframes/{id}``)."""
+
+    id: int
+    key: str | None
+    T_map_sensor: np.ndarray  # [4, 4] float64
+    metadata: dict[str, Any]
+    num_keypoints: int
+    created_at: Any
+    raw: dict[str, Any] = field(repr=False, compare=False, default_factory=dict)
+
+    @classmethod
+    def from_body(cls, d: Mapping[str, Any]) -> Keyframe:
+        return cls(
+            id=int(d["id"]),
+            key=d.get("key"),
+            T_map_sensor=_pose(d["T_map_sensor"]),
+            metadata=dict(d.get("metadata") or {}),
+            num_keypoints=int(d.get("num_keypoints") or 0),
+            created_at=d.get("created_at"),
+            raw=dict(d),
+        )
+
+
+@dataclass(frozen=True)
+class KeyframeDeleted:
+    """Result of deleting a keyframe: its id and the map's new version."""
+
+    id: int
+    map_version: int
+
+    @classmethod
+    def from_body(cls, d: Mapping[str, Any]) -> KeyframeDeleted:
+        return cls(id=int(d["deleted"]), map_version=int(d["map_version"]))
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """A keyframe proposed for a query: retrieval similarity, rank and re-ranking score."""
+
+    keyframe_id: int
+    similarity: float
+    retrieval_rank: int
+    score: float | None
+
+    @classmethod
+    def from_body(cls, d: Mapping[str, Any]) -> Candidate:
+        score = d.get("score")
+        return cls(
+            keyframe_id=int(d["keyframe_id"]),
+            similarity=float(d["similarity"]),
+            retrieval_rank=int(d["retrieval_rank"]),
+            score=None if score is None else float(score),
+        )
+
+
+@dataclass(frozen=True)
+class PoseInfo:
+    """Diagnostics of the pose estimate (RANSAC, then optional ICP refinement)."""
+
+    inliers: int
+    num_correspondences: int
+    fitness: float
+    inlier_rmse: float
+    refined: bool
+
+    @classmethod
+    def from_body(cls, d: Mapping[str, Any]) -> PoseInfo:
+        return cls(
+            inliers=int(d["inliers"]),
+            num_correspondences=int(d["num_correspondences"]),
+            fitness=float(d["fitness"]),
+            inlier_rmse=float(d["inlier_rmse"]),
+            refined=bool(d["refined"]),
+        )
+
+
+@dataclass(frozen=True)
+class Localization:
+    """The answer to a localize request.
+
+    ``localized`` is False (with ``reason``) when no trustworthy pose was found; the pose
+    fields are then None. ``T_map_sensor`` ``[4, 4]`` places the query scan in the map;
+    ``T_keyframe_sensor`` ``[4, 4]`` places it relative to the matched keyframe
+    ``keyframe_id``; ``translation`` ``[3]`` and ``quaternion_xyzw`` ``[4]`` repeat
+    ``T_map_sensor``. ``map_version`` says which state of the map answered.
+    """
+
+    map: str
+    map_version: int
+    localized: bool
+    reason: str
+    keyframe_id: int | None
+    T_map_sensor: np.ndarray | None  # [4, 4] float64
+    T_keyframe_sensor: np.ndarray | None  # [4, 4] float64
+    translation: np.ndarray | None  # [3]
+    quaternion_xyzw: np.ndarray | None  # [4], scalar last
+    pose: PoseInfo | None
+    retrieved: list[Candidate]
+    reranked: list[Candidate]
+    top1_changed: bool
+    rerank_method: str
+    timings_ms: dict[str, float]
+    raw: dict[str, Any] = field(repr=False, compare=False, default_factory=dict)
+
+    @classmethod
+    def from_body(cls, d: Mapping[str, Any]) -> Localization:
+        kf = d.get("keyframe_id")
+        return cls(
+            map=d["map"],
+            map_version=int(d["map_version"]),
+            localized=bool(d["localized"]),
+            reason=d.get("reason", ""),
+            keyframe_id=None if kf is None else int(kf),
+            T_map_sensor=_pose(d.get("T_map_sensor")),
+            T_keyframe_sensor=_pose(d.get("T_keyframe_sensor")),
+            translation=_vector(d.get("translation")),
+            quaternion_xyzw=_vector(d.get("quaternion_xyzw")),
+            pose=None if d.get("pose") is None else PoseInfo.from_body(d["pose"]),
+            retrieved=[Candidate.from_body(c) for c in d.get("retrieved") or []],
+            reranked=[Candidate.from_body(c) for c in d.get("reranked") or []],
+            top1_changed=bool(d.get("top1_changed", False)),
+            rerank_method=d.get("rerank_method", ""),
+            timings_ms={k: float(v) for k, v in (d.get("timings_ms") or {}).items()},
+            raw=dict(d),
+        )

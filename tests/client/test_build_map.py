@@ -1,0 +1,107 @@
+"""``build_map`` and ``sgvloc build-map``: a KITTI-layout sequence into a running service."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from sgvloc.build_map import build_map, parse_encoder, select_frames
+from sgvloc.cli import app
+from sgvloc.core.errors import InputError, NotFoundError
+from sgvloc_client import Client
+from typer.testing import CliRunner
+
+
+@pytest.fixture(scope="module")
+def num_database(balm_mini_roles: list[tuple[int, str]]) -> int:
+    """The database scans of balm_mini are its first files (queries come last)."""
+    roles = [role for _, role in balm_mini_roles]
+    n = roles.count("database")
+    assert roles[:n] == ["database"] * n
+    return n
+
+
+def test_select_frames_and_encoder_option() -> None:
+    assert select_frames(10) == list(range(10))
+    assert select_frames(10, every=3) == [0, 3, 6, 9]
+    assert select_frames(10, every=3, limit=2) == [0, 3]
+    assert select_frames(10, limit=0) == []
+    with pytest.raises(InputError, match="every"):
+        select_frames(10, every=0)
+    assert parse_encoder(None) is None
+    assert parse_encoder("handcrafted") == {"kind": "handcrafted"}
+    assert parse_encoder('{"kind": "handcrafted", "num_keypoints": 64}')["num_keypoints"] == 64
+    with pytest.raises(InputError, match="JSON"):
+        parse_encoder("{kind")
+
+
+def test_build_map_inserts_database_scans_once(
+    service_url: str, balm_mini_dir: Path, num_database: int
+) -> None:
+    first = build_map(
+        balm_mini_dir, service_url, "built", batch_size=5, limit=num_database, progress=False
+    )
+    assert (first.scans, first.created, first.existing) == (num_database, num_database, 0)
+    assert first.keyframes == num_database
+
+    # Re-running inserts nothing new: every key is already in the map.
+    again = build_map(
+        balm_mini_dir, service_url, "built", batch_size=7, limit=num_database, progress=False
+    )
+    assert (again.created, again.existing, again.keyframes) == (0, num_database, num_database)
+
+    with Client(service_url) as c:
+        assert c.get_map("built").keyframes == num_database
+        # keys and poses come from the sequence
+        poses = np.loadtxt(balm_mini_dir / "poses.txt").reshape(-1, 3, 4)
+        times = np.loadtxt(balm_mini_dir / "times.txt")
+        res = c.insert_keyframe("built", np.eye(4), points=np.ones((10, 3)), key="balm_mini/000003")
+        assert res.created == [False]
+        kf = c.get_keyframe("built", res.ids[0])
+        np.testing.assert_allclose(kf.T_map_sensor[:3], poses[3], atol=1e-9)
+        assert kf.metadata["sequence"] == "balm_mini"
+        assert kf.metadata["timestamp"] == pytest.approx(times[3])
+        c.delete_map("built")
+
+
+def test_build_map_resumes_and_respects_create(
+    service_url: str, balm_mini_dir: Path, num_database: int
+) -> None:
+    with pytest.raises(NotFoundError, match="does not exist"):
+        build_map(balm_mini_dir, service_url, "resumed", create=False, progress=False)
+    part = build_map(balm_mini_dir, service_url, "resumed", every=2, limit=3, progress=False)
+    assert part.created == 3 and part.keyframes == 3  # scans 0, 2, 4
+    with Client(service_url) as c:
+        rest = build_map(
+            balm_mini_dir, c, "resumed", create=False, limit=num_database, progress=False
+        )
+        assert c.get_map("resumed").keyframes == num_database
+        c.delete_map("resumed")
+    assert (rest.created, rest.existing) == (num_database - 3, 3)
+
+
+def test_build_map_command(service_url: str, balm_mini_dir: Path) -> None:
+    runner = CliRunner()
+    args = ["build-map", str(balm_mini_dir), "--map", "cli-built", "--url", service_url]
+    args += ["--limit", "2", "--no-progress"]
+    out = runner.invoke(app, args)
+    assert out.exit_code == 0, out.output
+    assert "2 new keyframes" in out.output
+    out = runner.invoke(app, args)
+    assert out.exit_code == 0, out.output
+    assert "0 new keyframes, 2 already present" in out.output
+
+    missing = ["build-map", str(balm_mini_dir), "--map", "nope", "--url", service_url]
+    out = runner.invoke(app, [*missing, "--no-create", "--no-progress"])
+    assert out.exit_code == 1 and "does not exist" in out.output
+    with Client(service_url) as c:
+        c.delete_map("cli-built")
+
+
+def test_build_map_needs_poses(tmp_path: Path, balm_mini_dir: Path) -> None:
+    (tmp_path / "velodyne").mkdir()
+    src = balm_mini_dir / "velodyne" / "000000.bin"
+    (tmp_path / "velodyne" / "000000.bin").write_bytes(src.read_bytes())
+    with pytest.raises(InputError, match="poses.txt"):
+        build_map(tmp_path, "http://127.0.0.1:9", "m", progress=False)

@@ -1,0 +1,351 @@
+"""SDK behaviour that needs no service: error mapping, headers, retries, imports, scans.
+
+Requests go through ``httpx.MockTransport`` or to a closed port.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import subprocess
+import sys
+import tempfile
+import textwrap
+from pathlib import Path
+
+import httpx
+import msgpack
+import numpy as np
+import pytest
+from sgvloc_client import (
+    APIError,
+    AsyncClient,
+    BadRequest,
+    Client,
+    Conflict,
+    EncoderMismatch,
+    KeyframeIn,
+    NotFound,
+    Overloaded,
+    PayloadTooLarge,
+    ScanFileError,
+    ServerError,
+    SgvlocError,
+    TransportError,
+    wire,
+)
+from sgvloc_client.scans import read_kitti_bin, read_scan
+
+
+def _packed(status: int, body: object) -> httpx.Response:
+    return httpx.Response(status, content=wire.packb(body), headers={"Content-Type": wire.MSGPACK})
+
+
+def _error_response(status: int, code: str, message: str = "m", field=None) -> httpx.Response:
+    return httpx.Response(
+        status, json={"error": {"code": code, "message": message, "field": field}}
+    )
+
+
+@pytest.mark.parametrize(
+    ("status", "code", "cls"),
+    [
+        (400, "bad_body", BadRequest),
+        (415, "unsupported_media_type", BadRequest),
+        (422, "invalid_input", BadRequest),
+        (404, "not_found", NotFound),
+        (409, "conflict", Conflict),
+        (409, "encoder_mismatch", EncoderMismatch),
+        (413, "payload_too_large", PayloadTooLarge),
+        (429, "overloaded", Overloaded),
+        (503, "not_ready", Overloaded),
+        (500, "internal", ServerError),
+        (502, "http_502", ServerError),
+        (401, "unauthorized", APIError),
+    ],
+)
+def test_error_status_maps_to_exception(status: int, code: str, cls: type) -> None:
+    transport = httpx.MockTransport(
+        lambda request: _error_response(status, code, "what is wrong", "keyframes[3].points")
+    )
+    with Client(transport=transport, retries=0) as c, pytest.raises(cls) as info:
+        c.get_map("campus")
+    err = info.value
+    assert type(err) is cls
+    assert isinstance(err, APIError) and isinstance(err, SgvlocError)
+    assert (err.status, err.code, err.message) == (status, code, "what is wrong")
+    assert err.field == "keyframes[3].points"
+    assert "keyframes[3].points" in str(err)
+
+
+def test_error_body_in_msgpack_and_foreign_shapes() -> None:
+    def handler(request: httpx.Request) -> httpx.Response:
+        if request.url.path.endswith("/a"):
+            err = {"code": "not_found", "message": "no map", "field": None}
+            return _packed(404, {"error": err})
+        if request.url.path.endswith("/b"):  # framework default body
+            return httpx.Response(405, json={"detail": "Method Not Allowed"})
+        return httpx.Response(502, text="<html>bad gateway</html>")
+
+    with Client(transport=httpx.MockTransport(handler), retries=0) as c:
+        with pytest.raises(NotFound, match="no map"):
+            c.get_map("a")
+        with pytest.raises(APIError) as info:
+            c.get_map("b")
+        assert (info.value.status, info.value.code) == (405, "http_405")
+        assert "Method Not Allowed" in info.value.message
+        with pytest.raises(ServerError) as info:
+            c.get_map("c")
+        assert info.value.code == "http_502"
+
+
+def test_requests_are_msgpack_with_auth_header() -> None:
+    seen: list[httpx.Request] = []
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        seen.append(request)
+        body = {"ids": [7], "created": [True], "map_version": 3}
+        return _packed(201, body)
+
+    T = np.eye(4)
+    T[:3, 3] = [1.0, 2.0, 3.0]
+    pts = np.arange(12, dtype=np.float64).reshape(3, 4)
+    with Client(transport=httpx.MockTransport(handler), api_key="s3cret") as c:
+        res = c.insert_keyframe("campus", T, points=pts, key="seq/000001", metadata={"tags": {}})
+    assert (res.ids, res.created, res.map_version, res.num_created) == ([7], [True], 3, 1)
+
+    (req,) = seen
+    assert req.method == "POST" and req.url.path == "/v1/maps/campus/keyframes"
+    assert req.headers["content-type"] == wire.MSGPACK
+    assert req.headers["accept"] == wire.MSGPACK
+    assert req.headers["authorization"] == "Bearer s3cret"
+    raw = msgpack.unpackb(req.content, raw=False)  # arrays travel as raw bytes
+    kf = raw["keyframes"][0]
+    assert kf["points"]["__nd__"] is True and kf["points"]["dtype"] == "<f4"
+    assert kf["T_map_sensor"]["dtype"] == "<f8"
+    decoded = wire.unpackb(req.content)["keyframes"][0]
+    np.testing.assert_array_equal(decoded["T_map_sensor"], T)
+    np.testing.assert_array_equal(decoded["points"], pts.astype(np.float32))
+    assert decoded["key"] == "seq/000001"
+
+
+def test_json_wire_format_and_no_auth_by_default() -> None:
+    seen: list[httpx.Request] = []
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        seen.append(request)
+        return httpx.Response(200, json={"status": "ok"})
+
+    with Client(transport=httpx.MockTransport(handler), wire_format="json") as c:
+        assert c.health() == {"status": "ok"}
+        with pytest.raises(ValueError, match="exactly one"):
+            c.localize("m")
+    assert seen[0].headers["accept"] == wire.JSON
+    assert "authorization" not in seen[0].headers
+
+
+def test_localize_body_and_typed_result() -> None:
+    T = np.eye(4)
+    T[:3, 3] = [4.0, 5.0, 6.0]
+    answer = {
+        "map": "campus",
+        "map_version": 9,
+        "localized": True,
+        "reason": "ok",
+        "keyframe_id": 3,
+        "T_map_sensor": T,
+        "T_keyframe_sensor": np.eye(4),
+        "translation": np.array([4.0, 5.0, 6.0]),
+        "quaternion_xyzw": np.array([0.0, 0.0, 0.0, 1.0]),
+        "pose": {
+            "inliers": 40,
+            "num_correspondences": 100,
+            "fitness": 0.4,
+            "inlier_rmse": 0.1,
+            "refined": False,
+        },
+        "retrieved": [{"keyframe_id": 3, "similarity": 0.9, "retrieval_rank": 0, "score": 0.8}],
+        "reranked": [{"keyframe_id": 3, "similarity": 0.9, "retrieval_rank": 0, "score": 0.8}],
+        "top1_changed": False,
+        "rerank_method": "sgv",
+        "timings_ms": {"encode": 1.0, "total": 2.0},
+    }
+    seen: list[dict] = []
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        seen.append(wire.unpackb(request.content))
+        return _packed(200, answer)
+
+    with Client(transport=httpx.MockTransport(handler)) as c:
+        loc = c.localize("campus", points=np.zeros((5, 3)), top_k=5, rerank="sgv")
+    assert seen[0]["top_k"] == 5 and seen[0]["rerank"] == "sgv" and "refine" not in seen[0]
+    assert seen[0]["points"].dtype == np.float32
+    assert loc.localized and loc.keyframe_id == 3 and loc.map_version == 9
+    assert loc.T_map_sensor.shape == (4, 4) and loc.T_map_sensor.dtype == np.float64
+    np.testing.assert_array_equal(loc.T_map_sensor, T)
+    loc.T_map_sensor[0, 0] = 2.0  # results own writable copies
+    assert loc.pose.inliers == 40 and loc.retrieved[0].score == 0.8
+    assert loc.quaternion_xyzw.tolist() == [0.0, 0.0, 0.0, 1.0]
+
+
+class CountingTransport(httpx.HTTPTransport):
+    """A real transport that counts the requests it tries to send."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.sent = 0
+
+    def handle_request(self, request: httpx.Request) -> httpx.Response:
+        self.sent += 1
+        return super().handle_request(request)
+
+
+def test_retries_on_closed_port_only_for_idempotent_calls(closed_url: str) -> None:
+    url = closed_url
+    kf = {"T_map_sensor": np.eye(4), "points": np.zeros((4, 3))}
+
+    def attempts(call) -> int:
+        transport = CountingTransport()
+        with Client(url, retries=2, backoff=0.01, transport=transport) as c:
+            with pytest.raises(TransportError) as info:
+                call(c)
+        assert info.value.attempts == transport.sent
+        assert isinstance(info.value.__cause__, httpx.ConnectError)
+        return transport.sent
+
+    assert attempts(lambda c: c.get_map("m")) == 3
+    assert attempts(lambda c: c.delete_map("m")) == 3
+    assert attempts(lambda c: c.localize("m", points=np.zeros((4, 3)))) == 3
+    assert attempts(lambda c: c.insert_keyframes("m", [{**kf, "key": "a"}])) == 3
+    # Not safe to resend: a keyless insert could store twice, a create could 409.
+    assert attempts(lambda c: c.insert_keyframes("m", [{**kf, "key": "a"}, kf])) == 1
+    assert attempts(lambda c: c.create_map("m")) == 1
+
+    with Client(url, retries=0) as c, pytest.raises(TransportError, match="1 attempt"):
+        c.health()
+
+
+def test_async_client_retries_and_errors(closed_url: str) -> None:
+    url = closed_url
+
+    async def main() -> None:
+        async with AsyncClient(url, retries=1, backoff=0.01) as c:
+            with pytest.raises(TransportError) as info:
+                await c.list_maps()
+            assert info.value.attempts == 2
+        transport = httpx.MockTransport(lambda r: _error_response(409, "conflict"))
+        async with AsyncClient(transport=transport) as c:
+            with pytest.raises(Conflict):
+                await c.create_map("campus")
+
+    asyncio.run(main())
+
+
+def test_timeout_is_an_httpx_timeout_value() -> None:
+    with Client(timeout=2.5) as c:
+        assert c.timeout == httpx.Timeout(2.5)
+    custom = httpx.Timeout(10.0, connect=1.0)
+    with Client(timeout=custom) as c:
+        assert c.timeout is custom
+
+
+def test_keyframe_in_coercion() -> None:
+    kf = KeyframeIn.coerce({"T_map_sensor": np.eye(4), "points": [[1, 2, 3]], "key": "k"})
+    body = kf.to_body()
+    assert body["points"].dtype == np.float32 and body["T_map_sensor"].dtype == np.float64
+    assert "features" not in body and "metadata" not in body
+    with pytest.raises(TypeError, match="unknown keyframe field"):
+        KeyframeIn.coerce({"T_map_sensor": np.eye(4), "pose": np.eye(4)})
+    with Client() as c, pytest.raises(TypeError, match="must be a list"):
+        c.insert_keyframes("m", kf)
+
+
+def test_client_imports_without_heavy_dependencies() -> None:
+    code = textwrap.dedent(
+        """
+        import sys
+        from importlib.abc import MetaPathFinder
+
+        BLOCKED = ("torch", "open3d", "faiss", "scipy", "fastapi", "sgvloc.core.encoders")
+
+        class Block(MetaPathFinder):
+            def find_spec(self, name, path=None, target=None):
+                if name.split(".")[0] in BLOCKED or name in BLOCKED:
+                    raise ImportError(f"{name} is blocked")
+                return None
+
+        sys.meta_path.insert(0, Block())
+        import numpy as np
+        import sgvloc_client
+        from sgvloc_client import Client, AsyncClient, KeyframeIn
+        from sgvloc_client.scans import read_scan
+        pts = read_scan(sys.argv[1])
+        assert pts.shape[1] == 4
+        print("ok", len(sgvloc_client.__all__))
+        """
+    )
+    scan = "tests/fixtures/balm_mini/velodyne/000000.bin"
+    npy_code = code.replace("read_scan(sys.argv[1])", "read_scan(sys.argv[2])")
+    with tempfile.TemporaryDirectory() as d:
+        npy = Path(d) / "scan.npy"
+        np.save(npy, np.zeros((5, 3), dtype=np.float32))
+        for src in (code, npy_code):
+            out = subprocess.run(
+                [sys.executable, "-c", src, scan, str(npy)],
+                capture_output=True,
+                text=True,
+                timeout=60,
+                cwd=Path(__file__).resolve().parents[2],
+            )
+            assert out.returncode == 0, out.stderr
+            assert out.stdout.startswith("ok")
+
+
+def test_read_scan_formats_and_errors(tmp_path, balm_mini_dir) -> None:
+    pts = read_kitti_bin(balm_mini_dir / "velodyne" / "000000.bin")
+    assert pts.dtype == np.float32 and pts.shape == (9120, 4)
+    np.save(tmp_path / "a.npy", pts[:, :3].astype(np.float64))
+    a = read_scan(tmp_path / "a.npy")
+    assert a.shape == (9120, 4) and a.dtype == np.float32
+    np.testing.assert_array_equal(a[:, :3], pts[:, :3])
+    assert (a[:, 3] == 0).all()
+
+    (tmp_path / "bad.bin").write_bytes(b"\0" * 10)
+    with pytest.raises(ScanFileError, match="multiple of 16"):
+        read_scan(tmp_path / "bad.bin")
+    with pytest.raises(ScanFileError, match="not found|cannot read"):
+        read_scan(tmp_path / "missing.bin")
+    with pytest.raises(ScanFileError, match="extension"):
+        read_scan(tmp_path / "scan.xyz")
+    (tmp_path / "bad.pcd").write_text("VERSION 0.7\nFIELDS a b\n")
+    with pytest.raises(ScanFileError, match="bad.pcd"):
+        read_scan(tmp_path / "bad.pcd")
+    assert issubclass(ScanFileError, ValueError)
+
+
+def test_json_bodies_roundtrip_through_models() -> None:
+    info = {
+        "name": "campus",
+        "version": 2,
+        "keyframes": 5,
+        "encoder": {"kind": "handcrafted", "name": "h", "fingerprint": "ab", "spec": {}},
+        "retrieval": {"index": "flat"},
+        "index_kind": "flat",
+        "created_at": "2024-01-01T00:00:00Z",
+    }
+    transport = httpx.MockTransport(
+        lambda r: httpx.Response(
+            200,
+            content=json.dumps({"maps": [info]}).encode(),
+            headers={"Content-Type": "application/json"},
+        )
+    )
+    with Client(transport=transport) as c:
+        (m,) = c.list_maps()
+    assert (m.name, m.version, m.keyframes, m.encoder.kind, m.index_kind) == (
+        "campus",
+        2,
+        5,
+        "handcrafted",
+        "flat",
+    )
