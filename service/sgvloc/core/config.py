@@ -30,8 +30,8 @@ class PreprocessConfig(_Section):
 class HandcraftedEncoderConfig(_Section):
     """Built-in encoder: ScanContext-style yaw-invariant global descriptor + FPFH keypoints."""
 
-    num_keypoints: int = Field(256, ge=1, le=20000)
-    fpfh_radius: float = Field(1.5, gt=0.0, description="FPFH feature radius (m)")
+    num_keypoints: int = Field(512, ge=1, le=20000)
+    fpfh_radius: float = Field(2.0, gt=0.0, description="FPFH feature radius (m)")
     normal_radius: float = Field(0.75, gt=0.0, description="normal estimation radius (m)")
     rings: int = Field(20, ge=2, description="radial bins of the polar grid")
     sectors: int = Field(60, ge=4, description="angular bins of the polar grid")
@@ -72,9 +72,14 @@ class PoseConfig(_Section):
     confidence: float = Field(0.999, gt=0.0, le=1.0)
     mutual_filter: bool = True
     seed: int = 0
-    refine: Literal["none", "icp"] = "none"
-    icp_max_distance: float = Field(1.0, gt=0.0)
+    refine: Literal["none", "icp"] = "icp"
+    icp_max_distance: float = Field(1.0, gt=0.0, description="ICP correspondence distance (m)")
     icp_iterations: int = Field(30, ge=1)
+    min_icp_fitness: float = Field(
+        0.5, ge=0.0, le=1.0,
+        description="after ICP: share of query points within icp_max_distance of the "
+        "keyframe cloud needed to call the pose localized (replaces the RANSAC thresholds)",
+    )
     min_inliers: int = Field(10, ge=3, description="fewer RANSAC inliers = not localized")
     min_fitness: float = Field(0.05, ge=0.0, le=1.0, description="lower fitness = not localized")
 

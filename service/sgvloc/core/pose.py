@@ -140,7 +140,12 @@ def ransac_pose(
     _validate("target", dst_kp, dst_feats)
     if min(len(src_kp), len(dst_kp)) < cfg.ransac_n:
         return PoseResult(
-            np.eye(4), 0, 0, 0.0, 0.0, "not_localized",
+            np.eye(4),
+            0,
+            0,
+            0.0,
+            0.0,
+            "not_localized",
             f"too few keypoints for RANSAC (source {len(src_kp)}, target {len(dst_kp)})",
         )
 
@@ -148,7 +153,12 @@ def ransac_pose(
     pairs = feature_correspondences(src_feats, dst_feats, cfg.mutual_filter)  # [C, 2]
     if len(pairs) < cfg.ransac_n:
         return PoseResult(
-            np.eye(4), len(pairs), 0, 0.0, 0.0, "not_localized",
+            np.eye(4),
+            len(pairs),
+            0,
+            0.0,
+            0.0,
+            "not_localized",
             f"only {len(pairs)} feature correspondences survive the mutual filter",
         )
 
@@ -192,7 +202,12 @@ def fgr_pose(
     pairs = feature_correspondences(src_feats, dst_feats, cfg.mutual_filter)  # [C, 2]
     if len(pairs) < cfg.ransac_n:
         return PoseResult(
-            np.eye(4), len(pairs), 0, 0.0, 0.0, "not_localized",
+            np.eye(4),
+            len(pairs),
+            0,
+            0.0,
+            0.0,
+            "not_localized",
             f"only {len(pairs)} feature correspondences survive the mutual filter",
         )
     reg = o3d.pipelines.registration
@@ -201,7 +216,9 @@ def fgr_pose(
         use_absolute_scale=True, maximum_correspondence_distance=cfg.max_correspondence_distance
     )
     result = reg.registration_fgr_based_on_correspondence(
-        to_cloud(src_kp), to_cloud(dst_kp), o3d.utility.Vector2iVector(pairs.astype(np.int32)),
+        to_cloud(src_kp),
+        to_cloud(dst_kp),
+        o3d.utility.Vector2iVector(pairs.astype(np.int32)),
         option,
     )
     T = np.asarray(result.transformation, dtype=np.float64).copy()
@@ -229,11 +246,17 @@ def refine_icp(
 ) -> PoseResult:
     """Point-to-point ICP from the RANSAC estimate on the full (downsampled) clouds.
 
-    The refined transform replaces the RANSAC one only if ICP's fitness is at least
-    RANSAC's share of inliers would suggest; diagnostics are kept in ``result.icp``.
+    Sparse keypoint matches often give a roughly right pose with few inliers; ICP on the
+    clouds both sharpens it and verifies it far better than the keypoint inlier count.
+    So once ICP has run the verdict is taken from its fitness (the share of source points
+    with a target point within ``icp_max_distance``) against ``min_icp_fitness``.
+    Diagnostics go to ``result.icp``.
     """
     import open3d as o3d
 
+    if len(src_cloud) < 3 or len(dst_cloud) < 3:
+        result.icp = {"used": False, "why": "clouds too small for ICP"}
+        return result
     reg = o3d.pipelines.registration
     icp = reg.registration_icp(
         to_cloud(src_cloud),
@@ -243,13 +266,14 @@ def refine_icp(
         reg.TransformationEstimationPointToPoint(False),
         reg.ICPConvergenceCriteria(max_iteration=cfg.icp_iterations),
     )
-    info = {"fitness": float(icp.fitness), "inlier_rmse": float(icp.inlier_rmse)}
-    if icp.fitness <= 0.0:
-        info["used"] = False
-        result.icp = info
-        return result
-    info["used"] = True
-    result.T_target_source = np.asarray(icp.transformation, dtype=np.float64).copy()
+    fitness, rmse = float(icp.fitness), float(icp.inlier_rmse)
+    result.icp = {"used": True, "fitness": fitness, "inlier_rmse": rmse}
     result.refined = True
-    result.icp = info
+    result.T_target_source = np.asarray(icp.transformation, dtype=np.float64).copy()
+    if fitness >= cfg.min_icp_fitness:
+        result.verdict = "localized"
+        result.reason = f"ICP fitness {fitness:.2f} (rmse {rmse:.2f} m) after RANSAC"
+    else:
+        result.verdict = "not_localized"
+        result.reason = f"ICP fitness {fitness:.2f} < min_icp_fitness {cfg.min_icp_fitness}"
     return result

@@ -118,8 +118,9 @@ def _query_expansion(
     cfg: LocalizerConfig,
 ) -> RerankOutput:
     top = retrieved[: cfg.qe_k]
-    descs = np.stack([query.global_descriptor] + [features_of(c.keyframe_id).global_descriptor
-                                                  for c in top])  # [1+q, G]
+    descs = np.stack(
+        [query.global_descriptor] + [features_of(c.keyframe_id).global_descriptor for c in top]
+    )  # [1+q, G]
     if method == "alpha-qe":
         sims = np.array([1.0] + [max(c.similarity, 0.0) for c in top])
         weights = sims**cfg.qe_alpha
@@ -150,11 +151,13 @@ def _rir(
     for i, c in enumerate(retrieved):
         cand = features_of(c.keyframe_id)
         if method == "ransac-rir":
-            pose = ransac_pose(query.keypoints, query.local_features, cand.keypoints,
-                               cand.local_features, cfg.pose)
+            pose = ransac_pose(
+                query.keypoints, query.local_features, cand.keypoints, cand.local_features, cfg.pose
+            )
         else:
-            pose = fgr_pose(query.keypoints, query.local_features, cand.keypoints,
-                            cand.local_features, cfg.pose)
+            pose = fgr_pose(
+                query.keypoints, query.local_features, cand.keypoints, cand.local_features, cfg.pose
+            )
         poses[c.keyframe_id] = pose
         scores[i] = pose.fitness
     return RerankOutput(method, _sorted(retrieved, scores), poses=poses)

@@ -23,6 +23,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from ..config import HandcraftedEncoderConfig, PreprocessConfig
 from ..errors import InputError
 from ..features import EncoderIdentity, Features
+from ..preprocess import preprocess
 
 
 class Encoder(ABC):
@@ -39,13 +40,30 @@ class Encoder(ABC):
     global_dim: int
     #: dimension ``D`` of one local feature row
     local_dim: int
+    #: the preprocessing the encoder applies to raw scans (None if it takes no scans);
+    #: the localizer reuses it to keep clouds for ICP refinement
+    preprocess_config: PreprocessConfig | None = None
 
-    @abstractmethod
+    def prepare(self, points: np.ndarray) -> np.ndarray:
+        """Preprocess a raw scan ``[P, 3+]`` into the cloud this encoder works on ``[M, 3]``.
+
+        Raises :class:`InputError` on a malformed scan, one that is empty after
+        preprocessing, or if this encoder takes no raw scans.
+        """
+        if self.preprocess_config is None:
+            raise InputError(f"encoder {self.identity.name!r} does not take raw scans")
+        return preprocess(points, self.preprocess_config)
+
     def encode(self, points: np.ndarray) -> Features:
         """Encode a raw scan ``[P, 3]`` or ``[P, 3+C]`` (x y z, extra columns ignored).
 
         Raises :class:`InputError` on a malformed or empty scan.
         """
+        return self.encode_cloud(self.prepare(points))
+
+    @abstractmethod
+    def encode_cloud(self, cloud: np.ndarray) -> Features:
+        """Encode a cloud already preprocessed by :meth:`prepare` ``[M, 3]``."""
 
     def check(self, features: Features) -> None:
         """Refuse features from another encoder or with the wrong dimensions.

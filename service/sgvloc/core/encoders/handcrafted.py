@@ -44,7 +44,6 @@ import numpy as np
 from ..config import HandcraftedEncoderConfig, PreprocessConfig
 from ..errors import InputError
 from ..features import EncoderIdentity, Features
-from ..preprocess import preprocess
 from .base import Encoder
 
 log = logging.getLogger(__name__)
@@ -247,15 +246,15 @@ class HandcraftedEncoder(Encoder):
             },
         )
 
-    def encode(self, points: np.ndarray) -> Features:
-        """Encode a raw scan ``[P, 3+]``; see the module docstring for the steps.
+    def encode_cloud(self, cloud: np.ndarray) -> Features:
+        """Encode a preprocessed cloud ``[M, 3]``; see the module docstring for the steps.
 
-        Raises :class:`InputError` if the scan is malformed, empty after preprocessing,
-        or has no point within ``max_radius`` of the sensor (nothing to describe).
+        (Step 1, preprocessing, is :meth:`prepare`; :meth:`encode` runs both.) Raises
+        :class:`InputError` if the cloud has no point within ``max_radius`` of the sensor
+        (nothing to describe).
         """
         c = self.config
-        # 1. preprocess
-        pts = preprocess(points, self.preprocess_config)  # [M, 3] float32
+        pts = cloud
         # 2. global descriptor
         g = yaw_invariant_descriptor(polar_grid(pts, c.rings, c.sectors, c.max_radius))
         if not np.any(g):

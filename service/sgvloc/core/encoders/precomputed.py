@@ -37,6 +37,10 @@ class PrecomputedEncoder(Encoder):
 
     def encode(self, points: np.ndarray) -> Features:
         """Always raises :class:`InputError`: this map takes features, not scans."""
+        return self.encode_cloud(points)
+
+    def encode_cloud(self, cloud: np.ndarray) -> Features:
+        """Always raises :class:`InputError`: this map takes features, not scans."""
         raise InputError(
             f"this map uses precomputed features from {self.name!r} "
             f"(global_dim={self.global_dim}, local_dim={self.local_dim}): send "

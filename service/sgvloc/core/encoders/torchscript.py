@@ -29,7 +29,6 @@ import numpy as np
 from ..config import PreprocessConfig
 from ..errors import InputError
 from ..features import EncoderIdentity, Features
-from ..preprocess import preprocess
 from .base import Encoder
 
 log = logging.getLogger(__name__)
@@ -159,14 +158,12 @@ class TorchScriptEncoder(Encoder):
             )
         return g, k, f
 
-    def encode(self, points: np.ndarray) -> Features:
-        """Preprocess a raw scan ``[P, 3+]``, run the model and validate its outputs.
+    def encode_cloud(self, cloud: np.ndarray) -> Features:
+        """Run the model on a preprocessed cloud ``[M, 3]`` and validate its outputs.
 
-        Raises :class:`InputError` on a malformed scan or outputs that do not match the
-        model's dimensions.
+        Raises :class:`InputError` on outputs that do not match the model's dimensions.
         """
-        pts = preprocess(points, self.preprocess_config)  # [M, 3]
-        g, k, f = self._run(pts)
+        g, k, f = self._run(cloud)
         if g.shape[0] != self.global_dim or (len(k) > 0 and f.shape[1] != self.local_dim):
             raise InputError(
                 f"TorchScript model {str(self.model_path)!r} returned global "
