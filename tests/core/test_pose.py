@@ -1,0 +1,116 @@
+"""Pose estimation on real scans with ground truth (tests/fixtures/balm_mini)."""
+
+import numpy as np
+import pytest
+
+from sgvloc.core.config import HandcraftedEncoderConfig, PoseConfig, PreprocessConfig
+from sgvloc.core.encoders import HandcraftedEncoder
+from sgvloc.core.errors import InputError
+from sgvloc.core.io import KittiSequence, relative_pose
+from sgvloc.core.pose import check_rigid, fgr_pose, is_rigid, ransac_pose, refine_icp
+
+
+def rotation_error_deg(R_est: np.ndarray, R_gt: np.ndarray) -> float:
+    cos = (np.trace(R_est.T @ R_gt) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+
+
+def translation_error(T_est: np.ndarray, T_gt: np.ndarray) -> float:
+    return float(np.linalg.norm(T_est[:3, 3] - T_gt[:3, 3]))
+
+
+@pytest.fixture(scope="module")
+def pair(balm_mini_dir):
+    """Files 0 and 1 (source scans 0 and 30): 1.1 m apart, 77 degrees of yaw."""
+    seq = KittiSequence(balm_mini_dir)
+    # dense keypoints: RANSAC on every downsampled point with FPFH
+    enc = HandcraftedEncoder(
+        HandcraftedEncoderConfig(num_keypoints=20000),
+        PreprocessConfig(voxel_size=0.25),
+    )
+    src_cloud, dst_cloud = enc.prepare(seq[0].scan().points), enc.prepare(seq[1].scan().points)
+    src, dst = enc.encode_cloud(src_cloud), enc.encode_cloud(dst_cloud)
+    T_gt = relative_pose(seq[0].T_world_sensor, seq[1].T_world_sensor)  # T_1_0
+    return src, dst, src_cloud, dst_cloud, T_gt
+
+
+def test_ransac_recovers_known_transform_between_real_scans(pair):
+    src, dst, _, _, T_gt = pair
+    res = ransac_pose(src.keypoints, src.local_features, dst.keypoints, dst.local_features)
+    assert res.localized, res.reason
+    assert translation_error(res.T_target_source, T_gt) < 0.3
+    assert rotation_error_deg(res.T_target_source[:3, :3], T_gt[:3, :3]) < 2.0
+    assert is_rigid(res.T_target_source)
+    assert res.inliers >= PoseConfig().min_inliers
+    assert 0.0 < res.fitness <= 1.0 and res.inlier_rmse <= PoseConfig().max_correspondence_distance
+
+
+def test_ransac_is_reproducible(pair):
+    src, dst, *_ = pair
+    a = ransac_pose(src.keypoints, src.local_features, dst.keypoints, dst.local_features)
+    b = ransac_pose(src.keypoints, src.local_features, dst.keypoints, dst.local_features)
+    assert np.array_equal(a.T_target_source, b.T_target_source)
+    assert a.inliers == b.inliers
+
+
+def test_icp_refines_and_verifies(pair):
+    src, dst, src_cloud, dst_cloud, T_gt = pair
+    cfg = PoseConfig()
+    res = ransac_pose(src.keypoints, src.local_features, dst.keypoints, dst.local_features, cfg)
+    before = translation_error(res.T_target_source, T_gt)
+    res = refine_icp(res, src_cloud, dst_cloud, cfg)
+    assert res.refined and res.localized, res.reason
+    assert res.icp["fitness"] >= cfg.min_icp_fitness
+    assert translation_error(res.T_target_source, T_gt) <= before
+    assert rotation_error_deg(res.T_target_source[:3, :3], T_gt[:3, :3]) < 1.0
+
+
+def test_icp_rejects_a_wrong_pose(pair):
+    _, _, src_cloud, dst_cloud, T_gt = pair
+    wrong = T_gt.copy()
+    wrong[:3, 3] += [12.0, -9.0, 0.0]
+    res = ransac_pose(np.zeros((0, 3)), np.zeros((0, 33)), np.zeros((0, 3)), np.zeros((0, 33)))
+    assert not res.localized and "too few keypoints" in res.reason
+    res.T_target_source = wrong
+    res = refine_icp(res, src_cloud, dst_cloud, PoseConfig())
+    assert not res.localized
+    assert "min_icp_fitness" in res.reason
+
+
+def test_fgr_runs_on_the_same_matches(pair):
+    src, dst, _, _, T_gt = pair
+    res = fgr_pose(src.keypoints, src.local_features, dst.keypoints, dst.local_features)
+    assert is_rigid(res.T_target_source)
+    assert 0 <= res.inliers <= res.num_correspondences
+
+
+def test_synthetic_transform_exact():
+    rng = np.random.default_rng(0)
+    src = rng.uniform(-20, 20, (300, 3))
+    feats = rng.normal(size=(300, 33))
+    a = np.radians(40)
+    T = np.eye(4)
+    T[:3, :3] = [[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]]
+    T[:3, 3] = [1.0, 2.0, 0.3]
+    dst = src @ T[:3, :3].T + T[:3, 3]
+    dst_feats = feats.copy()
+    dst_feats[100:] = rng.normal(size=(200, 33))  # two thirds of the matches are wrong
+    res = ransac_pose(src, feats, dst, dst_feats)
+    assert res.localized
+    assert np.allclose(res.T_target_source, T, atol=1e-6)
+    assert 100 <= res.inliers <= 110  # a random match may land within 0.5 m by chance
+
+
+def test_shape_errors_and_rigidity_checks():
+    with pytest.raises(InputError, match="source keypoints"):
+        ransac_pose(np.zeros((5, 2)), np.zeros((5, 33)), np.zeros((5, 3)), np.zeros((5, 33)))
+    with pytest.raises(InputError, match="target features"):
+        ransac_pose(np.zeros((5, 3)), np.zeros((5, 33)), np.zeros((5, 3)), np.zeros((4, 33)))
+    scaled = np.eye(4)
+    scaled[:3, :3] *= 2.0
+    with pytest.raises(InputError, match="not a rigid transform"):
+        check_rigid(scaled, "T_map_sensor")
+    reflect = np.diag([1.0, 1.0, -1.0, 1.0])
+    assert not is_rigid(reflect)
+    with pytest.raises(InputError, match="4x4"):
+        check_rigid(np.eye(3), "T")
