@@ -105,7 +105,7 @@ def _sgv(
         [f.local_features for f in feats],
         cfg.sgv,
     )
-    scores = res.score if cfg.sgv.normalise == "n" else res.score * np.maximum(res.n, 1)
+    scores = res.score  # cfg.sgv.normalise already chose v^T M v / n or v^T M v
     return RerankOutput("sgv", _sorted(retrieved, scores), info={"n": res.n.tolist()})
 
 
