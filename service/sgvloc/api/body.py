@@ -1,0 +1,117 @@
+"""Request bodies in, responses out: JSON or MessagePack (see ``sgvloc_client.wire``).
+
+- :func:`read_body` reads the raw bytes with a size limit (413 beyond it, checked against
+  ``Content-Length`` first and then while streaming) and refuses other media types (415);
+- :meth:`RawBody.decode` parses them (400 on undecodable or truncated bodies). It is
+  CPU work on large bodies, so routes call it in the worker threads, not on the loop;
+- :func:`encode` writes a response as the ``Accept`` header asks: MessagePack (transforms,
+  translations and quaternions as float64 arrays) or JSON (the default).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from fastapi import Request
+from fastapi.responses import Response
+from pydantic import BaseModel
+
+from sgvloc_client import wire
+
+from .errors import ApiError
+
+MSGPACK_TYPES = (wire.MSGPACK, "application/x-msgpack", "application/vnd.msgpack")
+JSON_TYPES = (wire.JSON,)
+
+#: numeric response fields sent as ndarrays in MessagePack (float64)
+ARRAY_FIELDS = frozenset({"T_map_sensor", "T_keyframe_sensor", "translation", "quaternion_xyzw"})
+
+
+def media_type(header: str | None) -> str:
+    """The bare, lower-case media type of a Content-Type header."""
+    return (header or "").split(";")[0].strip().lower()
+
+
+@dataclass(frozen=True)
+class RawBody:
+    """A request body read within the size limit, not parsed yet."""
+
+    data: bytes
+    content_type: str
+
+    def decode(self) -> Any:
+        """Parse the body; arrays become ndarrays (MessagePack) or nested lists (JSON)."""
+        if not self.data:
+            raise ApiError(400, "bad_body", "the request body is empty")
+        try:
+            if self.content_type in MSGPACK_TYPES:
+                return wire.unpackb(self.data)
+            return json.loads(self.data)
+        except wire.WireError as exc:
+            raise ApiError(400, "bad_body", str(exc)) from None
+        except (ValueError, UnicodeDecodeError) as exc:  # JSONDecodeError is a ValueError
+            raise ApiError(400, "bad_body", f"body is not valid JSON: {exc}") from None
+        except (RecursionError, TypeError) as exc:
+            raise ApiError(400, "bad_body", f"body cannot be decoded: {exc}") from None
+
+
+async def read_body(request: Request, limit: int) -> RawBody:
+    """Read the whole body, at most ``limit`` bytes; 415 for a media type other than
+    JSON or MessagePack, 413 beyond the limit."""
+    ctype = media_type(request.headers.get("content-type"))
+    if ctype not in MSGPACK_TYPES + JSON_TYPES:
+        raise ApiError(
+            415,
+            "unsupported_media_type",
+            f"Content-Type {ctype or '(none)'!r} is not supported: send "
+            f"{wire.JSON!r} or {wire.MSGPACK!r}",
+        )
+    declared = request.headers.get("content-length")
+    if declared is not None and declared.isdigit() and int(declared) > limit:
+        raise ApiError(
+            413, "payload_too_large", f"body has {int(declared)} bytes, the limit is {limit}"
+        )
+    buf = bytearray()
+    async for chunk in request.stream():
+        buf += chunk
+        if len(buf) > limit:
+            raise ApiError(413, "payload_too_large", f"body exceeds the limit of {limit} bytes")
+    return RawBody(bytes(buf), ctype)
+
+
+def wants_msgpack(request: Request) -> bool:
+    """True if the client's ``Accept`` header asks for MessagePack."""
+    accept = request.headers.get("accept", "").lower()
+    return any(t in accept for t in MSGPACK_TYPES)
+
+
+def _as_f8(value: Any) -> np.ndarray:
+    return np.asarray(value, dtype=np.float64)
+
+
+def _arrays(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {
+            k: np.asarray(v, dtype=np.float64)
+            if k in ARRAY_FIELDS and v is not None
+            else _arrays(v)
+            for k, v in obj.items()
+        }
+    if isinstance(obj, list):
+        return [_arrays(v) for v in obj]
+    return obj
+
+
+def encode(request: Request, payload: BaseModel | dict[str, Any], status: int = 200) -> Response:
+    """A response with ``payload`` in the format the request's ``Accept`` asks for."""
+    if wants_msgpack(request):
+        data = payload.model_dump() if isinstance(payload, BaseModel) else payload
+        return Response(wire.packb(_arrays(data)), status_code=status, media_type=wire.MSGPACK)
+    if isinstance(payload, BaseModel):
+        content = payload.model_dump_json().encode()
+    else:
+        content = json.dumps(wire.to_jsonable(payload), allow_nan=False).encode()
+    return Response(content, status_code=status, media_type=wire.JSON)

@@ -1,0 +1,143 @@
+"""Errors as HTTP answers: every 4xx/5xx has the body of docs/API.md.
+
+``{"error": {"code": "<machine code>", "message": "<what is wrong>", "field": "<path>"}}``
+
+Engine errors map to codes here (the core never imports FastAPI); request validation
+errors (FastAPI's and pydantic's) become ``invalid_input``; anything unexpected becomes
+``internal`` with its traceback logged, never a bare 500 page.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import Response
+from pydantic import ValidationError
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from sgvloc_client.wire import WireError
+
+from ..core.errors import (
+    ConflictError,
+    EncoderMismatchError,
+    InputError,
+    NotFoundError,
+    SgvlocError,
+)
+
+log = logging.getLogger(__name__)
+
+
+class ApiError(Exception):
+    """An error answered as-is: HTTP status, machine code, message and optional field."""
+
+    def __init__(self, status: int, code: str, message: str, field: str | None = None) -> None:
+        super().__init__(message)
+        self.status, self.code, self.message, self.field = status, code, message, field
+
+
+def error_response(
+    request: Request, status: int, code: str, message: str, field: str | None = None
+) -> Response:
+    """The error body, encoded as the request's ``Accept`` asks (JSON by default)."""
+    from .body import encode
+
+    body = {"error": {"code": code, "message": message, "field": field}}
+    return encode(request, body, status)
+
+
+def loc_to_field(loc: Sequence[Any]) -> str | None:
+    """A pydantic error location as a field path: ``("keyframes", 3, "points")`` ->
+    ``keyframes[3].points``. Leading ``body`` (FastAPI) is dropped."""
+    parts = [p for p in loc if p not in ("body",)]
+    out = ""
+    for p in parts:
+        if isinstance(p, int):
+            out += f"[{p}]"
+        else:
+            out += f".{p}" if out else str(p)
+    return out or None
+
+
+def _clean(msg: str) -> str:
+    for prefix in ("Value error, ", "Assertion failed, "):
+        if msg.startswith(prefix):
+            return msg[len(prefix) :]
+    return msg
+
+
+def validation_message(errors: Sequence[dict[str, Any]]) -> tuple[str, str | None]:
+    """One message naming every problem (at most 5), and the first problem's field."""
+    items = []
+    for e in errors[:5]:
+        where = loc_to_field(e.get("loc", ()))
+        msg = _clean(str(e.get("msg", "invalid")))
+        items.append(f"{where}: {msg}" if where else msg)
+    more = f" (and {len(errors) - 5} more)" if len(errors) > 5 else ""
+    first = loc_to_field(errors[0].get("loc", ())) if errors else None
+    return "; ".join(items) + more, first
+
+
+_ENGINE_CODES: list[tuple[type[SgvlocError], int, str]] = [
+    (EncoderMismatchError, 409, "encoder_mismatch"),
+    (NotFoundError, 404, "not_found"),
+    (ConflictError, 409, "conflict"),
+    (InputError, 422, "invalid_input"),
+]
+
+
+async def _api_error(request: Request, exc: Exception) -> Response:
+    assert isinstance(exc, ApiError)
+    return error_response(request, exc.status, exc.code, exc.message, exc.field)
+
+
+async def _engine_error(request: Request, exc: Exception) -> Response:
+    assert isinstance(exc, SgvlocError)
+    field = getattr(exc, "field", None)
+    for cls, status, code in _ENGINE_CODES:
+        if isinstance(exc, cls):
+            return error_response(request, status, code, str(exc), field)
+    log.error("unmapped engine error on %s %s: %r", request.method, request.url.path, exc)
+    return error_response(request, 500, "internal", str(exc), field)
+
+
+async def _wire_error(request: Request, exc: Exception) -> Response:
+    return error_response(request, 400, "bad_body", str(exc))
+
+
+async def _request_validation(request: Request, exc: Exception) -> Response:
+    assert isinstance(exc, RequestValidationError | ValidationError)
+    message, field = validation_message(exc.errors())
+    return error_response(request, 422, "invalid_input", message, field)
+
+
+async def _http_error(request: Request, exc: Exception) -> Response:
+    assert isinstance(exc, StarletteHTTPException)
+    codes = {404: "not_found", 405: "method_not_allowed", 413: "payload_too_large"}
+    code = codes.get(exc.status_code, "internal" if exc.status_code >= 500 else "bad_request")
+    message = str(exc.detail)
+    if exc.status_code == 404 and message == "Not Found":
+        message = f"no route {request.method} {request.url.path}"
+    return error_response(request, exc.status_code, code, message)
+
+
+async def _unexpected(request: Request, exc: Exception) -> Response:
+    log.exception("internal error on %s %s", request.method, request.url.path, exc_info=exc)
+    return error_response(
+        request, 500, "internal", f"internal error ({type(exc).__name__}); see the service log"
+    )
+
+
+def install_error_handlers(app: FastAPI) -> None:
+    """Register the handlers that turn every error into the documented body."""
+    app.add_exception_handler(ApiError, _api_error)
+    app.add_exception_handler(SgvlocError, _engine_error)
+    app.add_exception_handler(WireError, _wire_error)
+    app.add_exception_handler(RequestValidationError, _request_validation)
+    app.add_exception_handler(ValidationError, _request_validation)
+    app.add_exception_handler(StarletteHTTPException, _http_error)
+    app.add_exception_handler(Exception, _unexpected)

@@ -1,0 +1,131 @@
+"""The FastAPI application: ``create_app(settings)``.
+
+One process, threads for CPU work (see ``sgvloc serve --help``). At start-up the maps
+are loaded in a background thread: ``/healthz`` answers at once, ``/readyz`` and the map
+routes answer 503 until every map is loaded. At shutdown every changed map's FAISS
+snapshot is saved.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+import threading
+import time
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
+import anyio
+import anyio.to_thread
+from fastapi import FastAPI
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from .. import __version__
+from ..maps import MapManager
+from ..metrics import Metrics
+from ..settings import Settings
+from .errors import install_error_handlers
+from .openapi import install_openapi
+from .routes import keyframes, localize, maps, probes
+
+log = logging.getLogger(__name__)
+
+
+class MetricsMiddleware:
+    """Counts requests and times them, labelled by route template (not raw path)."""
+
+    def __init__(self, app: ASGIApp, metrics: Metrics) -> None:
+        self.app = app
+        self.metrics = metrics
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        start = time.perf_counter()
+        status = 500
+
+        async def send_status(message: Message) -> None:
+            nonlocal status
+            if message["type"] == "http.response.start":
+                status = int(message["status"])
+            await send(message)
+
+        try:
+            await self.app(scope, receive, send_status)
+        finally:
+            route = getattr(scope.get("route"), "path", None) or "unmatched"
+            method = scope["method"]
+            self.metrics.http_requests.labels(route, method, str(status)).inc()
+            self.metrics.http_duration.labels(route, method).observe(time.perf_counter() - start)
+
+
+def _warm_up() -> None:
+    """Import the heavy engine libraries now (seconds), not inside the first requests."""
+    for module in ("sgvloc.core.sgv", "open3d"):  # torch for SGV; Open3D for FPFH and RANSAC
+        t0 = time.perf_counter()
+        try:
+            importlib.import_module(module)
+        except ImportError as exc:
+            log.warning("cannot import %s: %s", module, exc)
+            continue
+        log.debug("imported %s in %.1f s", module, time.perf_counter() - t0)
+
+
+def _load_maps(manager: MapManager) -> None:
+    try:
+        _warm_up()
+        manager.load_all()
+        manager.start_snapshotter()
+        log.info("ready: %d map(s) loaded", len(manager.list()))
+    except Exception:  # readiness stays 503: the process is not fit to serve
+        log.exception("loading the maps failed")
+
+
+@asynccontextmanager
+async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
+    settings: Settings = app.state.settings
+    manager: MapManager = app.state.manager
+    app.state.cpu_limiter = anyio.CapacityLimiter(settings.workers)
+    log.info(
+        "sgvloc %s: data dir %s, %d worker thread(s)",
+        __version__,
+        settings.data_dir.resolve(),
+        settings.workers,
+    )
+    loader = threading.Thread(target=_load_maps, args=(manager,), name="sgvloc-load", daemon=True)
+    loader.start()
+    try:
+        yield
+    finally:
+        await anyio.to_thread.run_sync(loader.join)
+        await anyio.to_thread.run_sync(manager.close)
+        log.info("shut down: snapshots saved, stores closed")
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    """Build the service for ``settings`` (read from ``SGVLOC_*`` when not given)."""
+    settings = settings or Settings()
+    metrics = Metrics()
+    manager = MapManager(
+        settings.maps_dir,
+        snapshot_every=settings.snapshot_every,
+        snapshot_delay_s=settings.snapshot_delay_s,
+        on_change=metrics.set_map_keyframes,
+    )
+    app = FastAPI(
+        title="sgvloc",
+        version=__version__,
+        description="LiDAR localization in prior maps: FAISS retrieval, SpectralGV "
+        "re-ranking, RANSAC pose. See docs/API.md.",
+        lifespan=_lifespan,
+    )
+    app.state.settings = settings
+    app.state.metrics = metrics
+    app.state.manager = manager
+    for module in (maps, keyframes, localize, probes):
+        app.include_router(module.router)
+    install_error_handlers(app)
+    install_openapi(app)
+    app.add_middleware(MetricsMiddleware, metrics=metrics)
+    return app

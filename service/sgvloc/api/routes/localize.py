@@ -1,0 +1,109 @@
+"""Localize a scan (or precomputed features) in a map."""
+
+from __future__ import annotations
+
+import numpy as np
+from fastapi import APIRouter, Request, Response
+from scipy.spatial.transform import Rotation
+
+from ...core.localizer import LocalizationResult
+from ...core.rerank import Candidate
+from ..body import encode
+from ..deps import BodyDep, ManagerDep, MapName, MetricsDep, SettingsDep, WorkerDep
+from ..openapi import body_doc, error_responses
+from ..schemas import (
+    CandidateOut,
+    LocalizeBody,
+    LocalizeOut,
+    PoseOut,
+    TimingsOut,
+    limits,
+)
+
+router = APIRouter(prefix="/v1/maps/{map}", tags=["localize"])
+
+
+def _candidates(cands: list[Candidate]) -> list[CandidateOut]:
+    return [
+        CandidateOut(
+            keyframe_id=c.keyframe_id,
+            similarity=c.similarity,
+            retrieval_rank=c.retrieval_rank,
+            score=c.score,
+        )
+        for c in cands
+    ]
+
+
+def _finite(x: float) -> float:
+    return float(x) if np.isfinite(x) else -1.0
+
+
+def localize_out(name: str, result: LocalizationResult) -> LocalizeOut:
+    """The response body of one localization."""
+    T = result.T_map_sensor
+    pose = result.pose
+    return LocalizeOut(
+        map=name,
+        map_version=result.map_version,
+        localized=result.localized,
+        reason=result.reason,
+        keyframe_id=result.keyframe_id,
+        T_map_sensor=None if T is None else T.tolist(),
+        T_keyframe_sensor=(
+            None if result.T_keyframe_sensor is None else result.T_keyframe_sensor.tolist()
+        ),
+        translation=None if T is None else T[:3, 3].tolist(),
+        # scipy's quaternions are scalar-last: [x, y, z, w]
+        quaternion_xyzw=None if T is None else Rotation.from_matrix(T[:3, :3]).as_quat().tolist(),
+        pose=None
+        if pose is None
+        else PoseOut(
+            inliers=pose.inliers,
+            num_correspondences=pose.num_correspondences,
+            fitness=_finite(pose.fitness),
+            inlier_rmse=_finite(pose.inlier_rmse),
+            refined=pose.refined,
+            icp={k: _finite(v) if isinstance(v, float) else v for k, v in pose.icp.items()},
+        ),
+        retrieved=_candidates(result.retrieved),
+        reranked=_candidates(result.reranked),
+        top1_changed=result.top1_changed,
+        rerank_method=result.rerank_method,
+        timings_ms=TimingsOut(**result.timings_ms),
+    )
+
+
+@router.post(
+    "/localize",
+    response_model=LocalizeOut,
+    operation_id="localize",
+    openapi_extra=body_doc(LocalizeBody),
+    responses=error_responses(400, 404, 409, 413, 415, 422),
+)
+async def localize(
+    request: Request,
+    map_name: MapName,
+    body: BodyDep,
+    manager: ManagerDep,
+    settings: SettingsDep,
+    metrics: MetricsDep,
+    worker: WorkerDep,
+) -> Response:
+    """Localize a scan: retrieve, re-rank, estimate the pose against the top-1."""
+
+    def work() -> LocalizeOut:
+        manager.get(map_name)
+        req = LocalizeBody.model_validate(body.decode(), context=limits(settings))
+        result = manager.localize(
+            map_name,
+            points=req.points,
+            features=None if req.features is None else req.features.to_input(),
+            top_k=req.top_k,
+            rerank=req.rerank,
+            refine=req.refine,
+        )
+        metrics.observe_localization(result)
+        return localize_out(map_name, result)
+
+    return encode(request, await worker.run(work))

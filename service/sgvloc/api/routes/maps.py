@@ -1,0 +1,88 @@
+"""Maps: create, list, describe, delete."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Request, Response
+
+from ...maps import MapHandle
+from ..body import encode
+from ..deps import BodyDep, ManagerDep, MapName, SettingsDep, WorkerDep
+from ..openapi import body_doc, error_responses
+from ..schemas import EncoderInfo, MapCreate, MapInfo, MapList, limits
+
+router = APIRouter(prefix="/v1/maps", tags=["maps"])
+
+
+def map_info(handle: MapHandle) -> MapInfo:
+    """The public description of a loaded map."""
+    enc = handle.encoder
+    spec = handle.record.encoder_spec
+    cfg = handle.record.localizer_config
+    return MapInfo(
+        name=handle.name,
+        version=handle.version,
+        keyframes=handle.num_keyframes,
+        encoder=EncoderInfo(
+            kind=spec.kind,
+            name=enc.identity.name,
+            fingerprint=enc.identity.fingerprint,
+            global_dim=enc.global_dim,
+            local_dim=enc.local_dim,
+            spec=spec.model_dump(),
+        ),
+        retrieval=cfg.retrieval,
+        localizer=cfg.model_dump(),
+        index_kind=handle.localizer.index.kind,
+        keep_clouds=handle.record.keep_clouds,
+        created_at=handle.record.created_at,
+    )
+
+
+@router.post(
+    "",
+    status_code=201,
+    response_model=MapInfo,
+    operation_id="create_map",
+    openapi_extra=body_doc(MapCreate),
+    responses=error_responses(400, 409, 413, 415, 422),
+)
+async def create_map(
+    request: Request, body: BodyDep, manager: ManagerDep, settings: SettingsDep, worker: WorkerDep
+) -> Response:
+    """Create an empty map with an encoder and localizer settings."""
+
+    def work() -> MapInfo:
+        req = MapCreate.model_validate(body.decode(), context=limits(settings))
+        handle = manager.create(
+            req.name, req.encoder, req.localizer_config(), keep_clouds=req.keep_clouds
+        )
+        return map_info(handle)
+
+    return encode(request, await worker.run(work), 201)
+
+
+@router.get("", response_model=MapList, operation_id="list_maps")
+async def list_maps(request: Request, manager: ManagerDep) -> Response:
+    """List the loaded maps."""
+    return encode(request, MapList(maps=[map_info(h) for h in manager.list()]))
+
+
+@router.get(
+    "/{map}", response_model=MapInfo, operation_id="get_map", responses=error_responses(404)
+)
+async def get_map(request: Request, map_name: MapName, manager: ManagerDep) -> Response:
+    """Describe one map."""
+    return encode(request, map_info(manager.get(map_name)))
+
+
+@router.delete(
+    "/{map}",
+    status_code=204,
+    response_class=Response,
+    operation_id="delete_map",
+    responses=error_responses(404),
+)
+async def delete_map(map_name: MapName, manager: ManagerDep, worker: WorkerDep) -> Response:
+    """Delete a map with all its keyframes."""
+    await worker.run(lambda: manager.delete(map_name))
+    return Response(status_code=204)

@@ -1,0 +1,44 @@
+"""Probes and metrics: liveness, readiness, Prometheus text."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Request, Response
+
+from ...maps import MapManager
+from ..body import encode
+from ..deps import MetricsDep
+from ..schemas import Health, Ready
+
+router = APIRouter(tags=["probes"])
+
+
+@router.get("/healthz", response_model=Health, operation_id="healthz")
+async def healthz(request: Request) -> Response:
+    """The process is alive."""
+    return encode(request, Health())
+
+
+@router.get(
+    "/readyz",
+    response_model=Ready,
+    operation_id="readyz",
+    responses={503: {"model": Ready, "description": "maps still loading"}},
+)
+async def readyz(request: Request) -> Response:
+    """Ready once every map is loaded (503 before)."""
+    manager: MapManager = request.app.state.manager
+    if not manager.loaded.is_set():
+        return encode(request, Ready(status="loading", maps=0), 503)
+    return encode(request, Ready(status="ready", maps=len(manager.list()), failed=manager.failed))
+
+
+@router.get(
+    "/metrics",
+    response_class=Response,
+    operation_id="metrics",
+    responses={200: {"content": {"text/plain": {}}, "description": "Prometheus text format"}},
+)
+async def metrics_text(metrics: MetricsDep) -> Response:
+    """Prometheus metrics of this process."""
+    data, content_type = metrics.render()
+    return Response(data, media_type=content_type)

@@ -1,0 +1,403 @@
+"""Request and response models of the HTTP API (docs/API.md), one group per resource.
+
+Requests are validated from the decoded body (JSON or MessagePack) with
+``Model.model_validate(data, context=limits(settings))``: array fields accept nested
+lists (JSON) or ndarrays (MessagePack) and become ndarrays; size limits come from the
+validation context. Shape problems the engine knows better (rigid poses, feature
+dimensions) are checked by the map manager, which names the field too.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from pydantic import (
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    ValidationInfo,
+    WithJsonSchema,
+    field_validator,
+    model_validator,
+)
+
+from ..core.config import LocalizerConfig, RerankMethod, RetrievalConfig
+from ..core.encoders import EncoderSpec
+from ..maps import FeaturesIn, KeyframeIn
+from ..settings import Settings
+
+
+def limits(settings: Settings) -> dict[str, int]:
+    """The validation context carrying the request size limits."""
+    return {
+        "max_points": settings.max_points,
+        "max_batch": settings.max_batch,
+        "max_top_k": settings.max_top_k,
+    }
+
+
+def _limit(info: ValidationInfo, name: str) -> int | None:
+    return (info.context or {}).get(name)
+
+
+def _to_ndarray(value: Any) -> np.ndarray:
+    if isinstance(value, np.ndarray):
+        arr = value
+    else:
+        if not isinstance(value, list):
+            raise ValueError(f"must be an array, got {type(value).__name__}")
+        try:
+            arr = np.asarray(value, dtype=np.float64)
+        except (ValueError, TypeError):
+            raise ValueError("must be a rectangular array of numbers") from None
+    if arr.dtype.kind not in "fiu":
+        raise ValueError(f"must be numeric, got dtype {arr.dtype}")
+    return arr
+
+
+#: a numeric array: nested lists in JSON, an ``__nd__`` map in MessagePack
+Array = Annotated[
+    Any,
+    BeforeValidator(_to_ndarray),
+    WithJsonSchema(
+        {
+            "type": "array",
+            "description": "numeric array: nested lists (JSON) or an __nd__ map (MessagePack)",
+        }
+    ),
+]
+Matrix4 = Annotated[list[list[float]], Field(description="4x4 row-major float64")]
+
+
+def _shape(arr: np.ndarray) -> list[int]:
+    return [int(s) for s in arr.shape]
+
+
+def check_points(arr: np.ndarray, max_points: int | None) -> np.ndarray:
+    """A scan ``[P, 3|4]``, non-empty, finite, at most ``max_points`` rows."""
+    if arr.ndim != 2 or arr.shape[1] not in (3, 4):
+        raise ValueError(f"must have shape [P, 3] or [P, 4], got {_shape(arr)}")
+    if arr.shape[0] == 0:
+        raise ValueError("is empty: a scan needs at least one point")
+    if max_points is not None and arr.shape[0] > max_points:
+        raise ValueError(f"has {arr.shape[0]} points, the limit is {max_points}")
+    bad = int(arr.size - np.count_nonzero(np.isfinite(arr)))
+    if bad:
+        raise ValueError(f"contains {bad} non-finite value(s) (NaN or inf)")
+    return arr
+
+
+class _In(BaseModel):
+    model_config = ConfigDict(extra="forbid", arbitrary_types_allowed=True)
+
+
+# -- maps ---------------------------------------------------------------------------------
+
+
+class MapCreate(_In):
+    """``POST /v1/maps``."""
+
+    name: str = Field(description="^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+    encoder: EncoderSpec | None = Field(None, description="defaults to the handcrafted encoder")
+    retrieval: RetrievalConfig | None = Field(
+        None, description="FAISS index settings (same as localizer.retrieval)"
+    )
+    localizer: LocalizerConfig | None = Field(None, description="top_k, rerank, sgv, pose, ...")
+    keep_clouds: bool = Field(
+        True,
+        description="store each keyframe's preprocessed cloud, used by ICP refinement and "
+        "verification (refine=icp, the default); false saves memory and disk",
+    )
+
+    @model_validator(mode="after")
+    def _one_retrieval(self) -> MapCreate:
+        if (
+            self.retrieval is not None
+            and self.localizer is not None
+            and "retrieval" in self.localizer.model_fields_set
+        ):
+            raise ValueError("give retrieval settings once: in retrieval or localizer.retrieval")
+        return self
+
+    def localizer_config(self) -> LocalizerConfig:
+        cfg = self.localizer or LocalizerConfig()
+        if self.retrieval is not None:
+            cfg = cfg.model_copy(update={"retrieval": self.retrieval})
+        return cfg
+
+
+class EncoderInfo(BaseModel):
+    """The encoder a map was built with."""
+
+    kind: str
+    name: str
+    fingerprint: str
+    global_dim: int
+    local_dim: int
+    spec: dict[str, Any]
+
+
+class MapInfo(BaseModel):
+    """A map: name, version, size and settings."""
+
+    name: str
+    version: int = Field(description="changes on every keyframe insert or delete")
+    keyframes: int
+    encoder: EncoderInfo
+    retrieval: RetrievalConfig
+    localizer: dict[str, Any] = Field(description="the map's full localizer settings")
+    index_kind: str = Field(description="FAISS index in use now (ivf reads flat until trained)")
+    keep_clouds: bool
+    created_at: str = Field(description="ISO 8601 UTC")
+
+
+class MapList(BaseModel):
+    """``GET /v1/maps``."""
+
+    maps: list[MapInfo]
+
+
+# -- keyframes ----------------------------------------------------------------------------
+
+
+class FeaturesBody(_In):
+    """Precomputed features; ``encoder``/``fingerprint`` optionally claim their encoder."""
+
+    global_descriptor: Array
+    keypoints: Array
+    local_features: Array
+    encoder: str | None = Field(
+        None, description="encoder name (e.g. 'handcrafted', 'egonn'); 409 if not the map's"
+    )
+    fingerprint: str | None = Field(None, description="encoder fingerprint; 409 if not the map's")
+
+    @field_validator("keypoints", "local_features")
+    @classmethod
+    def _rows(cls, v: np.ndarray, info: ValidationInfo) -> np.ndarray:
+        cap = _limit(info, "max_points")
+        if v.ndim >= 1 and cap is not None and v.shape[0] > cap:
+            raise ValueError(f"has {v.shape[0]} rows, the limit is {cap}")
+        return v
+
+    def to_input(self) -> FeaturesIn:
+        return FeaturesIn(
+            self.global_descriptor,
+            self.keypoints,
+            self.local_features,
+            encoder=self.encoder,
+            fingerprint=self.fingerprint,
+        )
+
+
+class KeyframeMetadata(_In):
+    """Optional keyframe metadata."""
+
+    timestamp: float | None = None
+    sequence: str | None = Field(None, max_length=256)
+    tags: dict[str, str] | None = None
+
+
+class KeyframeBody(_In):
+    """One keyframe: a pose and exactly one of ``points`` / ``features``."""
+
+    key: str | None = Field(
+        None, min_length=1, max_length=256, description="makes the insert idempotent"
+    )
+    T_map_sensor: Array = Field(description="4x4 rigid transform, row-major")
+    points: Array | None = Field(None, description="[P, 3|4] scan, sensor frame")
+    features: FeaturesBody | None = None
+    metadata: KeyframeMetadata | None = None
+
+    @field_validator("points")
+    @classmethod
+    def _points(cls, v: np.ndarray | None, info: ValidationInfo) -> np.ndarray | None:
+        return None if v is None else check_points(v, _limit(info, "max_points"))
+
+    @model_validator(mode="after")
+    def _one_source(self) -> KeyframeBody:
+        if (self.points is None) == (self.features is None):
+            raise ValueError("give exactly one of points or features")
+        return self
+
+    def to_input(self) -> KeyframeIn:
+        meta = self.metadata.model_dump(exclude_none=True) if self.metadata else {}
+        return KeyframeIn(
+            T_map_sensor=self.T_map_sensor,
+            points=self.points,
+            features=None if self.features is None else self.features.to_input(),
+            key=self.key,
+            metadata=meta,
+        )
+
+
+class KeyframeBatch(_In):
+    """``POST /v1/maps/{map}/keyframes``."""
+
+    keyframes: list[KeyframeBody]
+
+    @field_validator("keyframes")
+    @classmethod
+    def _count(cls, v: list[KeyframeBody], info: ValidationInfo) -> list[KeyframeBody]:
+        cap = _limit(info, "max_batch")
+        if not v:
+            raise ValueError("at least one keyframe is required")
+        if cap is not None and len(v) > cap:
+            raise ValueError(f"has {len(v)} keyframes, the limit per request is {cap}")
+        return v
+
+    @field_validator("keyframes", mode="before")
+    @classmethod
+    def _count_early(cls, v: Any, info: ValidationInfo) -> Any:
+        # refuse an oversized batch before validating every item in it
+        cap = _limit(info, "max_batch")
+        if isinstance(v, list) and cap is not None and len(v) > cap:
+            raise ValueError(f"has {len(v)} keyframes, the limit per request is {cap}")
+        return v
+
+
+class InsertOut(BaseModel):
+    """Per keyframe, in request order: its id and whether it was created now."""
+
+    ids: list[int]
+    created: list[bool]
+    map_version: int
+
+
+class KeyframeOut(BaseModel):
+    """A stored keyframe."""
+
+    id: int
+    key: str | None
+    T_map_sensor: Matrix4
+    metadata: dict[str, Any]
+    num_keypoints: int
+    created_at: str
+
+
+class KeyframeDeleted(BaseModel):
+    """``DELETE /v1/maps/{map}/keyframes/{id}``."""
+
+    deleted: int
+    map_version: int
+
+
+# -- localize -----------------------------------------------------------------------------
+
+
+class LocalizeBody(_In):
+    """``POST /v1/maps/{map}/localize``: a scan or features, and per-request options."""
+
+    points: Array | None = Field(None, description="[P, 3|4] scan, sensor frame")
+    features: FeaturesBody | None = None
+    top_k: int | None = Field(None, ge=1, description="candidates retrieved (map default)")
+    rerank: RerankMethod | None = Field(None, description="re-ranking method (map default)")
+    refine: Literal["none", "icp"] | None = Field(None, description="ICP after RANSAC")
+
+    @field_validator("points")
+    @classmethod
+    def _points(cls, v: np.ndarray | None, info: ValidationInfo) -> np.ndarray | None:
+        return None if v is None else check_points(v, _limit(info, "max_points"))
+
+    @field_validator("top_k")
+    @classmethod
+    def _top_k(cls, v: int | None, info: ValidationInfo) -> int | None:
+        cap = _limit(info, "max_top_k")
+        if v is not None and cap is not None and v > cap:
+            raise ValueError(f"is {v}, the limit is {cap}")
+        return v
+
+    @model_validator(mode="after")
+    def _one_source(self) -> LocalizeBody:
+        if (self.points is None) == (self.features is None):
+            raise ValueError("give exactly one of points or features")
+        return self
+
+
+class CandidateOut(BaseModel):
+    """A candidate keyframe: retrieval similarity and rank, re-ranking score."""
+
+    keyframe_id: int
+    similarity: float
+    retrieval_rank: int = Field(description="0-based; -1 if found only by query expansion")
+    score: float
+
+
+class PoseOut(BaseModel):
+    """Diagnostics of the pose estimate."""
+
+    inliers: int
+    num_correspondences: int
+    fitness: float
+    inlier_rmse: float = Field(description="metres")
+    refined: bool
+    icp: dict[str, Any] = Field(
+        default_factory=dict,
+        description="ICP diagnostics: used, fitness, inlier_rmse (or why it was not used)",
+    )
+
+
+class TimingsOut(BaseModel):
+    """Stage durations in milliseconds (a stage that did not run reads 0)."""
+
+    encode: float = 0.0
+    retrieve: float = 0.0
+    rerank: float = 0.0
+    pose: float = 0.0
+    total: float = 0.0
+
+
+class LocalizeOut(BaseModel):
+    """Where the scan is in the map, with the candidates and diagnostics behind it."""
+
+    map: str
+    map_version: int = Field(description="the map version that answered")
+    localized: bool
+    reason: str
+    keyframe_id: int | None = Field(description="the re-ranked top-1 the pose was taken from")
+    T_map_sensor: Matrix4 | None = Field(description="query pose in the map frame")
+    T_keyframe_sensor: Matrix4 | None = Field(description="query pose in the keyframe frame")
+    translation: list[float] | None = Field(description="T_map_sensor translation [x, y, z]")
+    quaternion_xyzw: list[float] | None = Field(
+        description="T_map_sensor rotation, [x, y, z, w] (scalar last)"
+    )
+    pose: PoseOut | None
+    retrieved: list[CandidateOut] = Field(description="retrieval order")
+    reranked: list[CandidateOut] = Field(description="after re-ranking, best first")
+    top1_changed: bool
+    rerank_method: str
+    timings_ms: TimingsOut
+
+
+# -- probes -------------------------------------------------------------------------------
+
+
+class Health(BaseModel):
+    """``GET /healthz``."""
+
+    status: Literal["ok"] = "ok"
+
+
+class Ready(BaseModel):
+    """``GET /readyz``."""
+
+    status: Literal["ready", "loading"]
+    maps: int
+    failed: dict[str, str] = Field(
+        default_factory=dict, description="map folders that could not be loaded, and why"
+    )
+
+
+class ErrorDetail(BaseModel):
+    """What went wrong."""
+
+    code: str
+    message: str
+    field: str | None = None
+
+
+class ErrorOut(BaseModel):
+    """The body of every 4xx/5xx answer."""
+
+    error: ErrorDetail

@@ -1,0 +1,623 @@
+"""The map manager: every map of the data directory, in memory and on disk.
+
+Each map is a :class:`~sgvloc.store.MapStore` (SQLite, the source of truth) plus a
+:class:`~sgvloc.core.localizer.Localizer` rebuilt from it at start-up. The manager is
+thread-safe:
+
+- localizations run concurrently (the Localizer's readers-writer lock);
+- writes to one map (insert, delete, snapshot) are serialised by that map's write lock;
+  encoding happens before the lock is taken, so a slow batch does not block other
+  writers while it is being encoded;
+- the table of maps has its own short lock.
+
+Insert order: validate and encode everything (no lock) -> one SQLite transaction for
+the batch (the insert is acknowledged only once it commits) -> add to the Localizer; if
+that fails the rows are deleted again and the version restored, so nothing partial
+remains. FAISS snapshots are a start-up cache: written after ``snapshot_every`` keyframe
+changes, at most ``snapshot_delay_s`` after an unsaved change, and at shutdown; a
+snapshot that does not hold exactly the stored ids is ignored and rebuilt.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+import shutil
+import sqlite3
+import threading
+import time
+import uuid
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .core.config import LocalizerConfig
+from .core.encoders import Encoder, EncoderSpec, make_encoder
+from .core.errors import (
+    ConflictError,
+    EncoderMismatchError,
+    InputError,
+    NotFoundError,
+    SgvlocError,
+)
+from .core.features import Features
+from .core.localizer import Keyframe, LocalizationResult, Localizer
+from .core.pose import check_rigid
+from .core.retrieval import FaissIndex
+from .store import DB_NAME, INDEX_NAME, KeyframeRow, MapRecord, MapStore, StoreError, utc_now
+
+log = logging.getLogger(__name__)
+
+MAP_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+_TMP_PREFIX = ".tmp-"
+_TRASH_PREFIX = ".deleted-"
+
+
+# -- inputs ------------------------------------------------------------------------------
+
+
+@dataclass
+class FeaturesIn:
+    """Precomputed features sent by a client, with an optional claim of their encoder.
+
+    ``encoder`` names the encoder that produced them (the map encoder's identity name,
+    e.g. ``"handcrafted"`` or ``"precomputed:egonn"``, or for precomputed maps the bare
+    network name ``"egonn"``); ``fingerprint`` its exact identity. Both optional: unclaimed
+    features are taken to come from the map's encoder if their dimensions fit.
+    """
+
+    global_descriptor: np.ndarray  # [G]
+    keypoints: np.ndarray  # [N, 3]
+    local_features: np.ndarray  # [N, D]
+    encoder: str | None = None
+    fingerprint: str | None = None
+
+
+@dataclass
+class KeyframeIn:
+    """One keyframe to insert: a pose and exactly one of a raw scan or features."""
+
+    T_map_sensor: np.ndarray  # [4, 4]
+    points: np.ndarray | None = None  # [P, 3+]
+    features: FeaturesIn | None = None
+    key: str | None = None
+    metadata: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class InsertResult:
+    """Per input keyframe, in order: its id and whether it was created now."""
+
+    ids: list[int]
+    created: list[bool]
+    map_version: int
+
+
+def field_error(exc: SgvlocError, where: str) -> SgvlocError:
+    """The same error naming the request field ``where`` (prefixed to a field it names).
+
+    The result has ``field`` (e.g. ``keyframes[3].T_map_sensor``) and its message starts
+    with it; ``raw_message`` keeps the engine's own message.
+    """
+    inner = getattr(exc, "field", None)
+    raw = getattr(exc, "raw_message", str(exc))
+    if inner:
+        where = f"{where}{inner}" if inner.startswith("[") else f"{where}.{inner}"
+    new = type(exc)(f"{where}: {raw}")
+    new.field = where  # type: ignore[attr-defined]
+    new.raw_message = raw  # type: ignore[attr-defined]
+    return new
+
+
+@contextmanager
+def at_field(where: str) -> Iterator[None]:
+    """Re-raise engine errors inside the block as naming the request field ``where``."""
+    try:
+        yield
+    except SgvlocError as exc:
+        raise field_error(exc, where) from None
+
+
+# -- one map -----------------------------------------------------------------------------
+
+
+@dataclass
+class MapHandle:
+    """A loaded map: its store, its localizer and its write lock."""
+
+    name: str
+    path: Path
+    record: MapRecord
+    store: MapStore
+    localizer: Localizer
+    write_lock: threading.Lock = field(default_factory=threading.Lock)
+    unsaved: int = 0  # keyframe changes since the last snapshot
+    unsaved_since: float | None = None  # monotonic time of the first unsaved change
+    closed: bool = False
+
+    @property
+    def encoder(self) -> Encoder:
+        return self.localizer.encoder
+
+    @property
+    def version(self) -> int:
+        return self.localizer.version
+
+    @property
+    def num_keyframes(self) -> int:
+        return len(self.localizer)
+
+    @property
+    def index_path(self) -> Path:
+        return self.path / INDEX_NAME
+
+
+class MapManager:
+    """Owns every map by name. See the module docstring for the guarantees.
+
+    ``on_change(name, keyframes)`` is called after a map is loaded, created or changed
+    (``keyframes`` = its size) and after it is deleted (``keyframes`` = None); the HTTP
+    layer uses it for the keyframe gauge.
+    """
+
+    def __init__(
+        self,
+        maps_dir: Path,
+        *,
+        snapshot_every: int = 1000,
+        snapshot_delay_s: float = 30.0,
+        on_change: Callable[[str, int | None], None] | None = None,
+    ) -> None:
+        self.maps_dir = Path(maps_dir)
+        self.snapshot_every = snapshot_every
+        self.snapshot_delay_s = snapshot_delay_s
+        self._on_change = on_change or (lambda name, n: None)
+        self._maps: dict[str, MapHandle] = {}
+        self._reserved: set[str] = set()  # names being created
+        self._lock = threading.Lock()
+        self.failed: dict[str, str] = {}  # map folders that could not be loaded -> why
+        self.loaded = threading.Event()
+        self._stop = threading.Event()
+        self._snapshotter: threading.Thread | None = None
+
+    # -- start-up and shutdown ----------------------------------------------------------
+
+    def load_all(self) -> None:
+        """Load every map folder; a map that fails is logged and listed in ``failed``."""
+        self.maps_dir.mkdir(parents=True, exist_ok=True)
+        for leftover in self.maps_dir.iterdir():
+            if leftover.name.startswith((_TMP_PREFIX, _TRASH_PREFIX)):
+                log.info("removing leftover folder %s", leftover)
+                shutil.rmtree(leftover, ignore_errors=True)
+        for folder in sorted(p for p in self.maps_dir.iterdir() if p.is_dir()):
+            name = folder.name
+            if not MAP_NAME_RE.match(name):
+                log.warning("ignoring folder %s: not a valid map name", folder)
+                continue
+            t0 = time.perf_counter()
+            try:
+                handle = self._load(folder)
+            except (SgvlocError, sqlite3.Error, OSError, ValueError) as exc:
+                log.error("map %r could not be loaded: %s", name, exc)
+                self.failed[name] = str(exc)
+                continue
+            with self._lock:
+                self._maps[name] = handle
+            self._on_change(name, handle.num_keyframes)
+            log.info(
+                "loaded map %r: %d keyframes, version %d, in %.2f s",
+                name,
+                handle.num_keyframes,
+                handle.version,
+                time.perf_counter() - t0,
+            )
+        self.loaded.set()
+
+    def _load(self, folder: Path) -> MapHandle:
+        store = MapStore.open(folder / DB_NAME)
+        try:
+            record = store.record()
+            if record.name != folder.name:
+                raise StoreError(f"{folder}: database names map {record.name!r}")
+            encoder = make_encoder(record.encoder_spec)
+            if encoder.identity.fingerprint != record.encoder_fingerprint:
+                raise StoreError(
+                    f"map {record.name!r} was built with encoder fingerprint "
+                    f"{record.encoder_fingerprint}, but its spec now builds "
+                    f"{encoder.identity.fingerprint} (changed encoder code or model file); "
+                    "its stored features cannot be mixed with new ones"
+                )
+            localizer = Localizer(encoder, record.localizer_config, keep_clouds=record.keep_clouds)
+            keyframes = [
+                Keyframe(
+                    row.id,
+                    row.T_map_sensor,
+                    Features(
+                        row.global_descriptor, row.keypoints, row.local_features, encoder.identity
+                    ),
+                    row.cloud,
+                    row.metadata,
+                )
+                for row in store.iter_keyframes()
+            ]
+            version = store.version()
+            handle = MapHandle(record.name, folder, record, store, localizer)
+            index = self._usable_snapshot(handle, [kf.id for kf in keyframes])
+            localizer.restore(keyframes, version, index)
+            if index is None:
+                self._save_snapshot(handle)
+            return handle
+        except BaseException:
+            store.close()
+            raise
+
+    def _usable_snapshot(self, handle: MapHandle, ids: list[int]) -> FaissIndex | None:
+        """The saved FAISS snapshot if it agrees with the store, else None (logged)."""
+        path = handle.index_path
+        if not path.exists():
+            log.info("map %r: no index snapshot, rebuilding from the store", handle.name)
+            return None
+        try:
+            index = FaissIndex.load(path)
+        except SgvlocError as exc:
+            log.warning("map %r: index snapshot unreadable (%s), rebuilding", handle.name, exc)
+            return None
+        cfg = handle.record.localizer_config.retrieval
+        snap_ids = index.ids().tolist()
+        if index.dim != handle.encoder.global_dim or index.config != cfg:
+            why = "dimension or retrieval settings differ"
+        elif snap_ids != ids:
+            why = f"it holds {len(snap_ids)} ids, the store {len(ids)} (or different ones)"
+        else:
+            log.info("map %r: using index snapshot (%d ids)", handle.name, len(ids))
+            return index
+        log.warning(
+            "map %r: index snapshot disagrees with the store (%s), rebuilding", handle.name, why
+        )
+        return None
+
+    def start_snapshotter(self) -> None:
+        """Start the background thread that saves changed maps' snapshots."""
+        if self._snapshotter is None:
+            self._snapshotter = threading.Thread(
+                target=self._snapshot_loop, name="sgvloc-snapshots", daemon=True
+            )
+            self._snapshotter.start()
+
+    def _snapshot_loop(self) -> None:
+        tick = min(1.0, self.snapshot_delay_s / 4)
+        while not self._stop.wait(tick):
+            now = time.monotonic()
+            for handle in self.list():
+                since = handle.unsaved_since
+                if since is not None and now - since >= self.snapshot_delay_s:
+                    self.snapshot(handle.name)
+
+    def close(self) -> None:
+        """Stop the snapshot thread, save every changed map's snapshot, close the stores."""
+        self._stop.set()
+        if self._snapshotter is not None:
+            self._snapshotter.join(timeout=30)
+        with self._lock:
+            handles = list(self._maps.values())
+            self._maps.clear()
+        for handle in handles:
+            with handle.write_lock:
+                if handle.unsaved:
+                    self._save_snapshot(handle)
+                handle.closed = True
+                handle.store.close()
+
+    # -- maps ---------------------------------------------------------------------------
+
+    def list(self) -> list[MapHandle]:
+        """The loaded maps, by name."""
+        with self._lock:
+            return [self._maps[n] for n in sorted(self._maps)]
+
+    def get(self, name: str) -> MapHandle:
+        """A loaded map; raises :class:`NotFoundError`."""
+        with self._lock:
+            handle = self._maps.get(name)
+        if handle is None:
+            raise NotFoundError(f"map {name!r} does not exist")
+        return handle
+
+    def create(
+        self,
+        name: str,
+        encoder_spec: EncoderSpec | None = None,
+        localizer_config: LocalizerConfig | None = None,
+        *,
+        keep_clouds: bool = True,
+    ) -> MapHandle:
+        """Create an empty map. Raises InputError (bad name/spec) or ConflictError (exists)."""
+        if not MAP_NAME_RE.match(name):
+            raise field_error(
+                InputError(
+                    f"map name {name!r} is invalid: use 1-64 letters, digits, '_', '.' or '-', "
+                    "starting with a letter or digit"
+                ),
+                "name",
+            )
+        encoder_spec = encoder_spec or EncoderSpec()
+        localizer_config = localizer_config or LocalizerConfig()
+        with self._lock:
+            if name in self._maps or name in self._reserved:
+                raise ConflictError(f"map {name!r} exists already")
+            if (self.maps_dir / name).exists():
+                why = self.failed.get(name, "unknown reason")
+                raise ConflictError(
+                    f"a folder for map {name!r} exists but could not be loaded ({why}); "
+                    "remove it from the data directory first"
+                )
+            self._reserved.add(name)
+        try:
+            with at_field("encoder"):
+                encoder = make_encoder(encoder_spec)
+            record = MapRecord(
+                name=name,
+                encoder_spec=encoder_spec,
+                localizer_config=localizer_config,
+                encoder_fingerprint=encoder.identity.fingerprint,
+                keep_clouds=keep_clouds and encoder_spec.kind != "precomputed",
+                created_at=utc_now(),
+            )
+            # build the folder aside, then move it into place in one rename
+            self.maps_dir.mkdir(parents=True, exist_ok=True)
+            tmp = self.maps_dir / f"{_TMP_PREFIX}{name}-{uuid.uuid4().hex[:8]}"
+            tmp.mkdir()
+            try:
+                MapStore.create(tmp / DB_NAME, record).close()
+                tmp.rename(self.maps_dir / name)
+            except BaseException:
+                shutil.rmtree(tmp, ignore_errors=True)
+                raise
+            folder = self.maps_dir / name
+            store = MapStore.open(folder / DB_NAME)
+            localizer = Localizer(encoder, localizer_config, keep_clouds=record.keep_clouds)
+            handle = MapHandle(name, folder, record, store, localizer)
+            self._save_snapshot(handle)
+            with self._lock:
+                self._maps[name] = handle
+        finally:
+            with self._lock:
+                self._reserved.discard(name)
+        self.failed.pop(name, None)
+        self._on_change(name, 0)
+        log.info("created map %r (encoder %r)", name, encoder.identity.name)
+        return handle
+
+    def delete(self, name: str) -> None:
+        """Delete a map and its folder; raises :class:`NotFoundError`."""
+        with self._lock:
+            handle = self._maps.pop(name, None)
+        if handle is None:
+            raise NotFoundError(f"map {name!r} does not exist")
+        with handle.write_lock:
+            handle.closed = True
+            handle.store.close()
+            trash = self.maps_dir / f"{_TRASH_PREFIX}{name}-{uuid.uuid4().hex[:8]}"
+            handle.path.rename(trash)  # one atomic step; the rest is clean-up
+        shutil.rmtree(trash, ignore_errors=True)
+        self._on_change(name, None)
+        log.info("deleted map %r", name)
+
+    # -- keyframes ----------------------------------------------------------------------
+
+    def _features(self, handle: MapHandle, f: FeaturesIn) -> Features:
+        """Client features as this map's Features; 409 if they are another encoder's."""
+        encoder = handle.encoder
+        ident = encoder.identity
+        spec = handle.record.encoder_spec
+        if f.encoder is not None and f.encoder not in (ident.name, spec.name):
+            raise field_error(
+                EncoderMismatchError(
+                    f"features come from encoder {f.encoder!r}, but map {handle.name!r} "
+                    f"uses {ident.name!r} (fingerprint {ident.fingerprint})"
+                ),
+                "features.encoder",
+            )
+        if f.fingerprint is not None and f.fingerprint != ident.fingerprint:
+            raise field_error(
+                EncoderMismatchError(
+                    f"features have encoder fingerprint {f.fingerprint!r}, but map "
+                    f"{handle.name!r} uses {ident.name!r} (fingerprint {ident.fingerprint})"
+                ),
+                "features.fingerprint",
+            )
+        with at_field("features"):
+            feats = Features.validated(f.global_descriptor, f.keypoints, f.local_features, ident)
+        g, d = feats.global_descriptor.shape[0], feats.local_features.shape[1]
+        if g != encoder.global_dim or (feats.num_keypoints and d != encoder.local_dim):
+            raise field_error(
+                EncoderMismatchError(
+                    f"features have global_dim={g}, local_dim={d}, but map {handle.name!r} "
+                    f"uses encoder {ident.name!r} with global_dim={encoder.global_dim}, "
+                    f"local_dim={encoder.local_dim}: they come from another encoder"
+                ),
+                "features",
+            )
+        with at_field("features"):
+            encoder.check(feats)
+        return feats
+
+    def _check_scan_allowed(self, handle: MapHandle) -> None:
+        spec = handle.record.encoder_spec
+        if spec.kind == "precomputed":
+            raise field_error(
+                EncoderMismatchError(
+                    f"map {handle.name!r} takes precomputed features from {spec.name!r} "
+                    f"(global_dim={spec.global_dim}, local_dim={spec.local_dim}), not raw "
+                    "scans: send features instead of points"
+                ),
+                "points",
+            )
+
+    def _make_keyframe(self, handle: MapHandle, item: KeyframeIn) -> Keyframe:
+        with at_field("T_map_sensor"):
+            T = check_rigid(item.T_map_sensor, "T_map_sensor")
+        if (item.points is None) == (item.features is None):
+            raise InputError("give exactly one of points or features")
+        if item.points is not None:
+            self._check_scan_allowed(handle)
+            with at_field("points"):
+                return handle.localizer.make_keyframe(T, scan=item.points, metadata=item.metadata)
+        assert item.features is not None
+        feats = self._features(handle, item.features)
+        return handle.localizer.make_keyframe(T, features=feats, metadata=item.metadata)
+
+    def insert(self, name: str, items: list[KeyframeIn]) -> InsertResult:
+        """Insert keyframes all-or-nothing; known keys return their ids, created=False."""
+        handle = self.get(name)
+        if not items:
+            raise field_error(InputError("at least one keyframe is required"), "keyframes")
+        keys = [it.key for it in items if it.key is not None]
+        seen: dict[str, int] = {}
+        for i, it in enumerate(items):
+            if it.key is None:
+                continue
+            if it.key in seen:
+                raise field_error(
+                    InputError(f"key {it.key!r} appears twice (also keyframes[{seen[it.key]}])"),
+                    f"keyframes[{i}].key",
+                )
+            seen[it.key] = i
+
+        # 1. validate and encode, outside any lock (known keys are skipped)
+        known = handle.store.find_keys(keys) if keys else {}
+        prepared: dict[int, Keyframe] = {}
+        for i, it in enumerate(items):
+            if it.key is not None and it.key in known:
+                continue
+            with at_field(f"keyframes[{i}]"):
+                prepared[i] = self._make_keyframe(handle, it)
+
+        with handle.write_lock:
+            if handle.closed:
+                raise NotFoundError(f"map {name!r} does not exist")
+            # keys may have appeared (or gone) while encoding: decide again under the lock
+            known = handle.store.find_keys(keys) if keys else {}
+            for i, it in enumerate(items):
+                if i not in prepared and (it.key is None or it.key not in known):
+                    with at_field(f"keyframes[{i}]"):
+                        prepared[i] = self._make_keyframe(handle, it)
+            new = [i for i in sorted(prepared) if items[i].key is None or items[i].key not in known]
+            ids: dict[int, int] = {}
+            version = handle.version
+            if new:
+                # 2. one SQLite transaction for the batch (the acknowledgement point)
+                rows = [self._row(items[i], prepared[i]) for i in new]
+                new_ids, version = handle.store.insert(rows)
+                kfs = []
+                for i, kf_id in zip(new, new_ids, strict=True):
+                    prepared[i].id = kf_id
+                    kfs.append(prepared[i])
+                    ids[i] = kf_id
+                # 3. into the localizer; if that fails, undo the rows
+                try:
+                    handle.localizer.add_keyframes(kfs)
+                except BaseException:
+                    log.exception("map %r: in-memory insert failed, undoing the rows", name)
+                    handle.store.delete(new_ids, set_version=version - 1)
+                    raise
+                if handle.localizer.version != version:  # keep both counters equal
+                    handle.localizer.version = version
+                self._mark_unsaved(handle, len(new))
+        out_ids = [ids[i] if i in ids else known[items[i].key] for i in range(len(items))]
+        created = [i in ids for i in range(len(items))]
+        if new:
+            self._on_change(name, handle.num_keyframes)
+        return InsertResult(out_ids, created, version)
+
+    @staticmethod
+    def _row(item: KeyframeIn, kf: Keyframe) -> KeyframeRow:
+        f = kf.features
+        return KeyframeRow(
+            T_map_sensor=kf.T_map_sensor,
+            global_descriptor=f.global_descriptor,
+            keypoints=f.keypoints,
+            local_features=f.local_features,
+            cloud=kf.cloud,
+            metadata=kf.metadata,
+            key=item.key,
+        )
+
+    def get_keyframe(self, name: str, keyframe_id: int) -> KeyframeRow:
+        """A stored keyframe; raises :class:`NotFoundError`."""
+        handle = self.get(name)
+        try:
+            return handle.store.get(keyframe_id)
+        except sqlite3.ProgrammingError:  # the map was deleted meanwhile
+            raise NotFoundError(f"map {name!r} does not exist") from None
+
+    def delete_keyframe(self, name: str, keyframe_id: int) -> int:
+        """Delete one keyframe; returns the map's new version."""
+        handle = self.get(name)
+        with handle.write_lock:
+            if handle.closed:
+                raise NotFoundError(f"map {name!r} does not exist")
+            handle.localizer.keyframe(keyframe_id)  # NotFoundError before touching anything
+            version = handle.store.delete([keyframe_id])
+            handle.localizer.remove_keyframe(keyframe_id)
+            handle.localizer.version = version
+            self._mark_unsaved(handle, 1)
+        self._on_change(name, handle.num_keyframes)
+        return version
+
+    # -- localization -------------------------------------------------------------------
+
+    def localize(
+        self,
+        name: str,
+        *,
+        points: np.ndarray | None = None,
+        features: FeaturesIn | None = None,
+        top_k: int | None = None,
+        rerank: str | None = None,
+        refine: str | None = None,
+    ) -> LocalizationResult:
+        """Localize a scan (or features) in map ``name``."""
+        handle = self.get(name)
+        if (points is None) == (features is None):
+            raise InputError("give exactly one of points or features")
+        options = {"top_k": top_k, "rerank_method": rerank, "refine": refine}
+        if points is not None:
+            self._check_scan_allowed(handle)
+            with at_field("points"):
+                return handle.localizer.localize(points, **options)
+        assert features is not None
+        query = self._features(handle, features)
+        return handle.localizer.localize(features=query, **options)
+
+    # -- snapshots ----------------------------------------------------------------------
+
+    def _mark_unsaved(self, handle: MapHandle, changes: int) -> None:
+        """Count changes (call under the write lock); save now past ``snapshot_every``."""
+        handle.unsaved += changes
+        if handle.unsaved_since is None:
+            handle.unsaved_since = time.monotonic()
+        if handle.unsaved >= self.snapshot_every:
+            self._save_snapshot(handle)
+
+    def snapshot(self, name: str) -> None:
+        """Save a map's FAISS snapshot now (under its write lock, so it matches the store)."""
+        handle = self.get(name)
+        with handle.write_lock:
+            if not handle.closed:
+                self._save_snapshot(handle)
+
+    @staticmethod
+    def _save_snapshot(handle: MapHandle) -> None:
+        t0 = time.perf_counter()
+        try:
+            handle.localizer.index.save(handle.index_path)
+        except (OSError, RuntimeError) as exc:  # the store is intact; retry later
+            log.error("map %r: saving the index snapshot failed: %s", handle.name, exc)
+            return
+        handle.unsaved, handle.unsaved_since = 0, None
+        log.debug("map %r: index snapshot saved in %.3f s", handle.name, time.perf_counter() - t0)

@@ -1,0 +1,44 @@
+"""Service settings, read once from the environment (prefix ``SGVLOC_``).
+
+Every field can be set as ``SGVLOC_<FIELD>`` (e.g. ``SGVLOC_DATA_DIR=/srv/maps``) or
+overridden by the ``sgvloc serve`` options.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+LogLevel = Literal["critical", "error", "warning", "info", "debug"]
+
+
+class Settings(BaseSettings):
+    """Configuration of one service process."""
+
+    model_config = SettingsConfigDict(env_prefix="SGVLOC_", extra="forbid")
+
+    host: str = Field("127.0.0.1", description="interface to bind (0.0.0.0 in containers)")
+    port: int = Field(8470, ge=1, le=65535)
+    data_dir: Path = Field(Path("./data"), description="maps live in <data_dir>/maps/<name>/")
+    workers: int = Field(
+        2, ge=1, le=256, description="threads running CPU work (encode, search, re-rank, pose)"
+    )
+    max_body_bytes: int = Field(64 * 1024 * 1024, ge=1024, description="413 above this")
+    max_batch: int = Field(1000, ge=1, description="keyframes per insert request")
+    max_points: int = Field(500_000, ge=1, description="points per scan")
+    max_top_k: int = Field(100, ge=1, description="largest top_k a localize request may ask")
+    snapshot_every: int = Field(
+        1000, ge=1, description="save a map's FAISS snapshot after this many keyframe changes"
+    )
+    snapshot_delay_s: float = Field(
+        30.0, gt=0, description="save a changed map's snapshot at most this long after a write"
+    )
+    log_level: LogLevel = "info"
+
+    @property
+    def maps_dir(self) -> Path:
+        """``<data_dir>/maps``: one folder per map."""
+        return self.data_dir / "maps"

@@ -1,0 +1,398 @@
+"""Every kind of bad input gets its 4xx with the documented error body, and leaves the
+map unchanged (keyframe count and version)."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import httpx
+import msgpack
+import numpy as np
+import pytest
+from svc_helpers import (
+    MAX_BATCH,
+    MAX_BODY_BYTES,
+    MAX_POINTS,
+    MAX_TOP_K,
+    PRECOMPUTED,
+    BalmMap,
+    error_of,
+    map_state,
+    post_msgpack,
+    random_features,
+)
+
+from sgvloc_client import wire
+
+EYE = np.eye(4)
+
+
+@pytest.fixture(scope="module")
+def pre_map(server) -> str:
+    """A precomputed-feature map (``egonn``, G=16, D=8) holding two keyframes."""
+    rng = np.random.default_rng(3)
+    with httpx.Client(base_url=server.url, timeout=60) as c:
+        assert c.post("/v1/maps", json={"name": "pre", "encoder": PRECOMPUTED}).status_code == 201
+        kfs = [{"T_map_sensor": EYE, "features": random_features(rng)} for _ in range(2)]
+        r = post_msgpack(c, "/v1/maps/pre/keyframes", {"keyframes": kfs})
+        assert r.status_code == 201, r.text
+    return "pre"
+
+
+@pytest.fixture
+def unchanged(client: httpx.Client, pre_map: str, balm_map: BalmMap) -> Iterator[None]:
+    """Asserts that neither test map changed during the test."""
+    before = {name: map_state(client, name) for name in (pre_map, balm_map.name)}
+    yield
+    after = {name: map_state(client, name) for name in (pre_map, balm_map.name)}
+    assert after == before
+
+
+def _scan(n: int = 2000, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return rng.uniform(-15, 15, size=(n, 4)).astype(np.float32)
+
+
+def _insert(c: httpx.Client, name: str, *keyframes: dict) -> httpx.Response:
+    return post_msgpack(c, f"/v1/maps/{name}/keyframes", {"keyframes": list(keyframes)})
+
+
+def _expect(r: httpx.Response, status: int, code: str, field: str | None = "") -> dict:
+    assert r.status_code == status, r.text
+    err = error_of(r)
+    assert err["code"] == code, err
+    if field != "":
+        assert err["field"] == field, err
+    return err
+
+
+# -- shapes, values, emptiness -----------------------------------------------------------
+
+
+@pytest.mark.usefixtures("unchanged")
+@pytest.mark.parametrize(
+    ("points", "fragment"),
+    [
+        (np.zeros((10, 2), np.float32), "shape [P, 3] or [P, 4]"),
+        (np.zeros((10, 5), np.float32), "shape [P, 3] or [P, 4]"),
+        (np.zeros((2, 5, 3), np.float32), "shape [P, 3] or [P, 4]"),
+        (np.zeros((0, 3), np.float32), "empty"),
+    ],
+)
+def test_wrong_scan_shapes(
+    client: httpx.Client, balm_map: BalmMap, points: np.ndarray, fragment: str
+) -> None:
+    r = _insert(client, "balm", {"T_map_sensor": EYE, "points": points})
+    err = _expect(r, 422, "invalid_input", "keyframes[0].points")
+    assert fragment in err["message"]
+    r = post_msgpack(client, "/v1/maps/balm/localize", {"points": points})
+    _expect(r, 422, "invalid_input", "points")
+
+
+@pytest.mark.usefixtures("unchanged")
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_non_finite_points(client: httpx.Client, balm_map: BalmMap, bad: float) -> None:
+    points = _scan()
+    points[17, 1] = bad
+    r = _insert(client, "balm", {"T_map_sensor": EYE, "points": points})
+    err = _expect(r, 422, "invalid_input", "keyframes[0].points")
+    assert "non-finite" in err["message"]
+    r = post_msgpack(client, "/v1/maps/balm/localize", {"points": points})
+    _expect(r, 422, "invalid_input", "points")
+
+
+@pytest.mark.usefixtures("unchanged")
+def test_non_finite_points_in_json(client: httpx.Client, balm_map: BalmMap) -> None:
+    # Python's json writes NaN literals; the service parses and then refuses them
+    body = '{"points": [[1.0, 2.0, NaN], [1.0, 2.0, 3.0]]}'
+    r = client.post(
+        "/v1/maps/balm/localize", content=body, headers={"Content-Type": "application/json"}
+    )
+    _expect(r, 422, "invalid_input", "points")
+
+
+@pytest.mark.usefixtures("unchanged")
+def test_scan_with_nothing_to_describe(client: httpx.Client, balm_map: BalmMap) -> None:
+    """Points all beyond the encoder's range: empty after preprocessing."""
+    far = _scan() + np.array([500.0, 0, 0, 0], np.float32)
+    r = _insert(client, "balm", {"T_map_sensor": EYE, "points": far})
+    _expect(r, 422, "invalid_input", "keyframes[0].points")
+    r = post_msgpack(client, "/v1/maps/balm/localize", {"points": far})
+    _expect(r, 422, "invalid_input", "points")
+
+
+@pytest.mark.usefixtures("unchanged")
+def test_ragged_json_array(client: httpx.Client, balm_map: BalmMap) -> None:
+    r = client.post("/v1/maps/balm/localize", json={"points": [[1, 2, 3], [1, 2]]})
+    err = _expect(r, 422, "invalid_input", "points")
+    assert "rectangular" in err["message"]
+
+
+@pytest.mark.usefixtures("unchanged")
+@pytest.mark.parametrize(
+    ("change", "fragment"),
+    [
+        ({"keypoints": np.zeros((64, 2), np.float32)}, "keypoints"),
+        ({"local_features": np.zeros((63, 8), np.float32)}, "one feature row per keypoint"),
+        ({"global_descriptor": np.full(16, np.nan, np.float32)}, "non-finite"),
+        ({"global_descriptor": np.zeros(16, np.float32)}, "all zeros"),
+        ({"keypoints": np.full((64, 3), np.inf, np.float32)}, "non-finite"),
+    ],
+)
+def test_malformed_features(
+    client: httpx.Client, pre_map: str, change: dict, fragment: str
+) -> None:
+    feats = {**random_features(np.random.default_rng(5)), **change}
+    r = _insert(client, pre_map, {"T_map_sensor": EYE, "features": feats})
+    err = _expect(r, 422, "invalid_input", "keyframes[0].features")
+    assert fragment in err["message"]
+    r = post_msgpack(client, f"/v1/maps/{pre_map}/localize", {"features": feats})
+    _expect(r, 422, "invalid_input", "features")
+
+
+@pytest.mark.usefixtures("unchanged")
+def test_one_bad_keyframe_stores_none(client: httpx.Client, pre_map: str) -> None:
+    """All-or-nothing: the third keyframe is bad, the first two are not stored either."""
+    rng = np.random.default_rng(11)
+    good = [{"T_map_sensor": EYE, "features": random_features(rng)} for _ in range(2)]
+    bad = {"T_map_sensor": EYE, "features": random_features(rng, n=64, g=16, d=8)}
+    bad["features"]["keypoints"] = bad["features"]["keypoints"][:, :2]
+    r = _insert(client, pre_map, *good, bad)
+    _expect(r, 422, "invalid_input", "keyframes[2].features")
+
+
+@pytest.mark.usefixtures("unchanged")
+def test_points_and_features_together(client: httpx.Client, pre_map: str) -> None:
+    feats = random_features(np.random.default_rng(2))
+    r = _insert(client, pre_map, {"T_map_sensor": EYE, "features": feats, "points": _scan()})
+    _expect(r, 422, "invalid_input", "keyframes[0]")
+    r = _insert(client, pre_map, {"T_map_sensor": EYE})
+    _expect(r, 422, "invalid_input", "keyframes[0]")
+
+
+@pytest.mark.usefixtures("unchanged")
+def test_unknown_fields_are_refused(client: httpx.Client, pre_map: str) -> None:
+    feats = random_features(np.random.default_rng(2))
+    r = _insert(client, pre_map, {"T_map_sensor": EYE, "features": feats, "pose": EYE})
+    _expect(r, 422, "invalid_input", "keyframes[0].pose")
+
+
+# -- poses -------------------------------------------------------------------------------
+
+
+@pytest.mark.usefixtures("unchanged")
+@pytest.mark.parametrize(
+    "T",
+    [
+        np.diag([2.0, 1.0, 1.0, 1.0]),  # scaled
+        np.diag([1.0, 1.0, -1.0, 1.0]),  # reflection (det -1)
+        np.vstack([np.eye(4)[:3], [[0.0, 0.0, 1.0, 1.0]]]),  # bad last row
+        np.eye(3),  # not 4x4
+        np.full((4, 4), np.nan),
+    ],
+)
+def test_non_rigid_pose(client: httpx.Client, pre_map: str, T: np.ndarray) -> None:
+    feats = random_features(np.random.default_rng(4))
+    r = _insert(client, pre_map, {"T_map_sensor": T, "features": feats})
+    _expect(r, 422, "invalid_input", "keyframes[0].T_map_sensor")
+
+
+# -- maps and names ----------------------------------------------------------------------
+
+
+@pytest.mark.usefixtures("unchanged")
+def test_unknown_map(client: httpx.Client) -> None:
+    feats = random_features(np.random.default_rng(4))
+    for r in (
+        client.get("/v1/maps/nowhere"),
+        client.delete("/v1/maps/nowhere"),
+        _insert(client, "nowhere", {"T_map_sensor": EYE, "features": feats}),
+        post_msgpack(client, "/v1/maps/nowhere/localize", {"features": feats}),
+        client.get("/v1/maps/nowhere/keyframes/1"),
+        client.delete("/v1/maps/nowhere/keyframes/1"),
+    ):
+        err = _expect(r, 404, "not_found")
+        assert "nowhere" in err["message"]
+
+
+@pytest.mark.usefixtures("unchanged")
+def test_unknown_keyframe(client: httpx.Client, pre_map: str) -> None:
+    _expect(client.get(f"/v1/maps/{pre_map}/keyframes/999"), 404, "not_found")
+    _expect(client.delete(f"/v1/maps/{pre_map}/keyframes/999"), 404, "not_found")
+    _expect(client.get(f"/v1/maps/{pre_map}/keyframes/abc"), 422, "invalid_input")
+
+
+@pytest.mark.usefixtures("unchanged")
+def test_duplicate_map_name(client: httpx.Client, pre_map: str) -> None:
+    r = client.post("/v1/maps", json={"name": pre_map})
+    err = _expect(r, 409, "conflict")
+    assert pre_map in err["message"]
+
+
+@pytest.mark.parametrize("name", ["", "-lead", "has space", "a/b", "x" * 65, "..", "é"])
+def test_invalid_map_name(client: httpx.Client, name: str) -> None:
+    r = client.post("/v1/maps", json={"name": name})
+    _expect(r, 422, "invalid_input", "name")
+    assert all(m["name"] != name for m in client.get("/v1/maps").json()["maps"])
+
+
+@pytest.mark.parametrize(
+    "body",
+    [
+        {"name": "bad-enc", "encoder": {"kind": "precomputed", "name": "x"}},
+        {"name": "bad-enc", "encoder": {"kind": "torchscript", "model_path": "/no/such.pt"}},
+        {"name": "bad-enc", "encoder": {"kind": "nope"}},
+        {"name": "bad-enc", "localizer": {"top_k": 0}},
+        {"name": "bad-enc", "localizer": {"rerank": "magic"}},
+        {"name": "bad-enc", "retrieval": {"index": "lsh"}},
+    ],
+)
+def test_invalid_map_settings(client: httpx.Client, body: dict) -> None:
+    r = client.post("/v1/maps", json=body)
+    _expect(r, 422, "invalid_input")
+    assert client.get("/v1/maps/bad-enc").status_code == 404
+
+
+# -- encoders ----------------------------------------------------------------------------
+
+
+@pytest.mark.usefixtures("unchanged")
+def test_features_of_another_encoder(client: httpx.Client, pre_map: str, balm_map: BalmMap) -> None:
+    rng = np.random.default_rng(6)
+    feats = random_features(rng)
+    # another network's name, or another fingerprint, on the egonn map
+    for claim, field in (
+        ({"encoder": "logg3d"}, "encoder"),
+        ({"fingerprint": "0" * 16}, "fingerprint"),
+    ):
+        r = _insert(client, pre_map, {"T_map_sensor": EYE, "features": {**feats, **claim}})
+        _expect(r, 409, "encoder_mismatch", f"keyframes[0].features.{field}")
+        r = post_msgpack(client, f"/v1/maps/{pre_map}/localize", {"features": {**feats, **claim}})
+        _expect(r, 409, "encoder_mismatch", f"features.{field}")
+    # other dimensions
+    for g, d in ((32, 8), (16, 33)):
+        other = random_features(rng, g=g, d=d)
+        r = _insert(client, pre_map, {"T_map_sensor": EYE, "features": other})
+        err = _expect(r, 409, "encoder_mismatch", "keyframes[0].features")
+        assert "global_dim=16" in err["message"]
+        r = post_msgpack(client, f"/v1/maps/{pre_map}/localize", {"features": other})
+        _expect(r, 409, "encoder_mismatch", "features")
+    # egonn features sent to the handcrafted map
+    r = _insert(client, "balm", {"T_map_sensor": EYE, "features": {**feats, "encoder": "egonn"}})
+    _expect(r, 409, "encoder_mismatch", "keyframes[0].features.encoder")
+    r = post_msgpack(client, "/v1/maps/balm/localize", {"features": feats})
+    _expect(r, 409, "encoder_mismatch", "features")
+    # a raw scan sent to the precomputed map
+    r = post_msgpack(client, f"/v1/maps/{pre_map}/localize", {"points": _scan()})
+    _expect(r, 409, "encoder_mismatch", "points")
+    r = _insert(client, pre_map, {"T_map_sensor": EYE, "points": _scan()})
+    _expect(r, 409, "encoder_mismatch", "keyframes[0].points")
+
+
+# -- bodies ------------------------------------------------------------------------------
+
+
+@pytest.mark.usefixtures("unchanged")
+def test_truncated_msgpack(client: httpx.Client, pre_map: str) -> None:
+    feats = random_features(np.random.default_rng(8))
+    data = wire.packb({"keyframes": [{"T_map_sensor": EYE, "features": feats}]})
+    for cut in (len(data) - 7, len(data) // 2, 3):
+        r = client.post(
+            f"/v1/maps/{pre_map}/keyframes",
+            content=data[:cut],
+            headers={"Content-Type": wire.MSGPACK},
+        )
+        _expect(r, 400, "bad_body")
+
+
+@pytest.mark.usefixtures("unchanged")
+def test_array_shorter_than_its_shape(client: httpx.Client, pre_map: str) -> None:
+    feats = random_features(np.random.default_rng(8))
+    raw = wire._to_wire({"keyframes": [{"T_map_sensor": EYE, "features": feats}]})
+    arr = raw["keyframes"][0]["features"]["keypoints"]
+    arr["data"] = arr["data"][:-12]  # one keypoint missing
+    r = client.post(
+        f"/v1/maps/{pre_map}/keyframes",
+        content=msgpack.packb(raw, use_bin_type=True),
+        headers={"Content-Type": wire.MSGPACK},
+    )
+    err = _expect(r, 400, "bad_body")
+    assert "keypoints" in err["message"]
+
+
+@pytest.mark.usefixtures("unchanged")
+def test_bad_json_and_media_type(client: httpx.Client, pre_map: str) -> None:
+    path = f"/v1/maps/{pre_map}/keyframes"
+    r = client.post(path, content=b'{"keyframes": [', headers={"Content-Type": "application/json"})
+    _expect(r, 400, "bad_body")
+    r = client.post(path, content=b"", headers={"Content-Type": "application/json"})
+    _expect(r, 400, "bad_body")
+    r = client.post(path, content=b"keyframes=1", headers={"Content-Type": "text/plain"})
+    _expect(r, 415, "unsupported_media_type")
+    r = client.post(path, content=b"{}")  # no Content-Type
+    _expect(r, 415, "unsupported_media_type")
+    r = client.post(path, json=[1, 2, 3])
+    _expect(r, 422, "invalid_input")
+
+
+@pytest.mark.usefixtures("unchanged")
+def test_oversized_body(client: httpx.Client, pre_map: str) -> None:
+    blob = np.zeros(MAX_BODY_BYTES // 4 + 1024, np.float32)
+    r = post_msgpack(client, f"/v1/maps/{pre_map}/localize", {"points": blob})
+    err = _expect(r, 413, "payload_too_large")
+    assert str(MAX_BODY_BYTES) in err["message"]
+
+    def chunks() -> Iterator[bytes]:  # no Content-Length: the limit holds while streaming
+        for _ in range(MAX_BODY_BYTES // 65536 + 2):
+            yield b" " * 65536
+
+    r = client.post(
+        f"/v1/maps/{pre_map}/keyframes",
+        content=chunks(),
+        headers={"Content-Type": "application/json"},
+    )
+    _expect(r, 413, "payload_too_large")
+
+
+# -- limits ------------------------------------------------------------------------------
+
+
+@pytest.mark.usefixtures("unchanged")
+def test_too_many_points(client: httpx.Client, balm_map: BalmMap) -> None:
+    points = _scan(MAX_POINTS + 1)
+    r = _insert(client, "balm", {"T_map_sensor": EYE, "points": points})
+    err = _expect(r, 422, "invalid_input", "keyframes[0].points")
+    assert str(MAX_POINTS) in err["message"]
+    r = post_msgpack(client, "/v1/maps/balm/localize", {"points": points})
+    _expect(r, 422, "invalid_input", "points")
+
+
+@pytest.mark.usefixtures("unchanged")
+def test_batch_too_large(client: httpx.Client, pre_map: str) -> None:
+    rng = np.random.default_rng(9)
+    kfs = [{"T_map_sensor": EYE, "features": random_features(rng)} for _ in range(MAX_BATCH + 1)]
+    err = _expect(_insert(client, pre_map, *kfs), 422, "invalid_input", "keyframes")
+    assert str(MAX_BATCH) in err["message"]
+    _expect(_insert(client, pre_map), 422, "invalid_input", "keyframes")  # empty batch
+
+
+@pytest.mark.usefixtures("unchanged")
+@pytest.mark.parametrize("top_k", [MAX_TOP_K + 1, 0, -3])
+def test_top_k_out_of_range(client: httpx.Client, pre_map: str, top_k: int) -> None:
+    feats = random_features(np.random.default_rng(4))
+    r = post_msgpack(client, f"/v1/maps/{pre_map}/localize", {"features": feats, "top_k": top_k})
+    _expect(r, 422, "invalid_input", "top_k")
+
+
+@pytest.mark.usefixtures("unchanged")
+def test_unknown_rerank_method(client: httpx.Client, pre_map: str) -> None:
+    feats = random_features(np.random.default_rng(4))
+    r = post_msgpack(client, f"/v1/maps/{pre_map}/localize", {"features": feats, "rerank": "x"})
+    _expect(r, 422, "invalid_input", "rerank")
+    r = post_msgpack(client, f"/v1/maps/{pre_map}/localize", {"features": feats, "refine": "x"})
+    _expect(r, 422, "invalid_input", "refine")
+
+
+def test_unknown_route_and_method(client: httpx.Client) -> None:
+    _expect(client.get("/v2/maps"), 404, "not_found")
+    _expect(client.put("/v1/maps"), 405, "method_not_allowed")

@@ -1,0 +1,61 @@
+"""Maps: create, list, describe, delete."""
+
+from __future__ import annotations
+
+import httpx
+import numpy as np
+from svc_helpers import PRECOMPUTED, error_of, post_msgpack, random_features
+
+
+def test_create_describe_list(client: httpx.Client) -> None:
+    body = {
+        "name": "m-create",
+        "retrieval": {"index": "hnsw"},
+        "localizer": {"top_k": 7, "rerank": "none"},
+    }
+    r = client.post("/v1/maps", json=body)
+    assert r.status_code == 201, r.text
+    info = r.json()
+    assert info["name"] == "m-create" and info["version"] == 0 and info["keyframes"] == 0
+    assert info["encoder"]["kind"] == "handcrafted"
+    assert info["encoder"]["name"] == "handcrafted"
+    assert len(info["encoder"]["fingerprint"]) == 16
+    assert info["encoder"]["global_dim"] > 0 and info["encoder"]["local_dim"] == 33
+    assert info["retrieval"]["index"] == "hnsw" and info["index_kind"] == "hnsw"
+    assert info["localizer"]["top_k"] == 7 and info["localizer"]["rerank"] == "none"
+    assert info["created_at"].endswith("Z")
+    assert client.get("/v1/maps/m-create").json() == info
+    names = [m["name"] for m in client.get("/v1/maps").json()["maps"]]
+    assert "m-create" in names and names == sorted(names)
+
+
+def test_retrieval_given_twice_is_refused(client: httpx.Client) -> None:
+    body = {"name": "m-twice", "retrieval": {"index": "flat"}, "localizer": {"retrieval": {}}}
+    r = client.post("/v1/maps", json=body)
+    assert r.status_code == 422
+    assert error_of(r)["code"] == "invalid_input"
+
+
+def test_delete_map(client: httpx.Client, server) -> None:
+    r = client.post("/v1/maps", json={"name": "m-del", "encoder": PRECOMPUTED})
+    assert r.status_code == 201
+    feats = random_features(np.random.default_rng(0))
+    r = post_msgpack(
+        client,
+        "/v1/maps/m-del/keyframes",
+        {"keyframes": [{"T_map_sensor": np.eye(4), "features": feats}]},
+    )
+    assert r.status_code == 201
+    folder = server.data_dir / "maps" / "m-del"
+    assert (folder / "map.sqlite").is_file()
+
+    r = client.delete("/v1/maps/m-del")
+    assert r.status_code == 204 and r.content == b""
+    assert not folder.exists()
+    assert client.get("/v1/maps/m-del").status_code == 404
+    assert "m-del" not in [m["name"] for m in client.get("/v1/maps").json()["maps"]]
+    assert client.delete("/v1/maps/m-del").status_code == 404
+
+    # the name can be used again, for a fresh empty map
+    r = client.post("/v1/maps", json={"name": "m-del", "encoder": PRECOMPUTED})
+    assert r.status_code == 201 and r.json()["keyframes"] == 0

@@ -1,0 +1,34 @@
+"""Before the maps are loaded: alive, not ready, map routes 503 (in process, no lifespan)."""
+
+from __future__ import annotations
+
+import asyncio
+from pathlib import Path
+
+import httpx
+
+from sgvloc.api import create_app
+from sgvloc.settings import Settings
+
+
+def test_not_ready_until_maps_are_loaded(tmp_path: Path) -> None:
+    # httpx.ASGITransport does not run the lifespan, so the maps are never loaded here
+    app = create_app(Settings(data_dir=tmp_path))
+
+    async def probe() -> list[httpx.Response]:
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://test") as c:
+            return [
+                await c.get("/healthz"),
+                await c.get("/readyz"),
+                await c.get("/v1/maps"),
+                await c.post("/v1/maps", json={"name": "a"}),
+            ]
+
+    health, ready, maps, create = asyncio.run(probe())
+    assert health.status_code == 200 and health.json() == {"status": "ok"}
+    assert ready.status_code == 503 and ready.json()["status"] == "loading"
+    for r in (maps, create):
+        assert r.status_code == 503
+        assert r.json()["error"]["code"] == "unavailable"
+    assert not (tmp_path / "maps").exists()  # nothing was created

@@ -1,0 +1,199 @@
+"""The map manager and its SQLite store, in process: snapshots, rebuilds, rollback."""
+
+from __future__ import annotations
+
+import logging
+import shutil
+import sqlite3
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from svc_helpers import random_features
+
+from sgvloc.core.encoders import EncoderSpec
+from sgvloc.core.errors import ConflictError, InputError, NotFoundError
+from sgvloc.core.retrieval import FaissIndex
+from sgvloc.maps import FeaturesIn, KeyframeIn, MapManager
+from sgvloc.store import MapStore
+
+SPEC = EncoderSpec(kind="precomputed", name="egonn", global_dim=16, local_dim=8)
+
+
+def _items(rng: np.random.Generator, n: int, key_prefix: str | None = None) -> list[KeyframeIn]:
+    out = []
+    for i in range(n):
+        f = random_features(rng)
+        T = np.eye(4)
+        T[:3, 3] = [float(i), 0.0, 0.0]
+        out.append(
+            KeyframeIn(
+                T_map_sensor=T,
+                features=FeaturesIn(f["global_descriptor"], f["keypoints"], f["local_features"]),
+                key=None if key_prefix is None else f"{key_prefix}{i}",
+                metadata={"sequence": "s"},
+            )
+        )
+    return out
+
+
+def _manager(root: Path, **kwargs) -> MapManager:
+    m = MapManager(root / "maps", **kwargs)
+    m.load_all()
+    return m
+
+
+def _top_ids(m: MapManager, name: str, query: FeaturesIn) -> list[int]:
+    res = m.localize(name, features=query, top_k=10, rerank="none")
+    return [c.keyframe_id for c in res.retrieved]
+
+
+def test_restore_uses_agreeing_snapshot(tmp_path: Path, caplog) -> None:
+    rng = np.random.default_rng(0)
+    m = _manager(tmp_path)
+    m.create("a", SPEC)
+    items = _items(rng, 6)
+    ids = m.insert("a", items).ids
+    m.delete_keyframe("a", ids[2])
+    answer = _top_ids(m, "a", items[0].features)
+    m.close()
+
+    with caplog.at_level(logging.INFO, logger="sgvloc.maps"):
+        m2 = _manager(tmp_path)
+    assert "map 'a': using index snapshot (5 ids)" in caplog.text
+    h = m2.get("a")
+    assert h.localizer.keyframe_ids() == [i for i in ids if i != ids[2]]
+    assert h.version == 2 and _top_ids(m2, "a", items[0].features) == answer
+    m2.close()
+
+
+def test_missing_stale_or_damaged_snapshot_is_rebuilt(tmp_path: Path, caplog) -> None:
+    rng = np.random.default_rng(1)
+    m = _manager(tmp_path)
+    m.create("a", SPEC)
+    items = _items(rng, 4)
+    m.insert("a", items[:2])
+    index_path = tmp_path / "maps" / "a" / "index.faiss"
+    m.snapshot("a")
+    shutil.copy(index_path, tmp_path / "stale.faiss")
+    m.insert("a", items[2:])
+    answer = _top_ids(m, "a", items[3].features)
+    m.close()
+
+    cases = {
+        "stale": lambda: shutil.copy(tmp_path / "stale.faiss", index_path),
+        "missing": lambda: index_path.unlink(),
+        "damaged": lambda: index_path.write_bytes(b"not an index"),
+    }
+    expected = {
+        "stale": "disagrees with the store",
+        "missing": "no index snapshot",
+        "damaged": "unreadable",
+    }
+    for case, damage in cases.items():
+        damage()
+        caplog.clear()
+        with caplog.at_level(logging.INFO, logger="sgvloc.maps"):
+            m2 = _manager(tmp_path)
+        assert expected[case] in caplog.text, case
+        assert _top_ids(m2, "a", items[3].features) == answer
+        m2.close()
+        # the rebuilt index was saved again and agrees with the store now
+        assert FaissIndex.load(index_path).ids().tolist() == [1, 2, 3, 4]
+
+
+def test_failed_in_memory_insert_leaves_nothing(tmp_path: Path, monkeypatch) -> None:
+    rng = np.random.default_rng(2)
+    m = _manager(tmp_path)
+    h = m.create("a", SPEC)
+    m.insert("a", _items(rng, 2, "k"))
+
+    def broken(kfs):
+        raise RuntimeError("simulated FAISS failure")
+
+    monkeypatch.setattr(h.localizer, "add_keyframes", broken)
+    with pytest.raises(RuntimeError):
+        m.insert("a", _items(rng, 3, "new"))
+    monkeypatch.undo()
+    assert h.store.count() == 2 and h.store.version() == 1 and h.version == 1
+    assert h.store.find_keys(["new0", "new1", "new2"]) == {}
+    # the map keeps working and both version counters stay equal
+    res = m.insert("a", _items(rng, 3, "new"))
+    assert res.created == [True] * 3 and res.map_version == 2 == h.store.version()
+    assert len(h.localizer) == h.store.count() == 5
+    m.close()
+
+
+def test_encoder_fingerprint_change_refuses_the_map(tmp_path: Path) -> None:
+    m = _manager(tmp_path)
+    m.create("a", SPEC)
+    m.create("b", SPEC)
+    m.close()
+    db = tmp_path / "maps" / "a" / "map.sqlite"
+    with sqlite3.connect(db) as conn:
+        conn.execute("UPDATE meta SET value = 'deadbeef' WHERE key = 'encoder_fingerprint'")
+    m2 = _manager(tmp_path)
+    assert [h.name for h in m2.list()] == ["b"]
+    assert "fingerprint" in m2.failed["a"]
+    with pytest.raises(ConflictError):
+        m2.create("a", SPEC)
+    m2.close()
+
+
+def test_names_leftovers_and_deletion(tmp_path: Path) -> None:
+    m = _manager(tmp_path)
+    with pytest.raises(InputError):
+        m.create("../evil", SPEC)
+    m.create("a", SPEC)
+    with pytest.raises(ConflictError):
+        m.create("a", SPEC)
+    m.close()
+    leftover = tmp_path / "maps" / ".tmp-b-1234"
+    leftover.mkdir()
+    m2 = _manager(tmp_path)
+    assert not leftover.exists()
+    m2.delete("a")
+    assert not (tmp_path / "maps" / "a").exists()
+    with pytest.raises(NotFoundError):
+        m2.get("a")
+    m2.close()
+
+
+def test_snapshot_after_n_changes_and_after_delay(tmp_path: Path) -> None:
+    rng = np.random.default_rng(3)
+    m = _manager(tmp_path, snapshot_every=3, snapshot_delay_s=0.2)
+    m.create("a", SPEC)
+    index_path = tmp_path / "maps" / "a" / "index.faiss"
+    m.insert("a", _items(rng, 3))  # reaches snapshot_every: saved at once
+    assert FaissIndex.load(index_path).ids().tolist() == [1, 2, 3]
+    m.start_snapshotter()
+    m.insert("a", _items(rng, 1))  # saved by the background thread
+    deadline = time.monotonic() + 30
+    while FaissIndex.load(index_path).ids().tolist() != [1, 2, 3, 4]:
+        assert time.monotonic() < deadline, "the snapshot thread never saved the change"
+        time.sleep(0.05)
+    m.close()
+
+
+def test_store_round_trip(tmp_path: Path) -> None:
+    """Arrays keep dtype and shape; ids are never reused after a delete."""
+    rng = np.random.default_rng(4)
+    m = _manager(tmp_path)
+    h = m.create("a", SPEC)
+    items = _items(rng, 3, "k")
+    ids = m.insert("a", items).ids
+    m.delete_keyframe("a", ids[-1])
+    new_id = m.insert("a", _items(rng, 1)).ids[0]
+    assert new_id > ids[-1]
+    row = h.store.get(ids[0])
+    assert row.key == "k0" and row.metadata == {"sequence": "s"}
+    assert row.T_map_sensor.dtype == np.float64 and row.T_map_sensor.shape == (4, 4)
+    assert row.keypoints.dtype == np.float32 and row.keypoints.shape == (64, 3)
+    np.testing.assert_array_equal(row.keypoints, items[0].features.keypoints)
+    m.close()
+    store = MapStore.open(tmp_path / "maps" / "a" / "map.sqlite")
+    assert store.ids() == [ids[0], ids[1], new_id] and store.version() == 3
+    with sqlite3.connect(store.path) as conn:
+        assert conn.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+    store.close()
