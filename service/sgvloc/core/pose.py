@@ -8,6 +8,7 @@ Frames are named as in ``T_target_source``: the transform that maps points of th
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -118,6 +119,81 @@ def _validate(name: str, kp: np.ndarray, feats: np.ndarray) -> None:
         raise InputError(f"{name} features must have one row per keypoint")
 
 
+def _not_localized(n_corr: int, reason: str) -> PoseResult:
+    return PoseResult(np.eye(4), n_corr, 0, 0.0, 0.0, "not_localized", reason)
+
+
+Estimator = Callable[[np.ndarray, np.ndarray, np.ndarray, PoseConfig], np.ndarray]
+
+
+def _register(
+    estimate: Estimator,
+    src_kp: np.ndarray,
+    src_feats: np.ndarray,
+    dst_kp: np.ndarray,
+    dst_feats: np.ndarray,
+    cfg: PoseConfig | None,
+) -> PoseResult:
+    """Match features, run ``estimate(src, dst, pairs, cfg) -> T``, score the inliers."""
+    cfg = cfg or PoseConfig()
+    src_kp, dst_kp = np.asarray(src_kp, np.float64), np.asarray(dst_kp, np.float64)
+    src_feats, dst_feats = np.asarray(src_feats), np.asarray(dst_feats)
+    _validate("source", src_kp, src_feats)
+    _validate("target", dst_kp, dst_feats)
+    if min(len(src_kp), len(dst_kp)) < cfg.ransac_n:
+        return _not_localized(
+            0, f"too few keypoints to register (source {len(src_kp)}, target {len(dst_kp)})"
+        )
+    # 1. correspondences: nearest neighbours in feature space (mutual if configured)
+    pairs = feature_correspondences(src_feats, dst_feats, cfg.mutual_filter)  # [C, 2]
+    if len(pairs) < cfg.ransac_n:
+        return _not_localized(
+            len(pairs), f"only {len(pairs)} feature correspondences survive the mutual filter"
+        )
+    # 2. robust estimate over the correspondences
+    T = estimate(src_kp, dst_kp, pairs, cfg)
+    # 3. inliers among the correspondences under that estimate
+    n_in, ratio, rmse = inlier_ratio(
+        src_kp[pairs[:, 0]], dst_kp[pairs[:, 1]], T, cfg.max_correspondence_distance
+    )
+    return judge(T, len(pairs), n_in, ratio, rmse, cfg)
+
+
+def _ransac(src: np.ndarray, dst: np.ndarray, pairs: np.ndarray, cfg: PoseConfig) -> np.ndarray:
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    o3d.utility.random.seed(cfg.seed)
+    result = reg.registration_ransac_based_on_correspondence(
+        to_cloud(src),
+        to_cloud(dst),
+        o3d.utility.Vector2iVector(pairs.astype(np.int32)),
+        cfg.max_correspondence_distance,
+        reg.TransformationEstimationPointToPoint(False),
+        cfg.ransac_n,
+        [
+            reg.CorrespondenceCheckerBasedOnEdgeLength(cfg.edge_length_ratio),
+            reg.CorrespondenceCheckerBasedOnDistance(cfg.max_correspondence_distance),
+        ],
+        reg.RANSACConvergenceCriteria(cfg.max_iterations, cfg.confidence),
+    )
+    return np.asarray(result.transformation, dtype=np.float64).copy()
+
+
+def _fgr(src: np.ndarray, dst: np.ndarray, pairs: np.ndarray, cfg: PoseConfig) -> np.ndarray:
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    o3d.utility.random.seed(cfg.seed)
+    option = reg.FastGlobalRegistrationOption(
+        use_absolute_scale=True, maximum_correspondence_distance=cfg.max_correspondence_distance
+    )
+    result = reg.registration_fgr_based_on_correspondence(
+        to_cloud(src), to_cloud(dst), o3d.utility.Vector2iVector(pairs.astype(np.int32)), option
+    )
+    return np.asarray(result.transformation, dtype=np.float64).copy()
+
+
 def ransac_pose(
     src_kp: np.ndarray,
     src_feats: np.ndarray,
@@ -131,58 +207,7 @@ def ransac_pose(
     3-point samples, edge-length (0.8) and distance checkers, 10000 iterations, 0.999
     confidence. Seeded, so the same inputs give the same answer.
     """
-    import open3d as o3d
-
-    cfg = cfg or PoseConfig()
-    src_kp, dst_kp = np.asarray(src_kp, np.float64), np.asarray(dst_kp, np.float64)
-    src_feats, dst_feats = np.asarray(src_feats), np.asarray(dst_feats)
-    _validate("source", src_kp, src_feats)
-    _validate("target", dst_kp, dst_feats)
-    if min(len(src_kp), len(dst_kp)) < cfg.ransac_n:
-        return PoseResult(
-            np.eye(4),
-            0,
-            0,
-            0.0,
-            0.0,
-            "not_localized",
-            f"too few keypoints for RANSAC (source {len(src_kp)}, target {len(dst_kp)})",
-        )
-
-    # 1. correspondences: nearest neighbours in feature space (mutual if configured)
-    pairs = feature_correspondences(src_feats, dst_feats, cfg.mutual_filter)  # [C, 2]
-    if len(pairs) < cfg.ransac_n:
-        return PoseResult(
-            np.eye(4),
-            len(pairs),
-            0,
-            0.0,
-            0.0,
-            "not_localized",
-            f"only {len(pairs)} feature correspondences survive the mutual filter",
-        )
-
-    # 2. RANSAC over the correspondences, seeded
-    reg = o3d.pipelines.registration
-    o3d.utility.random.seed(cfg.seed)
-    result = reg.registration_ransac_based_on_correspondence(
-        to_cloud(src_kp),
-        to_cloud(dst_kp),
-        o3d.utility.Vector2iVector(pairs.astype(np.int32)),
-        cfg.max_correspondence_distance,
-        reg.TransformationEstimationPointToPoint(False),
-        cfg.ransac_n,
-        [
-            reg.CorrespondenceCheckerBasedOnEdgeLength(cfg.edge_length_ratio),
-            reg.CorrespondenceCheckerBasedOnDistance(cfg.max_correspondence_distance),
-        ],
-        reg.RANSACConvergenceCriteria(cfg.max_iterations, cfg.confidence),
-    )
-    T = np.asarray(result.transformation, dtype=np.float64).copy()
-    n_in, ratio, rmse = inlier_ratio(
-        src_kp[pairs[:, 0]], dst_kp[pairs[:, 1]], T, cfg.max_correspondence_distance
-    )
-    return judge(T, len(pairs), n_in, ratio, rmse, cfg)
+    return _register(_ransac, src_kp, src_feats, dst_kp, dst_feats, cfg)
 
 
 def fgr_pose(
@@ -193,39 +218,7 @@ def fgr_pose(
     cfg: PoseConfig | None = None,
 ) -> PoseResult:
     """Fast Global Registration (Open3D) on the same feature matches as :func:`ransac_pose`."""
-    import open3d as o3d
-
-    cfg = cfg or PoseConfig()
-    src_kp, dst_kp = np.asarray(src_kp, np.float64), np.asarray(dst_kp, np.float64)
-    _validate("source", src_kp, np.asarray(src_feats))
-    _validate("target", dst_kp, np.asarray(dst_feats))
-    pairs = feature_correspondences(src_feats, dst_feats, cfg.mutual_filter)  # [C, 2]
-    if len(pairs) < cfg.ransac_n:
-        return PoseResult(
-            np.eye(4),
-            len(pairs),
-            0,
-            0.0,
-            0.0,
-            "not_localized",
-            f"only {len(pairs)} feature correspondences survive the mutual filter",
-        )
-    reg = o3d.pipelines.registration
-    o3d.utility.random.seed(cfg.seed)
-    option = reg.FastGlobalRegistrationOption(
-        use_absolute_scale=True, maximum_correspondence_distance=cfg.max_correspondence_distance
-    )
-    result = reg.registration_fgr_based_on_correspondence(
-        to_cloud(src_kp),
-        to_cloud(dst_kp),
-        o3d.utility.Vector2iVector(pairs.astype(np.int32)),
-        option,
-    )
-    T = np.asarray(result.transformation, dtype=np.float64).copy()
-    n_in, ratio, rmse = inlier_ratio(
-        src_kp[pairs[:, 0]], dst_kp[pairs[:, 1]], T, cfg.max_correspondence_distance
-    )
-    return judge(T, len(pairs), n_in, ratio, rmse, cfg)
+    return _register(_fgr, src_kp, src_feats, dst_kp, dst_feats, cfg)
 
 
 def judge(
