@@ -1,0 +1,116 @@
+"""Evaluation metrics, exactly as SPEC section 4.
+
+Place recognition, per query: the 1-based rank of the first retrieved keyframe within the
+revisit threshold (``None`` when none of the top-k is). Over queries:
+
+- Recall@N: share of queries with a true positive among the first N (percent);
+- MRR: mean of ``1 / rank`` of the first true positive in the top-k, 0 if none (percent).
+
+Metric localization on the re-ranked top-1:
+
+- RTE = ``||t_est - t_gt||`` (m);
+- RRE = ``degrees(arccos(clip((trace(R_est^T R_gt) - 1) / 2, -1, 1)))``;
+- success: RTE <= 2 m and RRE <= 5 degrees.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+
+import numpy as np
+
+from ..core.errors import InputError
+
+#: SPEC section 4: success thresholds on the re-ranked top-1 pose
+MAX_RTE_M = 2.0
+MAX_RRE_DEG = 5.0
+
+
+def first_true_rank(
+    ranked_positions: np.ndarray, query_position: np.ndarray, radius: float
+) -> int | None:
+    """1-based rank of the first candidate within ``radius`` metres of the query, or None.
+
+    ``ranked_positions``: ``[k, 3]`` candidate positions, best first; ``query_position``:
+    ``[3]`` ground-truth position of the query.
+    """
+    pos = np.asarray(ranked_positions, dtype=np.float64).reshape(-1, 3)  # [k, 3]
+    if len(pos) == 0:
+        return None
+    d = np.linalg.norm(pos - np.asarray(query_position, dtype=np.float64)[None], axis=1)  # [k]
+    hits = np.flatnonzero(d <= radius)
+    return int(hits[0]) + 1 if len(hits) else None
+
+
+def _ranks(ranks: Iterable[int | None]) -> list[int | None]:
+    out = list(ranks)
+    for r in out:
+        if r is not None and (int(r) != r or r < 1):
+            raise InputError(f"ranks must be positive integers or None, got {r!r}")
+    return out
+
+
+def recall_at(ranks: Iterable[int | None], n: int) -> float:
+    """Recall@n in percent: share of queries whose first true positive has rank <= n.
+
+    ``ranks``: per query the 1-based rank of the first true positive, None if none was
+    retrieved. An empty list gives NaN.
+    """
+    if n < 1:
+        raise InputError(f"Recall@N needs N >= 1, got {n}")
+    rs = _ranks(ranks)
+    if not rs:
+        return float("nan")
+    return 100.0 * sum(1 for r in rs if r is not None and r <= n) / len(rs)
+
+
+def mrr(ranks: Iterable[int | None]) -> float:
+    """Mean reciprocal rank in percent: mean of ``1 / rank`` (0 for None). Empty: NaN."""
+    rs = _ranks(ranks)
+    if not rs:
+        return float("nan")
+    return 100.0 * sum(0.0 if r is None else 1.0 / r for r in rs) / len(rs)
+
+
+def _check_pose(T: np.ndarray, name: str) -> np.ndarray:
+    a = np.asarray(T, dtype=np.float64)
+    if a.shape[-2:] != (4, 4):
+        raise InputError(f"{name} must have shape [..., 4, 4], got {list(a.shape)}")
+    return a
+
+
+def rte(T_est: np.ndarray, T_gt: np.ndarray) -> np.ndarray | float:
+    """Relative translation error ``||t_est - t_gt||`` in metres for ``[..., 4, 4]`` poses."""
+    e, g = _check_pose(T_est, "T_est"), _check_pose(T_gt, "T_gt")
+    out = np.linalg.norm(e[..., :3, 3] - g[..., :3, 3], axis=-1)
+    return float(out) if out.ndim == 0 else out
+
+
+def rre(T_est: np.ndarray, T_gt: np.ndarray) -> np.ndarray | float:
+    """Relative rotation error in degrees for ``[..., 4, 4]`` poses (SPEC section 4)."""
+    e, g = _check_pose(T_est, "T_est"), _check_pose(T_gt, "T_gt")
+    # trace(R_est^T R_gt) = sum_ij R_est[i, j] * R_gt[i, j]
+    tr = np.einsum("...ij,...ij->...", e[..., :3, :3], g[..., :3, :3])
+    out = np.degrees(np.arccos(np.clip((tr - 1.0) / 2.0, -1.0, 1.0)))
+    return float(out) if out.ndim == 0 else out
+
+
+def success(
+    rte_m: Sequence[float] | np.ndarray,
+    rre_deg: Sequence[float] | np.ndarray,
+    max_rte: float = MAX_RTE_M,
+    max_rre: float = MAX_RRE_DEG,
+) -> np.ndarray:
+    """Per query: RTE <= ``max_rte`` and RRE <= ``max_rre`` (``[Q]`` bool; NaN fails)."""
+    t = np.asarray(rte_m, dtype=np.float64)
+    r = np.asarray(rre_deg, dtype=np.float64)
+    if t.shape != r.shape:
+        raise InputError(f"RTE and RRE must have the same shape, got {t.shape} and {r.shape}")
+    with np.errstate(invalid="ignore"):
+        return (t <= max_rte) & (r <= max_rre)
+
+
+def success_rate(rte_m: Sequence[float], rre_deg: Sequence[float]) -> float:
+    """Pose success in percent over all queries (NaN for no queries)."""
+    ok = success(rte_m, rre_deg)
+    return float("nan") if ok.size == 0 else 100.0 * float(ok.mean())

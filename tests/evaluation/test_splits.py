@@ -1,0 +1,65 @@
+"""Database/query splits: no query sees its own time window; dropped queries are counted."""
+
+import numpy as np
+import pytest
+
+from sgvloc.core.errors import InputError
+from sgvloc.evaluation.splits import make_split
+
+
+def out_and_back(n: int = 40, dt: float = 1.0):
+    """A drive along x and back: scan i at x = 2 i for the first half, then returning."""
+    half = n // 2
+    x = np.concatenate([np.arange(half) * 2.0, (half - 1 - np.arange(n - half)) * 2.0])
+    pos = np.stack([x, np.zeros(n), np.zeros(n)], axis=1)
+    return np.arange(n) * dt + 100.0, pos  # times with an offset: splits use relative times
+
+
+def test_time_split_database_is_the_past_and_queries_the_rest():
+    times, pos = out_and_back()
+    s = make_split(times, pos, db_until=19.0, threshold=5.0)
+    assert s.database.tolist() == list(range(20))
+    assert set(s.queries) | set(s.dropped) == set(range(20, 40))
+    assert not set(s.queries) & set(s.dropped)
+    for q in s.queries:
+        assert (s.times[s.database_for(q)] <= 19.0).all()
+        assert s.times[q] > 19.0
+
+
+def test_loop_split_never_shows_a_query_its_own_time_window():
+    times, pos = out_and_back()
+    s = make_split(times, pos, min_gap=10.0, threshold=5.0)
+    assert len(s.queries) > 0
+    for q in s.queries:
+        db = s.database_for(q)
+        assert len(db) and (s.times[q] - s.times[db] >= 10.0).all()
+        assert np.linalg.norm(pos[db] - pos[q], axis=1).min() <= 5.0
+    # while driving out, nothing older than 10 s is within 5 m: those are dropped
+    assert s.dropped.tolist()[:3] == [10, 11, 12]
+    assert len(s.queries) + len(s.dropped) == 30
+    assert s.summary()["dropped_queries"] == len(s.dropped)
+
+
+def test_queries_without_a_database_scan_within_the_threshold_are_dropped_and_counted():
+    times, pos = out_and_back()
+    pos[30:] += [0.0, 50.0, 0.0]  # the last ten come back on a parallel road 50 m away
+    s = make_split(times, pos, db_until=19.0, threshold=5.0)
+    assert set(s.dropped) == set(range(30, 40))
+    assert s.summary()["dropped_queries"] == 10 and s.summary()["queries"] == 10
+    wide = make_split(times, pos, db_until=19.0, threshold=60.0)
+    assert len(wide.dropped) == 0
+
+
+def test_thinning_and_bad_arguments():
+    times, pos = out_and_back()
+    s = make_split(times, pos, db_until=19.0, max_queries=4)
+    assert len(s.queries) == 4 and s.queries[0] == 20
+    assert len(make_split(times, pos, db_until=19.0, query_stride=5).queries) == 4
+    with pytest.raises(InputError):
+        make_split(times, pos)
+    with pytest.raises(InputError):
+        make_split(times, pos, db_until=5.0, min_gap=5.0)
+    with pytest.raises(InputError):
+        make_split(times, pos, db_until=-1.0)
+    with pytest.raises(InputError):
+        make_split(times, pos[:, :2], min_gap=5.0)
