@@ -107,8 +107,9 @@ def make_split(
             raise InputError(f"min_gap must be positive, got {min_gap}")
         mode = "loop"
         candidates = np.flatnonzero(t >= min_gap)
-    proto = Split(mode, t, pos, candidates, candidates[:0], candidates[:0], threshold,
-                  db_until, min_gap)  # fmt: skip
+    proto = Split(
+        mode, t, pos, candidates, candidates[:0], candidates[:0], threshold, db_until, min_gap
+    )
 
     kept, dropped = [], []
     for q in candidates:
@@ -125,6 +126,13 @@ def make_split(
         last = t[queries].max() - min_gap if len(queries) else -np.inf
         database = np.flatnonzero(t <= last)
     return Split(
-        mode, t, pos, queries, np.asarray(dropped, dtype=np.int64), database, threshold,
-        db_until, min_gap,
-    )  # fmt: skip
+        mode,
+        t,
+        pos,
+        queries,
+        np.asarray(dropped, dtype=np.int64),
+        database,
+        threshold,
+        db_until,
+        min_gap,
+    )

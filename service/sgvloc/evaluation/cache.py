@@ -1,0 +1,103 @@
+"""On-disk feature cache for evaluation runs.
+
+One ``.npz`` per (encoder, scan file) under ``ROOT/<encoder fingerprint>/``, named by a
+hash of the scan's absolute path, size and modification time, so a changed scan or
+another encoder setting never reuses stale features. Each file holds the global
+descriptor, keypoints, local features and the preprocessed cloud (for ICP refinement).
+Clouds are read only when asked for: ``np.load`` of an ``.npz`` reads members lazily.
+Writes go to a temporary file moved into place with ``os.replace``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from ..core.encoders import Encoder
+from ..core.features import Features
+
+log = logging.getLogger(__name__)
+
+
+def default_cache_dir() -> Path:
+    """``$XDG_CACHE_HOME/sgvloc/features`` (``~/.cache/sgvloc/features`` by default)."""
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(Path.home(), ".cache")
+    return Path(base) / "sgvloc" / "features"
+
+
+class FeatureCache:
+    """Features of scan files for one encoder, cached on disk.
+
+    ``hits`` and ``misses`` count :meth:`get` calls served from disk and computed.
+    """
+
+    def __init__(self, root: str | os.PathLike, encoder: Encoder) -> None:
+        self.encoder = encoder
+        self.dir = Path(root) / encoder.identity.fingerprint
+        self.dir.mkdir(parents=True, exist_ok=True)
+        ident = self.dir / "encoder.json"
+        if not ident.exists():
+            ident.write_text(json.dumps(encoder.identity.to_dict(), indent=1, default=str))
+        self.hits = 0
+        self.misses = 0
+
+    def path_for(self, scan_path: str | os.PathLike) -> Path:
+        """The cache file of a scan file (depends on its path, size and mtime)."""
+        p = Path(scan_path).resolve()
+        st = p.stat()
+        key = f"{p}|{st.st_size}|{st.st_mtime_ns}"
+        return self.dir / (hashlib.sha256(key.encode()).hexdigest()[:24] + ".npz")
+
+    def get(self, scan_path: str | os.PathLike) -> Features:
+        """Features of a scan file: from the cache, or computed (and stored)."""
+        from ..core.io import read_scan
+
+        f = self.path_for(scan_path)
+        if f.exists():
+            try:
+                with np.load(f) as z:
+                    feats = Features(
+                        z["global_descriptor"],
+                        z["keypoints"],
+                        z["local_features"],
+                        self.encoder.identity,
+                    )
+                self.hits += 1
+                return feats
+            except (OSError, KeyError, ValueError) as exc:  # damaged file: recompute
+                log.warning("feature cache file %s unreadable (%s); recomputing", f, exc)
+        self.misses += 1
+        cloud = self.encoder.prepare(read_scan(scan_path).points)  # [M, 3]
+        feats = self.encoder.encode_cloud(cloud)
+        self._write(f, feats, cloud)
+        return feats
+
+    def cloud(self, scan_path: str | os.PathLike) -> np.ndarray:
+        """The preprocessed cloud ``[M, 3]`` of a scan (computed if not cached)."""
+        f = self.path_for(scan_path)
+        if not f.exists():
+            self.get(scan_path)
+        with np.load(f) as z:
+            return np.asarray(z["cloud"], dtype=np.float32)
+
+    def _write(self, f: Path, feats: Features, cloud: np.ndarray) -> None:
+        fd, tmp = tempfile.mkstemp(dir=self.dir, suffix=".tmp")
+        try:
+            with os.fdopen(fd, "wb") as fh:
+                np.savez(
+                    fh,
+                    global_descriptor=feats.global_descriptor,
+                    keypoints=feats.keypoints,
+                    local_features=feats.local_features,
+                    cloud=np.asarray(cloud, dtype=np.float32),
+                )
+            os.replace(tmp, f)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise

@@ -1,0 +1,115 @@
+"""Reports of an evaluation run: a Markdown table, a JSON file and the n_topk plot."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+from .runner import EvalResult
+
+
+def _fmt(v: Any, digits: int = 1) -> str:
+    if v is None or (isinstance(v, float) and math.isnan(v)):
+        return "-"
+    return f"{v:.{digits}f}" if isinstance(v, float) else str(v)
+
+
+def markdown_table(result: EvalResult) -> str:
+    """The table of every (method, top-k): recall, MRR, pose success, errors and time."""
+    thr = result.config["thresholds"]
+    s = result.split
+    split = (
+        f"--db-until {s['db_until_s']:g}"
+        if s["mode"] == "time"
+        else f"--min-gap {s['min_gap_s']:g}"
+    )
+    head = ["method", "top-k"]
+    for t in thr:
+        head += [f"R@1 {t:g}m", f"R@5 {t:g}m", f"MRR {t:g}m"]
+    head += ["S %", "RTE m", "RRE deg", "rerank ms"]
+    lines = [
+        f"{result.config['data']} ({split}): {s['queries']} queries, "
+        f"{s['dropped_queries']} dropped (no database scan within {s['drop_threshold_m']:g} m), "
+        f"{s['database_scans']} database scans",
+        "",
+        "| " + " | ".join(head) + " |",
+        "|" + "|".join("---" if i < 2 else "---:" for i in range(len(head))) + "|",
+    ]
+    for r in result.rows:
+        cells = [r["method"], str(r["k"])]
+        for t in thr:
+            cells += [_fmt(r[f"R@1_{t:g}m"]), _fmt(r[f"R@5_{t:g}m"]), _fmt(r[f"MRR_{t:g}m"])]
+        cells += [
+            _fmt(r.get("success_pct")),
+            _fmt(r.get("mean_rte_m"), 2),
+            _fmt(r.get("mean_rre_deg"), 2),
+            _fmt(r["rerank_median_ms"], 1),
+        ]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def _nan_to_none(x: Any) -> Any:
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    if isinstance(x, dict):
+        return {k: _nan_to_none(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_nan_to_none(v) for v in x]
+    return x
+
+
+def write_json(result: EvalResult, path: str | os.PathLike) -> Path:
+    """Every figure and the exact configuration as JSON (NaN written as null), atomically."""
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    text = json.dumps(_nan_to_none(result.to_dict()), indent=1, default=str)
+    fd, tmp = tempfile.mkstemp(dir=p.parent, suffix=".tmp")
+    with os.fdopen(fd, "w") as fh:
+        fh.write(text)
+    os.replace(tmp, p)
+    return p
+
+
+def plot_sweep(result: EvalResult, path: str | os.PathLike) -> Path:
+    """PNG of R@1 (first threshold) and median re-ranking time against n_topk per method."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    thr = result.config["thresholds"][0]
+    fig, (ax_r, ax_t) = plt.subplots(1, 2, figsize=(11, 4.2))
+    for method, pts in result.sweep.items():
+        ks = [p["k"] for p in pts]
+        style = "o-" if len(ks) > 3 else "s--"
+        ax_r.plot(ks, [p[f"R@1_{thr:g}m"] for p in pts], style, ms=3, label=method)
+        ax_t.plot(ks, [max(p["rerank_median_ms"], 1e-3) for p in pts], style, ms=3, label=method)
+    ax_r.set(xlabel="n_topk", ylabel=f"Recall@1 at {thr:g} m (%)", title="Recall@1 vs n_topk")
+    ax_t.set(
+        xlabel="n_topk",
+        ylabel="re-ranking time per query, median (ms)",
+        yscale="log",
+        title="Re-ranking time vs n_topk",
+    )
+    for ax in (ax_r, ax_t):
+        ax.grid(True, alpha=0.3)
+    ax_r.legend(fontsize=8)
+    s = result.split
+    how = (
+        f"database until {s['db_until_s']:g} s"
+        if s["mode"] == "time"
+        else f"database >= {s['min_gap_s']:g} s older"
+    )
+    name = Path(result.config["data"]).name
+    fig.suptitle(f"{name}: {s['queries']} queries, {how}", fontsize=10)
+    fig.tight_layout()
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(p, dpi=110)
+    plt.close(fig)
+    return p
