@@ -185,6 +185,7 @@ def test_prometheus_scrapes_the_service(compose, port) -> None:
 
 def test_cli_accepts_the_dockerfile_cmd(cmd) -> None:
     import typer
+
     from sgvloc.cli import app
 
     group = typer.main.get_command(app)

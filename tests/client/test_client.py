@@ -11,6 +11,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
+
 from sgvloc_client import (
     AsyncClient,
     BadRequest,

@@ -17,6 +17,7 @@ import httpx
 import msgpack
 import numpy as np
 import pytest
+
 from sgvloc_client import (
     APIError,
     AsyncClient,

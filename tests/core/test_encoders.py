@@ -8,6 +8,7 @@ import numpy as np
 import pydantic
 import pytest
 from scipy.spatial import cKDTree
+
 from sgvloc.core.config import HandcraftedEncoderConfig, PreprocessConfig
 from sgvloc.core.encoders import (
     Encoder,

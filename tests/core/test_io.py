@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from sgvloc.core.errors import InputError, ScanFormatError
 from sgvloc.core.io import (
     KittiSequence,

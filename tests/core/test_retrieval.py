@@ -119,7 +119,9 @@ def test_concurrent_search_and_add_agree():
         for start in range(1000, 2000, 100):
             index.add(np.arange(start, start + 100), x[start : start + 100])
 
-    threads = [threading.Thread(target=searcher) for _ in range(3)] + [threading.Thread(target=writer)]
+    threads = [threading.Thread(target=searcher) for _ in range(3)] + [
+        threading.Thread(target=writer)
+    ]
     for t in threads:
         t.start()
     for t in threads:
