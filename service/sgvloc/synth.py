@@ -234,11 +234,9 @@ def _walk(rng: np.random.Generator, grid: int, edges: int) -> list[tuple[int, in
     return path
 
 
-def route_poses(cfg: SynthConfig, grid: int, pitch: float) -> np.ndarray:
-    """``[scans, 4, 4]`` T_world_sensor: a random walk and its way back, one pose per step."""
+def _route_polyline(cfg: SynthConfig, grid: int, pitch: float, fwd_edges: int) -> np.ndarray:
+    """Waypoints ``[W, 2]`` of a walk of ``fwd_edges`` streets and the way back, in lanes."""
     rng = np.random.default_rng([cfg.seed, 2])
-    length = cfg.scans * cfg.step_m + 4.0
-    fwd_edges = max(1, math.ceil(length / pitch / 2.0) + 1)
     nodes = _walk(rng, grid, fwd_edges)
     nodes = nodes + nodes[-2::-1]  # back the same way: the opposite direction
     cut = min(0.3 * pitch, cfg.street_m / 2.0 + 2.0)  # corners are cut this far from the node
@@ -249,12 +247,21 @@ def route_poses(cfg: SynthConfig, grid: int, pitch: float) -> np.ndarray:
         right = np.array([d[1], -d[0]])
         lane = LANES[int(rng.integers(len(LANES)))]
         pts += [pa + d * cut + right * lane, pb - d * cut + right * lane]
-    poly = np.stack(pts)  # [W, 2]
-    seg = np.linalg.norm(np.diff(poly, axis=0), axis=1)
-    arc = np.concatenate([[0.0], np.cumsum(seg)])  # [W]
+    return np.stack(pts)
+
+
+def route_poses(cfg: SynthConfig, grid: int, pitch: float) -> np.ndarray:
+    """``[scans, 4, 4]`` T_world_sensor: a random walk and its way back, one pose per step."""
+    length = cfg.scans * cfg.step_m + 4.0
+    fwd_edges = max(1, math.ceil(length / pitch / 2.0))
+    while True:  # cut corners shorten the route: add streets until it is long enough
+        poly = _route_polyline(cfg, grid, pitch, fwd_edges)  # [W, 2]
+        seg = np.linalg.norm(np.diff(poly, axis=0), axis=1)
+        arc = np.concatenate([[0.0], np.cumsum(seg)])  # [W]
+        if arc[-1] >= length:
+            break
+        fwd_edges += 1
     s = np.arange(cfg.scans) * cfg.step_m
-    if s[-1] > arc[-1] - 2.0:  # cannot happen with the edge count above; kept as a guard
-        raise InputError("route too short for the requested scans")
     xy = np.stack([np.interp(s, arc, poly[:, 0]), np.interp(s, arc, poly[:, 1])], axis=1)
     # heading from points 2 m ahead and behind: smooth through the cut corners
     ahead = np.stack([np.interp(s + 2.0, arc, poly[:, k]) for k in (0, 1)], axis=1)
