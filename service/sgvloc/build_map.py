@@ -1,27 +1,47 @@
-"""Build a map from a KITTI-layout sequence by inserting its scans into a running service.
+"""Build a map from a KITTI-layout sequence: into a running service, or a data directory.
 
 The sequence's poses (``poses.txt``, ``T_world_sensor``) become the keyframes'
 ``T_map_sensor``: the map frame is the sequence's world frame. Each keyframe's key is
 ``<folder name>/<scan stem>`` (e.g. ``00/000042``), so re-running the same build resumes
 where it stopped: scans already in the map are answered ``created: false`` and not stored
-twice. Everything goes through the HTTP API (:mod:`sgvloc_client`), so this runs on any
-machine that can reach the service and needs neither torch nor FAISS locally.
+twice.
+
+Two targets, one loop (:func:`build_map`), each behind a small :class:`KeyframeSink`:
+
+- a service URL (or :class:`sgvloc_client.Client`): everything goes through the HTTP API,
+  so this runs on any machine that can reach the service and needs neither torch nor
+  FAISS locally (:class:`ClientSink`);
+- a data directory (a :class:`~pathlib.Path`): the keyframes go straight into the map
+  stores through :class:`sgvloc.maps.MapManager`, with the same validation, encoding and
+  all-or-nothing batches, and the FAISS snapshot is saved at the end, so a service started
+  later on that directory loads the map without rebuilding its index
+  (:class:`DataDirSink`). This needs the ``service`` extra (imported lazily). No service
+  may be running on that directory meanwhile: it would not see the new keyframes (its maps
+  live in memory) and would later overwrite the snapshot with one that misses them (then
+  rebuilt at its next start). Stop it first, or give its URL instead.
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import os
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, Protocol
 
-from sgvloc_client import Client, Conflict, KeyframeIn, MapInfo, NotFound
+import numpy as np
 from tqdm import tqdm
+
+from sgvloc_client import Client, Conflict, NotFound
+from sgvloc_client import KeyframeIn as ClientKeyframeIn
 
 from .core.errors import ConflictError, InputError, NotFoundError
 from .core.io import KittiSequence
+
+if TYPE_CHECKING:
+    from .maps import MapManager
 
 log = logging.getLogger(__name__)
 
@@ -41,6 +61,36 @@ class BuildMapResult:
     existing: int
     keyframes: int
     map_version: int
+
+
+@dataclass(frozen=True)
+class ScanKeyframe:
+    """One keyframe to insert, whatever the target: a pose, a raw scan and its key."""
+
+    T_map_sensor: np.ndarray  # [4, 4]
+    points: np.ndarray  # [P, 4] x y z intensity
+    key: str
+    metadata: dict[str, Any] = field(default_factory=dict)
+
+
+class KeyframeSink(Protocol):
+    """Where :func:`build_map` sends its batches (a service, or a data directory)."""
+
+    def ensure_map(self, name: str, create: bool, encoder: dict[str, Any] | None) -> None:
+        """Make sure map ``name`` exists (created if allowed) with the asked encoder kind."""
+        ...
+
+    def insert(self, name: str, batch: list[ScanKeyframe]) -> int:
+        """Insert one batch all-or-nothing; returns how many keyframes were new."""
+        ...
+
+    def state(self, name: str) -> tuple[int, int]:
+        """``(keyframes, version)`` of the map now."""
+        ...
+
+    def close(self) -> None:
+        """Release what the sink opened (and save what must be saved)."""
+        ...
 
 
 def parse_encoder(value: str | Mapping[str, Any] | None) -> dict[str, Any] | None:
@@ -68,32 +118,140 @@ def select_frames(n: int, every: int = 1, limit: int | None = None) -> list[int]
     return list(range(0, n, every))[:limit]
 
 
-def _ensure_map(client: Client, name: str, create: bool, encoder: dict[str, Any] | None) -> MapInfo:
-    """The target map, created if allowed; an existing map must use the asked encoder."""
-    try:
-        info = client.get_map(name)
-    except NotFound:
-        if not create:
-            raise NotFoundError(f"map {name!r} does not exist (and create is off)") from None
-        try:
-            info = client.create_map(name, encoder=encoder)
-            log.info("created map %s (encoder %s)", name, info.encoder.name or info.encoder.kind)
-            return info
-        except Conflict:  # created meanwhile by someone else
-            info = client.get_map(name)
+def _check_encoder_kind(name: str, kind: str | None, encoder: dict[str, Any] | None) -> None:
+    """An existing map must use the asked encoder kind (if one was asked)."""
     wanted = (encoder or {}).get("kind")
-    if wanted and info.encoder.kind and wanted != info.encoder.kind:
+    if wanted and kind and wanted != kind:
         raise ConflictError(
-            f"map {name!r} exists with encoder kind {info.encoder.kind!r}, "
-            f"not the requested {wanted!r}"
+            f"map {name!r} exists with encoder kind {kind!r}, not the requested {wanted!r}"
         )
-    log.info("map %s exists with %d keyframes; resuming", name, info.keyframes)
-    return info
+
+
+# -- sinks ---------------------------------------------------------------------------------
+
+
+class ClientSink:
+    """Batches to a running service through the SDK (closes the client only if it made it)."""
+
+    def __init__(self, target: str | Client) -> None:
+        self.client = Client(target) if isinstance(target, str) else target
+        self._owned = self.client is not target
+
+    def ensure_map(self, name: str, create: bool, encoder: dict[str, Any] | None) -> None:
+        client = self.client
+        try:
+            info = client.get_map(name)
+        except NotFound:
+            if not create:
+                raise NotFoundError(f"map {name!r} does not exist (and create is off)") from None
+            try:
+                info = client.create_map(name, encoder=encoder)
+                log.info(
+                    "created map %s (encoder %s)", name, info.encoder.name or info.encoder.kind
+                )
+                return
+            except Conflict:  # created meanwhile by someone else
+                info = client.get_map(name)
+        _check_encoder_kind(name, info.encoder.kind, encoder)
+        log.info("map %s exists with %d keyframes; resuming", name, info.keyframes)
+
+    def insert(self, name: str, batch: list[ScanKeyframe]) -> int:
+        items = [
+            ClientKeyframeIn(
+                T_map_sensor=kf.T_map_sensor, points=kf.points, key=kf.key, metadata=kf.metadata
+            )
+            for kf in batch
+        ]
+        return self.client.insert_keyframes(name, items).num_created
+
+    def state(self, name: str) -> tuple[int, int]:
+        info = self.client.get_map(name)
+        return info.keyframes, info.version
+
+    def close(self) -> None:
+        if self._owned:
+            self.client.close()
+
+
+class DataDirSink:
+    """Batches straight into the map stores of a data directory (:class:`MapManager`).
+
+    Opening loads every map of the directory (as a starting service would); :meth:`close`
+    saves the FAISS snapshot of every changed map and closes the stores. No service may
+    run on the same directory meanwhile (see the module docstring).
+    """
+
+    def __init__(self, data_dir: Path) -> None:
+        try:  # the service extra: torch, Open3D, FAISS, pydantic-settings
+            from .maps import MapManager
+            from .settings import Settings
+        except ImportError as exc:
+            raise InputError(
+                f"building into a data directory needs the service extra "
+                f"(pip install 'sgvloc[service]'): {exc}; or give a service URL instead"
+            ) from None
+        data_dir = Path(data_dir)
+        if data_dir.exists() and not data_dir.is_dir():
+            raise InputError(f"data directory {data_dir} is not a directory")
+        settings = Settings(data_dir=data_dir)
+        self.manager: MapManager = MapManager(
+            settings.maps_dir,
+            snapshot_every=settings.snapshot_every,
+            snapshot_delay_s=settings.snapshot_delay_s,
+        )
+        self.manager.load_all()
+
+    def ensure_map(self, name: str, create: bool, encoder: dict[str, Any] | None) -> None:
+        from pydantic import ValidationError
+
+        from .core.encoders import EncoderSpec
+
+        manager = self.manager
+        if name in manager.failed:
+            raise ConflictError(
+                f"map {name!r} is in {manager.maps_dir} but could not be loaded: "
+                f"{manager.failed[name]}"
+            )
+        try:
+            handle = manager.get(name)
+        except NotFoundError:
+            if not create:
+                raise NotFoundError(f"map {name!r} does not exist (and create is off)") from None
+            try:
+                spec = EncoderSpec.model_validate(encoder or {})
+            except ValidationError as exc:
+                raise InputError(f"encoder: {exc}") from None
+            handle = manager.create(name, spec)
+            log.info("created map %s (encoder %s)", name, handle.encoder.identity.name)
+            return
+        _check_encoder_kind(name, handle.record.encoder_spec.kind, encoder)
+        log.info("map %s exists with %d keyframes; resuming", name, handle.num_keyframes)
+
+    def insert(self, name: str, batch: list[ScanKeyframe]) -> int:
+        from .maps import KeyframeIn
+
+        items = [
+            KeyframeIn(
+                T_map_sensor=kf.T_map_sensor, points=kf.points, key=kf.key, metadata=kf.metadata
+            )
+            for kf in batch
+        ]
+        return sum(self.manager.insert(name, items).created)
+
+    def state(self, name: str) -> tuple[int, int]:
+        handle = self.manager.get(name)
+        return handle.num_keyframes, handle.version
+
+    def close(self) -> None:
+        self.manager.close()  # saves the snapshot of every changed map
+
+
+# -- the build -----------------------------------------------------------------------------
 
 
 def build_map(
     source: Path | str,
-    target: str | Client,
+    target: str | Client | os.PathLike[str],
     map_name: str,
     *,
     create: bool = True,
@@ -103,23 +261,28 @@ def build_map(
     limit: int | None = None,
     progress: bool = True,
 ) -> BuildMapResult:
-    """Insert a KITTI-layout sequence into map ``map_name`` of a running service.
+    """Insert a KITTI-layout sequence into map ``map_name`` of a service or a data directory.
 
     Args:
         source: folder with ``velodyne/*.bin`` (or ``scans/``, any scan format of
             :mod:`sgvloc.core.io`) and ``poses.txt``; ``times.txt`` is optional.
-        target: the service's base URL, or a :class:`sgvloc_client.Client`.
+        target: where the map lives: the running service's base URL (a ``str``) or a
+            :class:`sgvloc_client.Client`; or a service data directory (a
+            :class:`~pathlib.Path`, ``<dir>/maps/<name>/``, created if missing), written
+            directly (needs the ``service`` extra). No service may run on that directory
+            meanwhile: it would not see the new keyframes; stop it first or give its URL.
         map_name: the map to fill.
         create: create the map if it does not exist (else a missing map is an error).
         encoder: encoder for a new map: a kind or an EncoderSpec (dict or JSON text).
             For an existing map, a different kind is an error.
-        batch_size: keyframes per insert request.
+        batch_size: keyframes per insert (one request, or one store transaction).
         every: insert every n-th scan only.
         limit: insert at most this many scans (after ``every``).
         progress: show a tqdm progress bar.
 
-    Raises :class:`~sgvloc.core.errors.InputError` for a bad sequence or option, and the
-    client's exceptions (:mod:`sgvloc_client`) for service errors.
+    Raises :class:`~sgvloc.core.errors.InputError` for a bad sequence or option, the
+    engine's errors (:mod:`sgvloc.core.errors`) for a data directory, and the client's
+    exceptions (:mod:`sgvloc_client`) for service errors.
     """
     if batch_size < 1:
         raise InputError(f"batch_size must be >= 1, got {batch_size}")
@@ -131,10 +294,12 @@ def build_map(
     prefix = root.resolve().name
     spec = parse_encoder(encoder)
 
-    client = Client(target) if isinstance(target, str) else target
+    sink: KeyframeSink = (
+        DataDirSink(Path(target)) if isinstance(target, os.PathLike) else ClientSink(target)
+    )
     created = existing = 0
     try:
-        _ensure_map(client, map_name, create, spec)
+        sink.ensure_map(map_name, create, spec)
         with tqdm(
             total=len(frames), desc=f"build-map {map_name}", unit="scan", disable=not progress
         ) as bar:
@@ -146,35 +311,34 @@ def build_map(
                     if frame.time is not None:
                         metadata["timestamp"] = frame.time
                     batch.append(
-                        KeyframeIn(
+                        ScanKeyframe(
                             T_map_sensor=frame.T_world_sensor,
                             points=frame.scan().xyzi(),  # [P, 4]
                             key=f"{prefix}/{frame.path.stem}",
                             metadata=metadata,
                         )
                     )
-                result = client.insert_keyframes(map_name, batch)
-                created += result.num_created
-                existing += len(batch) - result.num_created
+                new = sink.insert(map_name, batch)
+                created += new
+                existing += len(batch) - new
                 bar.update(len(batch))
                 bar.set_postfix(new=created, existing=existing)
-        info = client.get_map(map_name)
+        keyframes, version = sink.state(map_name)
     finally:
-        if client is not target:
-            client.close()
+        sink.close()
     log.info(
         "map %s: %d scans sent, %d new keyframes, %d already present, %d keyframes in all",
         map_name,
         len(frames),
         created,
         existing,
-        info.keyframes,
+        keyframes,
     )
     return BuildMapResult(
         map=map_name,
         scans=len(frames),
         created=created,
         existing=existing,
-        keyframes=info.keyframes,
-        map_version=info.version,
+        keyframes=keyframes,
+        map_version=version,
     )

@@ -91,6 +91,7 @@ def serve(
 
 @app.command("build-map")
 def build_map_command(
+    ctx: typer.Context,
     source: Annotated[
         Path,
         typer.Argument(
@@ -101,14 +102,27 @@ def build_map_command(
     ],
     map_name: Annotated[str, typer.Option("--map", "-m", help="the map to fill")],
     url: Annotated[
-        str, typer.Option(help="base URL of the running service", envvar="SGVLOC_URL")
+        str,
+        typer.Option(
+            help="base URL of the running service (not with --data-dir)", envvar="SGVLOC_URL"
+        ),
     ] = "http://127.0.0.1:8470",
+    data_dir: Annotated[
+        Path | None,
+        typer.Option(
+            help="write into this service data directory instead of a service (not with "
+            "--url); no service may run on it meanwhile: stop it first",
+            file_okay=False,
+        ),
+    ] = None,
     create: Annotated[bool, typer.Option(help="create the map if it does not exist")] = True,
     encoder: Annotated[
         str | None,
         typer.Option(help="encoder of a new map: a kind (handcrafted) or a JSON EncoderSpec"),
     ] = None,
-    batch_size: Annotated[int, typer.Option(min=1, help="keyframes per request")] = 16,
+    batch_size: Annotated[
+        int, typer.Option(min=1, help="keyframes per request (or store transaction)")
+    ] = 16,
     every: Annotated[int, typer.Option(min=1, help="insert every n-th scan only")] = 1,
     limit: Annotated[int | None, typer.Option(min=0, help="insert at most this many scans")] = None,
     timeout: Annotated[float, typer.Option(help="seconds to wait for one request")] = 300.0,
@@ -117,30 +131,50 @@ def build_map_command(
     ] = None,
     progress: Annotated[bool, typer.Option(help="show a progress bar")] = True,
 ) -> None:
-    """Insert a KITTI-layout sequence into a map of a running service.
+    """Insert a KITTI-layout sequence into a map of a running service or a data directory.
 
     Each keyframe's key is FOLDER/SCAN (e.g. 00/000042), so running the same command
     again resumes an interrupted build and stores nothing twice.
+
+    With --data-dir the keyframes go straight into the map stores of that directory (needs
+    the service extra) and the index snapshot is saved at the end, so a service started on
+    it later loads the map at once. A service already running on that directory would not
+    see them: stop it first, or use --url.
     """
     import sgvloc_client
 
-    from .build_map import build_map
+    from .build_map import BuildMapResult, build_map
     from .core.errors import SgvlocError
 
+    # SGVLOC_URL in the environment is no conflict; --url on the command line is
+    url_source = ctx.get_parameter_source("url")
+    if data_dir is not None and getattr(url_source, "name", None) == "COMMANDLINE":
+        raise typer.BadParameter(
+            "give either --url (a running service) or --data-dir (a data directory), not both",
+            ctx=ctx,
+            param_hint="'--url' / '--data-dir'",
+        )
     _configure_logging("warning")
+
+    def run(target: sgvloc_client.Client | Path) -> BuildMapResult:
+        return build_map(
+            source,
+            target,
+            map_name,
+            create=create,
+            encoder=encoder,
+            batch_size=batch_size,
+            every=every,
+            limit=limit,
+            progress=progress,
+        )
+
     try:
-        with sgvloc_client.Client(url, timeout=timeout, api_key=api_key) as client:
-            result = build_map(
-                source,
-                client,
-                map_name,
-                create=create,
-                encoder=encoder,
-                batch_size=batch_size,
-                every=every,
-                limit=limit,
-                progress=progress,
-            )
+        if data_dir is not None:
+            result = run(data_dir)
+        else:
+            with sgvloc_client.Client(url, timeout=timeout, api_key=api_key) as client:
+                result = run(client)
     except (SgvlocError, sgvloc_client.SgvlocError) as exc:
         typer.echo(f"build-map: {exc}", err=True)
         raise typer.Exit(1) from None

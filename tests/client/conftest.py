@@ -11,8 +11,8 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager
+from collections.abc import Callable, Iterator
+from contextlib import AbstractContextManager, contextmanager
 from pathlib import Path
 
 import httpx
@@ -80,6 +80,12 @@ def running_service(data_dir: Path, *args: str) -> Iterator[str]:
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait()
+
+
+@pytest.fixture(scope="session")
+def start_service() -> Callable[..., AbstractContextManager[str]]:
+    """:func:`running_service`, for tests that need a service on their own data directory."""
+    return running_service
 
 
 @pytest.fixture

@@ -1,16 +1,23 @@
-"""``build_map`` and ``sgvloc build-map``: a KITTI-layout sequence into a running service."""
+"""``build_map`` and ``sgvloc build-map``: a KITTI-layout sequence into a running service
+or a data directory."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from contextlib import AbstractContextManager
 from pathlib import Path
 
 import numpy as np
 import pytest
+from typer.testing import CliRunner
+
 from sgvloc.build_map import build_map, parse_encoder, select_frames
 from sgvloc.cli import app
-from sgvloc.core.errors import InputError, NotFoundError
+from sgvloc.core.errors import ConflictError, InputError, NotFoundError
+from sgvloc.core.io import KittiSequence
+from sgvloc.core.retrieval import FaissIndex
+from sgvloc.store import INDEX_NAME
 from sgvloc_client import Client
-from typer.testing import CliRunner
 
 
 @pytest.fixture(scope="module")
@@ -105,3 +112,91 @@ def test_build_map_needs_poses(tmp_path: Path, balm_mini_dir: Path) -> None:
     (tmp_path / "velodyne" / "000000.bin").write_bytes(src.read_bytes())
     with pytest.raises(InputError, match="poses.txt"):
         build_map(tmp_path, "http://127.0.0.1:9", "m", progress=False)
+
+
+# -- into a data directory (no service running; MapManager writes the stores) --------------
+
+
+def test_build_map_into_data_dir_then_serve(
+    tmp_path: Path,
+    balm_mini_dir: Path,
+    num_database: int,
+    balm_mini_roles: list[tuple[int, str]],
+    start_service: Callable[..., AbstractContextManager[str]],
+) -> None:
+    data_dir = tmp_path / "data"
+    first = build_map(
+        balm_mini_dir, data_dir, "offline", batch_size=5, limit=num_database, progress=False
+    )
+    assert (first.scans, first.created, first.existing) == (num_database, num_database, 0)
+    assert first.keyframes == num_database and first.map_version > 0
+    # The FAISS snapshot is saved at the end and holds exactly the stored keyframes.
+    index_path = data_dir / "maps" / "offline" / INDEX_NAME
+    assert len(FaissIndex.load(index_path).ids()) == num_database
+    saved = index_path.stat().st_mtime_ns
+
+    # Re-running inserts nothing new and leaves the map as it was.
+    again = build_map(
+        balm_mini_dir, data_dir, "offline", batch_size=7, limit=num_database, progress=False
+    )
+    assert (again.created, again.existing) == (0, num_database)
+    assert (again.keyframes, again.map_version) == (num_database, first.map_version)
+
+    queries = [i for i, (_, role) in enumerate(balm_mini_roles) if role == "query"]
+    seq = KittiSequence(balm_mini_dir)
+    with start_service(data_dir) as url, Client(url) as c:
+        info = c.get_map("offline")
+        assert (info.keyframes, info.version) == (num_database, first.map_version)
+        assert info.encoder.kind == "handcrafted"
+        frame = seq[queries[0]]  # a revisit, never inserted
+        loc = c.localize("offline", points=frame.scan().xyzi())
+        assert loc.localized, loc.reason
+        # Keys and metadata are those of the URL mode.
+        res = c.insert_keyframe(
+            "offline", np.eye(4), points=np.ones((10, 3)), key="balm_mini/000003"
+        )
+        assert res.created == [False]
+        kf = c.get_keyframe("offline", res.ids[0])
+        assert kf.metadata["sequence"] == "balm_mini"
+        np.testing.assert_allclose(kf.T_map_sensor, seq[3].T_world_sensor, atol=1e-9)
+    # the re-run and the service used the snapshot: a rebuilt one would have been saved again
+    assert index_path.stat().st_mtime_ns == saved
+
+
+def test_build_map_data_dir_errors(tmp_path: Path, balm_mini_dir: Path) -> None:
+    data_dir = tmp_path / "data"
+    with pytest.raises(NotFoundError, match="does not exist"):
+        build_map(balm_mini_dir, data_dir, "m", create=False, progress=False)
+    with pytest.raises(InputError, match="encoder"):
+        build_map(balm_mini_dir, data_dir, "m", encoder="nope", limit=1, progress=False)
+    build_map(balm_mini_dir, data_dir, "m", limit=1, progress=False)
+    with pytest.raises(ConflictError, match="encoder kind"):
+        build_map(balm_mini_dir, data_dir, "m", encoder="precomputed", limit=1, progress=False)
+    with pytest.raises(InputError, match="invalid"):
+        build_map(balm_mini_dir, data_dir, "bad name", limit=1, progress=False)
+    (tmp_path / "file").write_text("")
+    with pytest.raises(InputError, match="not a directory"):
+        build_map(balm_mini_dir, tmp_path / "file", "m", progress=False)
+
+
+def test_build_map_command_data_dir(tmp_path: Path, balm_mini_dir: Path) -> None:
+    runner = CliRunner()
+    data_dir = tmp_path / "data"
+    args = ["build-map", str(balm_mini_dir), "--map", "cli-dir", "--data-dir", str(data_dir)]
+    args += ["--limit", "3", "--batch-size", "2", "--no-progress"]
+    # SGVLOC_URL in the environment does not conflict: only an explicit --url does
+    out = runner.invoke(app, args, env={"SGVLOC_URL": "http://127.0.0.1:9"})
+    assert out.exit_code == 0, out.output
+    assert "3 scans sent, 3 new keyframes, 0 already present; 3 keyframes" in out.output
+    out = runner.invoke(app, args)
+    assert out.exit_code == 0, out.output
+    assert "0 new keyframes, 3 already present" in out.output
+    assert (data_dir / "maps" / "cli-dir" / INDEX_NAME).is_file()
+
+    out = runner.invoke(app, [*args, "--url", "http://127.0.0.1:9"])
+    assert out.exit_code == 2  # a usage error, before anything is written
+    said = " ".join(out.output.replace("\u2502", " ").split())  # without the box borders
+    assert "give either --url (a running service) or --data-dir" in said, out.output
+
+    out = runner.invoke(app, [*args[:-5], "--map", "nope", "--no-create", "--no-progress"])
+    assert out.exit_code == 1 and "does not exist" in out.output
