@@ -3,6 +3,8 @@
 - :class:`HandcraftedEncoder` (default, no weights): yaw-invariant polar-grid descriptor,
   FPFH at curvature keypoints;
 - :class:`PrecomputedEncoder`: the client sends features from its own network;
+- :class:`BEVEncoder` (no weights): SIFT/ORB on the bird's-eye-view density image,
+  polar/FFT global descriptor;
 - :class:`TorchScriptEncoder`: a learned model loaded from a TorchScript file (torch is
   imported only when one is built).
 
@@ -10,11 +12,13 @@ A map stores its :class:`EncoderSpec`; :func:`make_encoder` rebuilds the encoder
 """
 
 from .base import Encoder, EncoderSpec, make_encoder
+from .bev import BEVEncoder
 from .handcrafted import HandcraftedEncoder
 from .precomputed import PrecomputedEncoder
 from .torchscript import TorchScriptEncoder
 
 __all__ = [
+    "BEVEncoder",
     "Encoder",
     "EncoderSpec",
     "HandcraftedEncoder",

@@ -9,7 +9,8 @@ Three kinds (see SPEC section 5):
 
 - ``handcrafted`` (default): polar-grid global descriptor + FPFH, no weights;
 - ``precomputed``: the client runs its own network and sends features;
-- ``torchscript``: a learned model loaded from a TorchScript file.
+- ``torchscript``: a learned model loaded from a TorchScript file;
+- ``bev``: SIFT/ORB on the bird's-eye-view density image + polar/FFT descriptor, no weights.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from ..bev import BEVEncoderConfig
 from ..config import HandcraftedEncoderConfig, PreprocessConfig
 from ..errors import InputError
 from ..features import EncoderIdentity, Features
@@ -99,14 +101,16 @@ class EncoderSpec(BaseModel):
 
     - ``kind="handcrafted"``: uses ``preprocess`` and ``handcrafted``;
     - ``kind="torchscript"``: uses ``preprocess``, ``model_path`` and ``device``;
-    - ``kind="precomputed"``: uses ``name``, ``global_dim`` and ``local_dim``.
+    - ``kind="precomputed"``: uses ``name``, ``global_dim`` and ``local_dim``;
+    - ``kind="bev"``: uses ``bev`` (its own box crop and voxels; ``preprocess`` is unused).
     """
 
     model_config = ConfigDict(extra="forbid")
 
-    kind: Literal["handcrafted", "torchscript", "precomputed"] = "handcrafted"
+    kind: Literal["handcrafted", "torchscript", "precomputed", "bev"] = "handcrafted"
     preprocess: PreprocessConfig = PreprocessConfig()
     handcrafted: HandcraftedEncoderConfig = HandcraftedEncoderConfig()
+    bev: BEVEncoderConfig = BEVEncoderConfig()
     model_path: str | None = Field(None, description="torchscript: path of the model file")
     device: Literal["auto", "cpu", "cuda"] = Field(
         "cpu", description="torchscript: where the model runs ('auto' = CUDA if present)"
@@ -141,6 +145,10 @@ def make_encoder(spec: EncoderSpec) -> Encoder:
         assert spec.name is not None and spec.global_dim is not None  # validated
         assert spec.local_dim is not None
         return PrecomputedEncoder(spec.name, spec.global_dim, spec.local_dim)
+    if spec.kind == "bev":
+        from .bev import BEVEncoder
+
+        return BEVEncoder(spec.bev)
     if spec.kind == "torchscript":
         from .torchscript import TorchScriptEncoder
 
