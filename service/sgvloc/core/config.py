@@ -60,6 +60,11 @@ class SGVConfig(_Section):
     )
     chunk_size: int = Field(2048, ge=16, description="rows of M built at once for large n")
     device: Literal["auto", "cpu", "cuda"] = "auto"
+    backend: Literal["auto", "torch", "numba"] = Field(
+        "auto",
+        description="kernel: 'numba' (fused CPU kernel), 'torch' (batched, CPU or CUDA); "
+        "'auto' = numba on CPU when importable, torch on CUDA",
+    )
 
 
 class PoseConfig(_Section):

@@ -13,7 +13,10 @@ preserve pairwise lengths (SPEC section 2, paper eq. 2):
 Public pieces:
 
 - :func:`nn_correspondences`: nearest neighbour in feature space, batched and masked;
-- :func:`sgv_scores`: the batched production scorer (torch, CPU or CUDA, float32);
+- :func:`sgv_scores`: the batched production scorer: a fused numba kernel on CPU
+  (:mod:`sgvloc.core.sgv_numba`) or batched torch (CPU or CUDA), chosen by
+  ``SGVConfig.backend``; both float32 entries of ``M``, same semantics;
+- :func:`warm_up`: compile/load the numba kernels at start-up (no first-request cost);
 - :func:`sgv_rerank_scores`: numpy convenience that pads candidates, matches features and
   scores them;
 - :func:`rank`: stable descending order of the scores;
@@ -90,6 +93,52 @@ def resolve_device(name: str = "auto") -> torch.device:
     return device
 
 
+def numba_available() -> bool:
+    """Whether the numba kernel (:mod:`sgvloc.core.sgv_numba`) can be imported."""
+    try:
+        from . import sgv_numba  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def resolve_backend(cfg: SGVConfig, device: torch.device) -> Literal["torch", "numba"]:
+    """The kernel that :func:`sgv_scores` runs for ``cfg`` on ``device``.
+
+    ``"auto"``: numba on CPU when importable, else torch; ``"numba"`` requires a CPU
+    device and numba, and raises :class:`SgvlocError` naming the problem otherwise.
+    """
+    if cfg.backend == "torch":
+        return "torch"
+    if device.type != "cpu":
+        if cfg.backend == "numba":
+            raise SgvlocError(
+                f"SGV backend 'numba' runs on CPU only, but the device is {str(device)!r}; "
+                "use backend 'torch' or 'auto' on CUDA"
+            )
+        return "torch"
+    if numba_available():
+        return "numba"
+    if cfg.backend == "numba":
+        raise SgvlocError("SGV backend 'numba' requested but numba is not installed")
+    return "torch"
+
+
+def warm_up(cfg: SGVConfig | None = None) -> float:
+    """Prepare the SGV kernel of ``cfg`` so that no request pays for compilation.
+
+    With the numba backend this compiles the kernels, or loads them from numba's on-disk
+    cache (a fraction of a second); with torch it does nothing. Returns seconds taken.
+    Call it at start-up (service, CLI, benchmarks).
+    """
+    cfg = cfg or SGVConfig()
+    if resolve_backend(cfg, resolve_device(cfg.device)) != "numba":
+        return 0.0
+    from .sgv_numba import warm_up as _warm_up
+
+    return _warm_up()
+
+
 @dataclass(frozen=True)
 class SGVScores:
     """SpectralGV result for k candidates (numpy arrays, candidate order as given).
@@ -114,6 +163,7 @@ class SGVScores:
     - ``path``: ``"dense"`` (``M`` built once) or ``"chunked"`` (matrix-free, blocks of
       rows rebuilt at every iteration).
     - ``device``: where it ran, e.g. ``"cpu"``.
+    - ``backend``: the kernel that ran: ``"numba"`` or ``"torch"``.
     """
 
     score: np.ndarray
@@ -123,6 +173,7 @@ class SGVScores:
     v: np.ndarray
     path: Literal["dense", "chunked"]
     device: str
+    backend: str = "torch"
 
     def order(self) -> np.ndarray:
         """Candidate indices by descending ``score``, ties in the given order."""
@@ -210,6 +261,17 @@ def nn_correspondences(
     idx = torch.full((k, n), -1, dtype=torch.int64, device=dev)  # [k, N]
     if k == 0 or n == 0 or nc == 0:
         return idx
+    if dev.type == "cpu":
+        return torch.from_numpy(_nn_numpy(q.numpy(), c.numpy(), mask.numpy(), budget_bytes))
+    return _nn_torch(q, c, mask, budget_bytes)
+
+
+def _nn_torch(
+    q: torch.Tensor, c: torch.Tensor, mask: torch.Tensor, budget_bytes: int
+) -> torch.Tensor:
+    """Torch body of :func:`nn_correspondences` (CUDA); ``c`` is zero at padding."""
+    k, nc, n = c.shape[0], c.shape[1], q.shape[0]
+    idx = torch.full((k, n), -1, dtype=torch.int64, device=c.device)  # [k, N]
 
     # L2-normalise: on unit vectors ||a - b||^2 = 2 - 2 a.b, so argmin L2 = argmax cosine.
     q = q / torch.linalg.vector_norm(q, dim=1, keepdim=True).clamp_min(1e-12)  # [N, D]
@@ -226,6 +288,40 @@ def nn_correspondences(
 
     # Candidates without keypoints have no correspondences.
     idx[~mask.any(dim=1)] = -1
+    return idx
+
+
+#: Entries of one similarity block of the CPU nearest-neighbour search (cache-sized).
+_NN_BLOCK_ENTRIES = 2**20
+
+#: Similarity given to padding: below any cosine similarity (>= -1) of real keypoints.
+_PAD_SIMILARITY = -3.0
+
+
+def _nn_numpy(q: np.ndarray, c: np.ndarray, mask: np.ndarray, budget_bytes: int) -> np.ndarray:
+    """CPU body of :func:`nn_correspondences` (numpy/BLAS), same answers.
+
+    One GEMM per block of query rows against all candidates at once, ``[rows, D + 1] x
+    [D + 1, k * Nc]``: an extra feature dimension (1 for queries; 0 for real keypoints,
+    ``_PAD_SIMILARITY`` for padding) keeps padding from ever winning without a masking
+    pass. Blocks stay cache-sized; argmax takes the first (lowest) index on ties.
+    """
+    k, nc, dim = c.shape
+    n = q.shape[0]
+    qn = q / np.maximum(np.linalg.norm(q, axis=1, keepdims=True), 1e-12)  # [N, D]
+    cn = c / np.maximum(np.linalg.norm(c, axis=2, keepdims=True), 1e-12)  # [k, Nc, D]
+    qe = np.empty((n, dim + 1), dtype=np.float32)  # [N, D + 1]
+    qe[:, :dim], qe[:, dim] = qn, 1.0
+    ce = np.empty((k, nc, dim + 1), dtype=np.float32)  # [k, Nc, D + 1]
+    ce[..., :dim], ce[..., dim] = cn, np.where(mask, 0.0, _PAD_SIMILARITY)
+    ct = np.ascontiguousarray(ce.reshape(k * nc, dim + 1).T)  # [D + 1, k * Nc]
+    block = min(budget_bytes // _F32_BYTES, _NN_BLOCK_ENTRIES)
+    rows = max(1, block // (k * nc))
+    idx = np.empty((k, n), dtype=np.int64)  # [k, N]
+    for r0 in range(0, n, rows):
+        sim = (qe[r0 : r0 + rows] @ ct).reshape(-1, k, nc)  # [rows, k, Nc]
+        idx[:, r0 : r0 + rows] = sim.argmax(axis=2).T
+    idx[~mask.any(axis=1)] = -1  # candidates without keypoints have no correspondences
     return idx
 
 
@@ -391,6 +487,77 @@ def _check_batch(
     return s.contiguous(), d.contiguous(), m
 
 
+def _as_array(x: Any, name: str, dtype: type) -> np.ndarray:
+    """``x`` (numpy, torch or nested sequence) as a numpy array of ``dtype``."""
+    if isinstance(x, torch.Tensor):
+        x = x.detach().cpu().numpy()
+    try:
+        a = np.asarray(x)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{name} is not a numeric array: {exc}") from exc
+    if a.dtype.kind not in "biuf":
+        raise InputError(f"{name} must be real numbers, got dtype {a.dtype}")
+    if dtype is not np.bool_ and a.dtype.kind == "b":
+        raise InputError(f"{name} must be real numbers, got dtype {a.dtype}")
+    return a.astype(dtype, copy=False)
+
+
+def _check_batch_numpy(
+    src: Any, dst: Any, mask: Any | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_check_batch` in numpy (same checks and messages) for the CPU kernel."""
+    s = _as_array(src, "src", np.float32)
+    d = _as_array(dst, "dst", np.float32)
+    if s.ndim != 3 or s.shape[2] != 3:
+        raise InputError(f"src must have shape [k, n, 3], got {list(s.shape)}")
+    if d.shape != s.shape:
+        raise InputError(f"dst must have the shape of src {list(s.shape)}, got {list(d.shape)}")
+    k, n = s.shape[0], s.shape[1]
+    if mask is None:
+        m = np.ones((k, n), dtype=np.bool_)
+    else:
+        m = _as_array(mask, "mask", np.bool_)
+        if m.shape != (k, n):
+            raise InputError(f"mask must have shape [{k}, {n}], got {list(m.shape)}")
+    # Masked entries may hold anything (padding, NaN): zero them, then check the rest.
+    if not m.all():
+        s = np.where(m[..., None], s, np.float32(0.0))
+        d = np.where(m[..., None], d, np.float32(0.0))
+    if not (np.isfinite(s).all() and np.isfinite(d).all()):
+        raise InputError("src/dst contain NaN or inf at valid (unmasked) correspondences")
+    return s, d, m
+
+
+def _sgv_scores_numba(
+    src: Any, dst: Any, mask: Any | None, cfg: SGVConfig, dense_budget_bytes: int
+) -> SGVScores:
+    """:func:`sgv_scores` with the fused CPU kernel (:mod:`sgvloc.core.sgv_numba`)."""
+    from .sgv_numba import power_iteration
+
+    s, d, m = _check_batch_numpy(src, dst, mask)  # [k, n, 3], [k, n, 3], [k, n]
+    diag = 1.0 if cfg.diagonal == "one" else 0.0
+    lam, v, path = power_iteration(
+        s, d, m, cfg.d_thr, cfg.iterations, diag, dense_budget_bytes
+    )  # [k] float64, [k, n] float64
+    counts = m.sum(axis=1).astype(np.int64)  # [k]
+    nf = counts.astype(np.float64)  # [k]
+    score = lam / np.maximum(nf, 1.0) if cfg.normalise == "n" else lam  # [k]
+    normalised = np.where(
+        counts > 1, np.clip((lam - diag) / np.maximum(nf - 1.0, 1.0), 0.0, 1.0), 0.0
+    )  # [k]
+    log.debug("sgv: k=%d n=%d path=%s backend=numba", m.shape[0], m.shape[1], path)
+    return SGVScores(
+        score=score.astype(np.float32),
+        normalised=normalised.astype(np.float32),
+        eigenvalue=lam.astype(np.float32),
+        n=counts,
+        v=v.astype(np.float32),
+        path=path,
+        device="cpu",
+        backend="numba",
+    )
+
+
 def sgv_scores(
     src: Any,
     dst: Any,
@@ -408,18 +575,25 @@ def sgv_scores(
             entries are ignored, whatever they hold: a padded candidate scores exactly
             like the unpadded one; ``n`` per candidate is ``mask.sum()``.
         cfg: :class:`SGVConfig` (``d_thr``, ``iterations``, ``diagonal``, ``normalise``,
-            ``chunk_size``, ``device``); defaults if None.
-        dense_budget_bytes: if ``M`` (``k * n * n`` float32) fits, it is built once
+            ``chunk_size``, ``device``, ``backend``); defaults if None. The backend
+            (:func:`resolve_backend`) is the fused numba kernel on CPU by default, torch
+            on CUDA or when asked for.
+        dense_budget_bytes: torch: if ``M`` (``k * n * n`` float32) fits, it is built once
             ("dense" path); otherwise ``M v`` is computed block-row-wise, rebuilding each
             block at every iteration ("chunked"). Both give the same scores. Tiles of ``M``
             hold at most ``cfg.chunk_size`` rows and about 2^20 entries (2^24 on CUDA), so
             the chunked path needs three such float32 tiles besides the ``[k, n]`` vectors.
+            numba: a candidate's ``M`` (``n_valid^2`` float32) is built once if one per
+            thread fits, else its rows are rebuilt at every product (matrix-free,
+            ``O(16 n)`` memory); ``path`` is "chunked" if any candidate went that way.
 
     Returns:
         :class:`SGVScores` (numpy arrays). See the module docstring for edge cases.
     """
     cfg = cfg or SGVConfig()
     device = resolve_device(cfg.device)
+    if resolve_backend(cfg, device) == "numba":
+        return _sgv_scores_numba(src, dst, mask, cfg, dense_budget_bytes)
     s, d, m = _check_batch(src, dst, mask, device)  # [k, n, 3], [k, n, 3], [k, n]
     k, n = m.shape
     valid = m.to(torch.float32)  # [k, n]
@@ -558,6 +732,16 @@ def sgv_rerank_scores(
     # Correspondences: nearest candidate keypoint in feature space, per query keypoint.
     idx = nn_correspondences(qf, ft_pad, cmask, device=device)  # [k, N]
     valid = idx >= 0  # [k, N]
+
+    if resolve_backend(cfg, device) == "numba":
+        # CPU kernel: gather in numpy, no torch round trip.
+        idx_np = idx.numpy()  # [k, N]
+        if nc_max > 0:
+            dst_np = kp_pad[np.arange(k)[:, None], np.maximum(idx_np, 0)]  # [k, N, 3]
+        else:
+            dst_np = np.zeros((k, n, 3), dtype=np.float32)
+        src_np = np.broadcast_to(qk[None], (k, n, 3))  # [k, N, 3]
+        return sgv_scores(src_np, dst_np, valid.numpy(), cfg, dense_budget_bytes=dense_budget_bytes)
 
     # src = query keypoints (same for all k), dst = the matched candidate keypoints.
     kp_t = torch.as_tensor(kp_pad, device=device)  # [k, Nc_max, 3]
