@@ -20,6 +20,8 @@ import yaml
 ROOT = Path(__file__).resolve().parents[1]
 DOCKERFILE = ROOT / "docker" / "Dockerfile"
 COMPOSE = ROOT / "docker-compose.yml"
+KEYS_SECRET = "/run/secrets/sgvloc-keys"
+METRICS_SECRET = "/run/secrets/sgvloc-metrics-key"
 
 
 def dockerfile_instructions(path: Path) -> list[tuple[str, str]]:
@@ -91,6 +93,8 @@ def test_dockerfile_base_user_volume_and_cmd(docker, cmd, port) -> None:
     assert int(option(cmd, "--port")) == port == 8470
     assert option(cmd, "--host") == "0.0.0.0"
     assert docker["VOLUME"] == ["/data"] and option(cmd, "--data-dir") == "/data"
+    # authentication on: the keys come from a mounted secret, never development mode
+    assert option(cmd, "--keys-file") == KEYS_SECRET and "--dev" not in cmd
     # a non-root user is active when the service starts
     users = [u for u in docker.get("USER", [])]
     assert users and users[-1].split(":")[0] not in ("root", "0")
@@ -164,6 +168,15 @@ def test_compose_services(compose, port) -> None:
     probe = " ".join(test if isinstance(test, list) else [test])
     assert f"127.0.0.1:{port}/healthz" in probe
     assert test[0] in ("CMD", "CMD-SHELL") and "curl" not in probe
+    # the keys file is a secret at the path the CMD reads; no development mode
+    secrets = compose["secrets"]
+    (keys,) = [s for s in sgv["secrets"] if s["target"] == KEYS_SECRET]
+    assert keys["source"] in secrets and "file" in secrets[keys["source"]]
+    assert "SGVLOC_DEV" not in (sgv.get("environment") or {})
+    ignored = (ROOT / ".dockerignore").read_text().split()
+    for secret in secrets.values():  # never baked into the image, never committed
+        name = Path(secret["file"]).name
+        assert name in ignored and name in (ROOT / ".gitignore").read_text().split()
 
 
 def test_prometheus_scrapes_the_service(compose, port) -> None:
@@ -181,6 +194,9 @@ def test_prometheus_scrapes_the_service(compose, port) -> None:
     assert job.get("metrics_path", "/metrics") == "/metrics"
     targets = [t for sc in job["static_configs"] for t in sc["targets"]]
     assert targets == [f"sgvloc:{port}"]  # compose service name and container port
+    # /metrics needs a viewer key: Prometheus reads it from its own secret
+    assert job["authorization"] == {"type": "Bearer", "credentials_file": METRICS_SECRET}
+    assert [s["target"] for s in prom["secrets"]] == [METRICS_SECRET]
 
 
 def test_cli_accepts_the_dockerfile_cmd(cmd) -> None:
@@ -224,6 +240,10 @@ def test_container_commands_run_natively(docker, cmd, port, tmp_path: Path) -> N
     argv = list(cmd[2:])
     argv[argv.index("--port") + 1] = str(free)
     argv[argv.index("--data-dir") + 1] = str(tmp_path / "data")
+    viewer_key = "deploy-test-viewer-key-0123456789"
+    keys = tmp_path / "sgvloc-keys"  # the secret, as mounted: no suffix, so TOML
+    keys.write_text(f'[[keys]]\nname = "prometheus"\nrole = "viewer"\nkey = "{viewer_key}"\n')
+    argv[argv.index("--keys-file") + 1] = str(keys)
     probe = [a.replace(f":{port}/", f":{free}/") for a in exec_form(docker["HEALTHCHECK"][0])]
     probe[0] = sys.executable  # "python" in the image
 
@@ -233,7 +253,10 @@ def test_container_commands_run_natively(docker, cmd, port, tmp_path: Path) -> N
             [sys.executable, "-c", "from sgvloc.cli import main; main()", "serve", *argv],
             stdout=out,
             stderr=subprocess.STDOUT,
-            env={**os.environ, "SGVLOC_LOG_LEVEL": "warning"},
+            env={
+                **{k: v for k, v in os.environ.items() if k not in ("SGVLOC_DEV",)},
+                "SGVLOC_LOG_LEVEL": "warning",
+            },
         )
     try:
         deadline = time.monotonic() + 90
@@ -241,7 +264,9 @@ def test_container_commands_run_natively(docker, cmd, port, tmp_path: Path) -> N
             assert server.poll() is None, log.read_text()[-3000:]
             assert time.monotonic() < deadline, "HEALTHCHECK never passed"
             time.sleep(0.3)
-        metrics = httpx.get(f"http://127.0.0.1:{free}/metrics", timeout=10)
+        url = f"http://127.0.0.1:{free}/metrics"
+        assert httpx.get(url, timeout=10).status_code == 401  # metrics need a viewer key
+        metrics = httpx.get(url, headers={"Authorization": f"Bearer {viewer_key}"}, timeout=10)
         assert metrics.status_code == 200
         assert "sgvloc_http_requests_total" in metrics.text
     finally:

@@ -50,8 +50,26 @@ def serve(
     log_level: Annotated[
         str | None, typer.Option(help="critical|error|warning|info|debug (env SGVLOC_LOG_LEVEL)")
     ] = None,
+    keys_file: Annotated[
+        Path | None,
+        typer.Option(
+            help="TOML/JSON file of API keys with roles (env SGVLOC_KEYS_FILE); "
+            "see docs/OPERATIONS.md"
+        ),
+    ] = None,
+    dev: Annotated[
+        bool,
+        typer.Option(
+            "--dev",
+            help="development mode: authentication OFF, no keys needed (env SGVLOC_DEV=1); "
+            "never on a shared network",
+        ),
+    ] = False,
 ) -> None:
     """Run the HTTP service in ONE process.
+
+    Authentication is on: the service refuses to start without API keys (--keys-file)
+    unless --dev says it is a development setup.
 
     CPU work runs in a pool of --workers threads inside this process (FAISS, Open3D and
     torch release the GIL). There is deliberately no option for several worker
@@ -62,6 +80,7 @@ def serve(
     import uvicorn
 
     from .api import create_app
+    from .api.auth import KeysError
     from .settings import Settings
 
     overrides = {
@@ -70,20 +89,54 @@ def serve(
         "data_dir": data_dir,
         "workers": workers,
         "log_level": log_level.lower() if log_level else None,
+        "keys_file": keys_file,
+        "dev": True if dev else None,
     }
     try:
         settings = Settings(**{k: v for k, v in overrides.items() if v is not None})
     except ValueError as exc:  # pydantic's ValidationError
         raise typer.BadParameter(str(exc)) from None
     _configure_logging(settings.log_level)
+    try:
+        application = create_app(settings)
+    except KeysError as exc:
+        typer.echo(f"sgvloc serve: {exc}", err=True)
+        raise typer.Exit(2) from None
     uvicorn.run(
-        create_app(settings),
+        application,
         host=settings.host,
         port=settings.port,
         log_level=settings.log_level,
         workers=None,  # one process: an app object cannot be forked into workers anyway
         access_log=settings.log_level == "debug",
     )
+
+
+@app.command("new-key")
+def new_key_command(
+    role: Annotated[str, typer.Option(help="vehicle | mapper | viewer | admin")],
+    name: Annotated[str, typer.Option(help="a label for the key (shown in logs)")],
+    maps: Annotated[
+        str, typer.Option(help="comma-separated maps the key may use (default: every map)")
+    ] = "",
+) -> None:
+    """Make a random API key: prints the key (give it to the client; it is not stored)
+    and the keys-file entry holding only its SHA-256."""
+    import json
+    import secrets
+
+    from .api.auth import ROLES, hash_key
+
+    if role not in ROLES:
+        raise typer.BadParameter(f"role must be one of {', '.join(ROLES)}", param_hint="--role")
+    key = secrets.token_urlsafe(32)
+    names = [m.strip() for m in maps.split(",") if m.strip()]
+    typer.echo(f"key: {key}", err=True)
+    # JSON strings are valid TOML basic strings
+    entry = f'[[keys]]\nname = {json.dumps(name)}\nrole = "{role}"\nkey = "{hash_key(key)}"\n'
+    if names:
+        entry += f"maps = {json.dumps(names)}\n"
+    typer.echo(entry)
 
 
 # -- build-map (sgvloc.build_map) ---------------------------------------------------------

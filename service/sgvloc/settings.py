@@ -9,10 +9,11 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 LogLevel = Literal["critical", "error", "warning", "info", "debug"]
+ProbeAuth = Literal["open", "viewer"]
 
 
 class Settings(BaseSettings):
@@ -37,6 +38,46 @@ class Settings(BaseSettings):
         30.0, gt=0, description="save a changed map's snapshot at most this long after a write"
     )
     log_level: LogLevel = "info"
+
+    # -- access control (docs/OPERATIONS.md) --
+    dev: bool = Field(
+        False,
+        description="development mode: authentication is OFF (never on a shared network)",
+    )
+    keys_file: Path | None = Field(
+        None, description="TOML or JSON file of API keys with roles (see docs/OPERATIONS.md)"
+    )
+    metrics_auth: ProbeAuth = Field(
+        "viewer", description="/metrics: open to anyone, or a viewer (or admin) key"
+    )
+    readyz_auth: ProbeAuth = Field(
+        "open", description="/readyz: open to anyone, or a viewer (or admin) key"
+    )
+
+    # -- admission and timeouts --
+    max_inflight_localize: int | None = Field(
+        None,
+        ge=1,
+        description="localize requests admitted at once (running or waiting for a worker); "
+        "beyond it 429 with Retry-After. Default 4 x workers",
+    )
+    request_timeout_s: float = Field(
+        30.0,
+        gt=0,
+        description="longest a request waits for a worker thread; beyond it 503 with Retry-After",
+    )
+    retry_after_s: int = Field(1, ge=1, description="Retry-After of 429/503 answers (seconds)")
+
+    @model_validator(mode="after")
+    def _default_inflight(self) -> Settings:
+        if self.max_inflight_localize is None:
+            self.max_inflight_localize = 4 * self.workers
+        return self
+
+    @property
+    def inflight_limit(self) -> int:
+        """The effective ``max_inflight_localize``."""
+        return self.max_inflight_localize or 4 * self.workers
 
     @property
     def maps_dir(self) -> Path:

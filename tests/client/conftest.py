@@ -54,6 +54,8 @@ def running_service(data_dir: Path, *args: str) -> Iterator[str]:
     ]
     log_path = data_dir.parent / f"service-{port}.log"
     env = {**os.environ, "SGVLOC_LOG_LEVEL": "warning", "OMP_NUM_THREADS": "1"}
+    if "--keys-file" not in argv and "SGVLOC_KEYS_FILE" not in os.environ:
+        env["SGVLOC_DEV"] = "1"  # development mode: no API keys
     with open(log_path, "wb") as log:
         proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
     url = f"http://127.0.0.1:{port}"

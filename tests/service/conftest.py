@@ -2,7 +2,9 @@
 
 One server is shared by the whole session (start-up imports torch and Open3D, which
 takes seconds); ``test_restart`` restarts it on the same data directory and port. Limits
-are lowered through ``SGVLOC_*`` variables so the limit tests send small bodies.
+are lowered through ``SGVLOC_*`` variables so the limit tests send small bodies. The
+shared server runs in development mode (``SGVLOC_DEV=1``: no keys); tests about access
+control and admission start their own :class:`Server` with a keys file or other ``env``.
 """
 
 from __future__ import annotations
@@ -48,6 +50,9 @@ class Server:
     log_path: Path
     port: int = field(default_factory=free_port)
     proc: subprocess.Popen | None = None
+    #: extra SGVLOC_* variables; without SGVLOC_KEYS_FILE the server runs with SGVLOC_DEV=1
+    env: dict[str, str] = field(default_factory=dict)
+    workers: int = 2
 
     @property
     def url(self) -> str:
@@ -61,6 +66,11 @@ class Server:
             SGVLOC_MAX_BATCH=str(MAX_BATCH),
             SGVLOC_MAX_TOP_K=str(MAX_TOP_K),
         )
+        env.pop("SGVLOC_KEYS_FILE", None)
+        env.pop("SGVLOC_DEV", None)
+        if "SGVLOC_KEYS_FILE" not in self.env:
+            env["SGVLOC_DEV"] = "1"
+        env.update(self.env)
         cmd = [
             sys.executable,
             "-m",
@@ -73,7 +83,7 @@ class Server:
             "--data-dir",
             str(self.data_dir),
             "--workers",
-            "2",
+            str(self.workers),
         ]
         with self.log_path.open("a") as log:
             self.proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
@@ -81,8 +91,8 @@ class Server:
         while time.monotonic() < deadline:
             if self.proc.poll() is not None:
                 raise RuntimeError(f"the service exited at start-up:\n{self.log()}")
-            try:
-                if httpx.get(f"{self.url}/readyz", timeout=2.0).status_code == 200:
+            try:  # /readyz is open unless SGVLOC_READYZ_AUTH=viewer (then 401 = up)
+                if httpx.get(f"{self.url}/readyz", timeout=2.0).status_code in (200, 401):
                     return
             except httpx.TransportError:
                 pass
@@ -100,6 +110,12 @@ class Server:
         except subprocess.TimeoutExpired:
             self.proc.kill()
             return self.proc.wait(timeout=10)
+
+    def kill(self) -> None:
+        """SIGKILL: no shutdown code runs (no snapshot saved, nothing flushed)."""
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGKILL)
+            self.proc.wait(timeout=30)
 
     def restart(self) -> None:
         self.stop()

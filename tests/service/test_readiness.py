@@ -13,7 +13,7 @@ from sgvloc.settings import Settings
 
 def test_not_ready_until_maps_are_loaded(tmp_path: Path) -> None:
     # httpx.ASGITransport does not run the lifespan, so the maps are never loaded here
-    app = create_app(Settings(data_dir=tmp_path))
+    app = create_app(Settings(data_dir=tmp_path, dev=True))
 
     async def probe() -> list[httpx.Response]:
         transport = httpx.ASGITransport(app=app)

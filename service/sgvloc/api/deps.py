@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import AsyncIterator, Callable
 from typing import Annotated, TypeVar
 
 import anyio
@@ -34,19 +34,83 @@ async def get_manager(request: Request) -> MapManager:
     return manager
 
 
+def busy(status: int, code: str, message: str, settings: Settings) -> ApiError:
+    """A 429/503 answer with ``Retry-After``."""
+    return ApiError(status, code, message, headers={"Retry-After": str(settings.retry_after_s)})
+
+
 class Worker:
     """Runs CPU work (decoding, encoding, FAISS, re-ranking, pose, SQLite) in the
-    service's worker threads (``settings.workers`` at once), never on the event loop."""
+    service's worker threads (``settings.workers`` at once), never on the event loop.
 
-    def __init__(self, limiter: anyio.CapacityLimiter) -> None:
+    A request waits at most ``request_timeout_s`` for a free worker; past that it is
+    answered 503 ``queue_timeout`` with ``Retry-After`` (it never started, so nothing
+    happened). Work that has started runs to its end: a half-done insert is never cut.
+    """
+
+    def __init__(
+        self,
+        limiter: anyio.CapacityLimiter,
+        threads: anyio.CapacityLimiter,
+        settings: Settings,
+    ) -> None:
         self._limiter = limiter
+        self._settings = settings
+        self._threads = threads
 
     async def run(self, fn: Callable[[], T]) -> T:
-        return await anyio.to_thread.run_sync(fn, limiter=self._limiter)
+        timeout = self._settings.request_timeout_s
+        acquired = False
+        with anyio.move_on_after(timeout):
+            await self._limiter.acquire()
+            acquired = True
+        if not acquired:
+            raise busy(
+                503,
+                "queue_timeout",
+                f"no worker was free within request_timeout_s={timeout:g} s; retry later",
+                self._settings,
+            )
+        try:
+            # the token taken above is the bound; ``threads`` (as many) only keeps the
+            # work off anyio's default pool of 40
+            return await anyio.to_thread.run_sync(fn, limiter=self._threads)
+        finally:
+            self._limiter.release()
 
 
 async def get_worker(request: Request) -> Worker:
-    return Worker(request.app.state.cpu_limiter)
+    state = request.app.state
+    return Worker(state.cpu_limiter, state.thread_limiter, state.settings)
+
+
+class Admission:
+    """Counts localize requests in flight (admitted, not answered yet): at most
+    ``max_inflight_localize``; the next one is answered 429 at once instead of queueing
+    without bound. Used on the event loop only, so a plain counter is enough."""
+
+    def __init__(self, limit: int) -> None:
+        self.limit = limit
+        self.inflight = 0
+
+
+async def admit_localize(request: Request) -> AsyncIterator[None]:
+    """Take a localize slot for the request (before its body is read), or 429."""
+    admission: Admission = request.app.state.admission
+    settings: Settings = request.app.state.settings
+    if admission.inflight >= admission.limit:
+        raise busy(
+            429,
+            "overloaded",
+            f"{admission.inflight} localize requests are in flight (max_inflight_localize="
+            f"{admission.limit}); retry later",
+            settings,
+        )
+    admission.inflight += 1
+    try:
+        yield
+    finally:
+        admission.inflight -= 1
 
 
 async def get_body(
@@ -60,6 +124,7 @@ SettingsDep = Annotated[Settings, Depends(get_settings)]
 MetricsDep = Annotated[Metrics, Depends(get_metrics)]
 ManagerDep = Annotated[MapManager, Depends(get_manager)]
 WorkerDep = Annotated[Worker, Depends(get_worker)]
+LocalizeSlot = Annotated[None, Depends(admit_localize, scope="function")]
 BodyDep = Annotated[RawBody, Depends(get_body)]
 MapName = Annotated[str, Path(alias="map", description="map name")]
 KeyframeId = Annotated[int, Path(alias="id", description="keyframe id")]

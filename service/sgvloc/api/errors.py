@@ -35,19 +35,34 @@ log = logging.getLogger(__name__)
 class ApiError(Exception):
     """An error answered as-is: HTTP status, machine code, message and optional field."""
 
-    def __init__(self, status: int, code: str, message: str, field: str | None = None) -> None:
+    def __init__(
+        self,
+        status: int,
+        code: str,
+        message: str,
+        field: str | None = None,
+        headers: dict[str, str] | None = None,
+    ) -> None:
         super().__init__(message)
         self.status, self.code, self.message, self.field = status, code, message, field
+        self.headers = headers or {}
 
 
 def error_response(
-    request: Request, status: int, code: str, message: str, field: str | None = None
+    request: Request,
+    status: int,
+    code: str,
+    message: str,
+    field: str | None = None,
+    headers: dict[str, str] | None = None,
 ) -> Response:
     """The error body, encoded as the request's ``Accept`` asks (JSON by default)."""
     from .body import encode
 
     body = {"error": {"code": code, "message": message, "field": field}}
-    return encode(request, body, status)
+    response = encode(request, body, status)
+    response.headers.update(headers or {})
+    return response
 
 
 def loc_to_field(loc: Sequence[Any]) -> str | None:
@@ -92,7 +107,7 @@ _ENGINE_CODES: list[tuple[type[SgvlocError], int, str]] = [
 
 async def _api_error(request: Request, exc: Exception) -> Response:
     assert isinstance(exc, ApiError)
-    return error_response(request, exc.status, exc.code, exc.message, exc.field)
+    return error_response(request, exc.status, exc.code, exc.message, exc.field, exc.headers)
 
 
 async def _engine_error(request: Request, exc: Exception) -> Response:
@@ -117,12 +132,19 @@ async def _request_validation(request: Request, exc: Exception) -> Response:
 
 async def _http_error(request: Request, exc: Exception) -> Response:
     assert isinstance(exc, StarletteHTTPException)
-    codes = {404: "not_found", 405: "method_not_allowed", 413: "payload_too_large"}
+    codes = {
+        401: "unauthorized",
+        403: "forbidden",
+        404: "not_found",
+        405: "method_not_allowed",
+        413: "payload_too_large",
+        429: "overloaded",
+    }
     code = codes.get(exc.status_code, "internal" if exc.status_code >= 500 else "bad_request")
     message = str(exc.detail)
     if exc.status_code == 404 and message == "Not Found":
         message = f"no route {request.method} {request.url.path}"
-    return error_response(request, exc.status_code, code, message)
+    return error_response(request, exc.status_code, code, message, headers=exc.headers)
 
 
 async def _unexpected(request: Request, exc: Exception) -> Response:

@@ -24,9 +24,11 @@ from .. import __version__
 from ..maps import MapManager
 from ..metrics import Metrics
 from ..settings import Settings
+from .auth import KeyRing
+from .deps import Admission
 from .errors import install_error_handlers
 from .openapi import install_openapi
-from .routes import keyframes, localize, maps, probes
+from .routes import config, keyframes, localize, maps, probes
 
 log = logging.getLogger(__name__)
 
@@ -87,11 +89,15 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     settings: Settings = app.state.settings
     manager: MapManager = app.state.manager
     app.state.cpu_limiter = anyio.CapacityLimiter(settings.workers)
+    app.state.thread_limiter = anyio.CapacityLimiter(settings.workers)
     log.info(
-        "sgvloc %s: data dir %s, %d worker thread(s)",
+        "sgvloc %s: data dir %s, %d worker thread(s), at most %d localize request(s) in "
+        "flight, %g s queue timeout",
         __version__,
         settings.data_dir.resolve(),
         settings.workers,
+        settings.inflight_limit,
+        settings.request_timeout_s,
     )
     loader = threading.Thread(target=_load_maps, args=(manager,), name="sgvloc-load", daemon=True)
     loader.start()
@@ -104,8 +110,13 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
-    """Build the service for ``settings`` (read from ``SGVLOC_*`` when not given)."""
+    """Build the service for ``settings`` (read from ``SGVLOC_*`` when not given).
+
+    Raises :class:`~sgvloc.api.auth.KeysError` when the keys file is unusable, or when no
+    keys are configured outside development mode.
+    """
     settings = settings or Settings()
+    keyring = KeyRing.from_settings(settings)
     metrics = Metrics()
     manager = MapManager(
         settings.maps_dir,
@@ -123,7 +134,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     app.state.metrics = metrics
     app.state.manager = manager
-    for module in (maps, keyframes, localize, probes):
+    app.state.keyring = keyring
+    app.state.admission = Admission(settings.inflight_limit)
+    for module in (maps, keyframes, localize, probes, config):
         app.include_router(module.router)
     install_error_handlers(app)
     install_openapi(app)

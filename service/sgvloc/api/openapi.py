@@ -28,9 +28,16 @@ def body_doc(model: type[BaseModel]) -> dict[str, Any]:
     }
 
 
-def error_responses(*statuses: int) -> dict[int | str, dict[str, Any]]:
-    """``responses=`` entries documenting the error body for ``statuses``."""
-    return {s: {"model": ErrorOut, "description": "error"} for s in statuses}
+#: errors every protected route can answer: no/unknown key, role or map not allowed, and
+#: invalid path parameters, and (routes that use the maps) still loading or no worker free
+COMMON_ERRORS = (401, 403, 422, 503)
+
+
+def error_responses(*statuses: int, common: bool = True) -> dict[int | str, dict[str, Any]]:
+    """``responses=`` entries documenting the error body for ``statuses`` (plus
+    :data:`COMMON_ERRORS` unless ``common`` is false)."""
+    every = sorted({*statuses, *(COMMON_ERRORS if common else ())})
+    return {s: {"model": ErrorOut, "description": "error"} for s in every}
 
 
 def install_openapi(app: FastAPI) -> None:

@@ -389,6 +389,38 @@ class Ready(BaseModel):
     )
 
 
+class LimitsOut(BaseModel):
+    """The request limits and admission settings in force."""
+
+    max_body_bytes: int = Field(description="413 above this")
+    max_points: int = Field(description="points per scan, keypoints per feature set (422)")
+    max_batch: int = Field(description="keyframes per insert request (422)")
+    max_top_k: int = Field(description="largest top_k of a localize request (422)")
+    max_inflight_localize: int = Field(description="localize requests admitted at once (429)")
+    request_timeout_s: float = Field(description="longest wait for a worker thread (503)")
+    retry_after_s: int = Field(description="Retry-After of 429/503 answers")
+    workers: int = Field(description="threads running CPU work")
+
+
+class AuthOut(BaseModel):
+    """How callers are authenticated (never the keys)."""
+
+    enabled: bool = Field(description="false only in development mode")
+    keys: int = Field(description="configured keys")
+    metrics: Literal["open", "viewer"]
+    readyz: Literal["open", "viewer"]
+
+
+class ConfigOut(BaseModel):
+    """``GET /v1/config``: the service's limits and access settings."""
+
+    version: str
+    limits: LimitsOut
+    auth: AuthOut
+    snapshot_every: int
+    snapshot_delay_s: float
+
+
 class ErrorDetail(BaseModel):
     """What went wrong."""
 

@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Request, Response
+from fastapi import APIRouter, Depends, Request, Response
 
+from ..auth import authorize
 from ..body import encode
 from ..deps import BodyDep, KeyframeId, ManagerDep, MapName, SettingsDep, WorkerDep
 from ..openapi import body_doc, error_responses
 from ..schemas import InsertOut, KeyframeBatch, KeyframeDeleted, KeyframeOut, limits
 
-router = APIRouter(prefix="/v1/maps/{map}/keyframes", tags=["keyframes"])
+router = APIRouter(
+    prefix="/v1/maps/{map}/keyframes", tags=["keyframes"], dependencies=[Depends(authorize)]
+)
 
 
 @router.post(

@@ -3,13 +3,22 @@
 from __future__ import annotations
 
 import numpy as np
-from fastapi import APIRouter, Request, Response
+from fastapi import APIRouter, Depends, Request, Response
 from scipy.spatial.transform import Rotation
 
 from ...core.localizer import LocalizationResult
 from ...core.rerank import Candidate
+from ..auth import authorize
 from ..body import encode
-from ..deps import BodyDep, ManagerDep, MapName, MetricsDep, SettingsDep, WorkerDep
+from ..deps import (
+    BodyDep,
+    LocalizeSlot,
+    ManagerDep,
+    MapName,
+    MetricsDep,
+    SettingsDep,
+    WorkerDep,
+)
 from ..openapi import body_doc, error_responses
 from ..schemas import (
     CandidateOut,
@@ -20,7 +29,7 @@ from ..schemas import (
     limits,
 )
 
-router = APIRouter(prefix="/v1/maps/{map}", tags=["localize"])
+router = APIRouter(prefix="/v1/maps/{map}", tags=["localize"], dependencies=[Depends(authorize)])
 
 
 def _candidates(cands: list[Candidate]) -> list[CandidateOut]:
@@ -79,18 +88,22 @@ def localize_out(name: str, result: LocalizationResult) -> LocalizeOut:
     response_model=LocalizeOut,
     operation_id="localize",
     openapi_extra=body_doc(LocalizeBody),
-    responses=error_responses(400, 404, 409, 413, 415, 422),
+    responses=error_responses(400, 404, 409, 413, 415, 422, 429),
 )
 async def localize(
     request: Request,
     map_name: MapName,
+    _slot: LocalizeSlot,  # before the body: a refused request is not read
     body: BodyDep,
     manager: ManagerDep,
     settings: SettingsDep,
     metrics: MetricsDep,
     worker: WorkerDep,
 ) -> Response:
-    """Localize a scan: retrieve, re-rank, estimate the pose against the top-1."""
+    """Localize a scan: retrieve, re-rank, estimate the pose against the top-1.
+
+    At most ``max_inflight_localize`` localize requests are admitted at once; beyond
+    that the answer is 429 with ``Retry-After``."""
 
     def work() -> LocalizeOut:
         manager.get(map_name)

@@ -2,15 +2,17 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Request, Response
+from fastapi import APIRouter, Depends, Request, Response
 
 from ...maps import MapHandle
+from ..auth import authorize, principal_of
 from ..body import encode
 from ..deps import BodyDep, ManagerDep, MapName, SettingsDep, WorkerDep
+from ..errors import ApiError
 from ..openapi import body_doc, error_responses
 from ..schemas import EncoderInfo, MapCreate, MapInfo, MapList, limits
 
-router = APIRouter(prefix="/v1/maps", tags=["maps"])
+router = APIRouter(prefix="/v1/maps", tags=["maps"], dependencies=[Depends(authorize)])
 
 
 def map_info(handle: MapHandle) -> MapInfo:
@@ -51,8 +53,12 @@ async def create_map(
 ) -> Response:
     """Create an empty map with an encoder and localizer settings."""
 
+    caller = principal_of(request)
+
     def work() -> MapInfo:
         req = MapCreate.model_validate(body.decode(), context=limits(settings))
+        if not caller.may_use_map(req.name):
+            raise ApiError(403, "forbidden", f"this key may not use map {req.name!r}", "name")
         handle = manager.create(
             req.name, req.encoder, req.localizer_config(), keep_clouds=req.keep_clouds
         )
@@ -61,10 +67,12 @@ async def create_map(
     return encode(request, await worker.run(work), 201)
 
 
-@router.get("", response_model=MapList, operation_id="list_maps")
+@router.get("", response_model=MapList, operation_id="list_maps", responses=error_responses())
 async def list_maps(request: Request, manager: ManagerDep) -> Response:
-    """List the loaded maps."""
-    return encode(request, MapList(maps=[map_info(h) for h in manager.list()]))
+    """List the loaded maps (those the caller's key may use)."""
+    caller = principal_of(request)
+    handles = [h for h in manager.list() if caller.may_use_map(h.name)]
+    return encode(request, MapList(maps=[map_info(h) for h in handles]))
 
 
 @router.get(

@@ -2,19 +2,21 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Request, Response
+from fastapi import APIRouter, Depends, Request, Response
 
 from ...maps import MapManager
+from ..auth import authorize
 from ..body import encode
 from ..deps import MetricsDep
+from ..openapi import error_responses
 from ..schemas import Health, Ready
 
-router = APIRouter(tags=["probes"])
+router = APIRouter(tags=["probes"], dependencies=[Depends(authorize)])
 
 
 @router.get("/healthz", response_model=Health, operation_id="healthz")
 async def healthz(request: Request) -> Response:
-    """The process is alive."""
+    """The process is alive (always open: no key needed)."""
     return encode(request, Health())
 
 
@@ -22,10 +24,14 @@ async def healthz(request: Request) -> Response:
     "/readyz",
     response_model=Ready,
     operation_id="readyz",
-    responses={503: {"model": Ready, "description": "maps still loading"}},
+    responses={
+        503: {"model": Ready, "description": "maps still loading"},
+        **error_responses(401, 403, common=False),
+    },
 )
 async def readyz(request: Request) -> Response:
-    """Ready once every map is loaded (503 before)."""
+    """Ready once every map is loaded (503 before). Open, or viewer/admin keys only, as
+    the ``readyz_auth`` setting says."""
     manager: MapManager = request.app.state.manager
     if not manager.loaded.is_set():
         return encode(request, Ready(status="loading", maps=0), 503)
@@ -36,9 +42,13 @@ async def readyz(request: Request) -> Response:
     "/metrics",
     response_class=Response,
     operation_id="metrics",
-    responses={200: {"content": {"text/plain": {}}, "description": "Prometheus text format"}},
+    responses={
+        200: {"content": {"text/plain": {}}, "description": "Prometheus text format"},
+        **error_responses(401, 403, common=False),
+    },
 )
 async def metrics_text(metrics: MetricsDep) -> Response:
-    """Prometheus metrics of this process."""
+    """Prometheus metrics of this process. Open, or viewer/admin keys only, as the
+    ``metrics_auth`` setting says."""
     data, content_type = metrics.render()
     return Response(data, media_type=content_type)

@@ -1,0 +1,283 @@
+"""Access control: API keys with roles, optionally restricted to named maps.
+
+Keys come from the operator's keys file (``SGVLOC_KEYS_FILE``, TOML or JSON)::
+
+    [[keys]]
+    name = "truck-17"                 # a label for logs; the key itself is never logged
+    key = "sha256:9f86d08188..."      # SHA-256 of the key (hex), or the plain key
+    role = "vehicle"                  # vehicle | mapper | viewer | admin
+    maps = ["campus"]                 # optional: only these maps (default: every map)
+
+Clients send ``Authorization: Bearer <key>``. A missing or unknown key is a 401 (with
+``WWW-Authenticate: Bearer``); a known key whose role or maps do not allow the route is a
+403. The presented key is hashed with SHA-256 and compared with every configured hash by
+:func:`hmac.compare_digest`, so the time taken does not depend on how much of a key is
+right, nor on which key matched.
+
+Who may do what is the one table :data:`ROUTE_ROLES`, by route ``operation_id``; each
+router carries the :func:`authorize` dependency, which looks its route up there (a route
+missing from the table is refused: fail closed). In development mode (``--dev``,
+``SGVLOC_DEV=1``) there is no check at all; outside it the service does not start
+without keys.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import json
+import logging
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+from fastapi import Request
+
+from ..settings import Settings
+from .errors import ApiError
+
+log = logging.getLogger(__name__)
+
+Role = Literal["vehicle", "mapper", "viewer", "admin"]
+ROLES: tuple[Role, ...] = ("vehicle", "mapper", "viewer", "admin")
+
+#: operation_id -> the roles allowed to call it. The one place that says who may do what.
+#: ``None`` marks a route open to anyone (no key needed); ``"probe:<setting>"`` routes are
+#: open or viewer/admin as that setting says.
+ROUTE_ROLES: dict[str, frozenset[Role] | None | str] = {
+    # maps
+    "create_map": frozenset({"mapper", "admin"}),
+    "list_maps": frozenset({"mapper", "viewer", "admin"}),
+    "get_map": frozenset({"mapper", "viewer", "admin"}),
+    "delete_map": frozenset({"admin"}),
+    # keyframes
+    "insert_keyframes": frozenset({"mapper", "admin"}),
+    "get_keyframe": frozenset({"mapper", "viewer", "admin"}),
+    "delete_keyframe": frozenset({"mapper", "admin"}),
+    # localize
+    "localize": frozenset({"vehicle", "mapper", "admin"}),
+    # service
+    "get_config": frozenset({"viewer", "admin"}),
+    "healthz": None,
+    "readyz": "probe:readyz_auth",
+    "metrics": "probe:metrics_auth",
+}
+_PROBE_ROLES: frozenset[Role] = frozenset({"viewer", "admin"})
+
+_HEX64 = re.compile(r"^[0-9a-f]{64}$")
+_SHA_PREFIX = "sha256:"
+
+
+class KeysError(ValueError):
+    """The keys file is missing, unreadable or malformed, or no keys are configured."""
+
+
+@dataclass(frozen=True)
+class Principal:
+    """Who is calling: the key's label, role and allowed maps (None = every map)."""
+
+    name: str
+    role: Role
+    maps: frozenset[str] | None = None
+
+    def may_use_map(self, name: str) -> bool:
+        return self.maps is None or name in self.maps
+
+
+DEV_PRINCIPAL = Principal("development", "admin")
+
+
+@dataclass(frozen=True)
+class ApiKey:
+    """One configured key: the SHA-256 digest of the secret, never the secret."""
+
+    digest: bytes  # 32 bytes
+    principal: Principal
+
+
+def hash_key(key: str) -> str:
+    """The ``sha256:<hex>`` entry for a keys file, from a plain key."""
+    return _SHA_PREFIX + hashlib.sha256(key.encode()).hexdigest()
+
+
+def _read_file(path: Path) -> Any:
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise KeysError(f"cannot read the keys file {path}: {exc.strerror or exc}") from None
+    try:
+        if path.suffix.lower() == ".json":
+            return json.loads(text)
+        try:
+            import tomllib
+        except ModuleNotFoundError:  # Python 3.10
+            try:
+                import tomli as tomllib  # type: ignore[no-redef]
+            except ModuleNotFoundError:
+                raise KeysError(
+                    f"{path}: reading TOML needs Python 3.11+ (or tomli); use a .json file"
+                ) from None
+        return tomllib.loads(text)
+    except ValueError as exc:  # JSONDecodeError and TOMLDecodeError are ValueErrors
+        raise KeysError(f"{path} is not valid {path.suffix.lstrip('.') or 'TOML'}: {exc}") from None
+
+
+def _entry(raw: Any, i: int, source: str) -> ApiKey:
+    where = f"{source}: keys[{i}]"
+    if not isinstance(raw, dict):
+        raise KeysError(f"{where} must be a table with key and role")
+    unknown = set(raw) - {"name", "key", "role", "maps"}
+    if unknown:
+        raise KeysError(f"{where} has unknown field(s) {sorted(unknown)}")
+    name = raw.get("name", f"key#{i}")
+    secret, role, maps = raw.get("key"), raw.get("role"), raw.get("maps")
+    if not isinstance(name, str) or not name:
+        raise KeysError(f"{where}.name must be a non-empty string")
+    if role not in ROLES:
+        raise KeysError(f"{where} ({name}): role must be one of {', '.join(ROLES)}, got {role!r}")
+    if not isinstance(secret, str) or not secret:
+        raise KeysError(f"{where} ({name}): key must be a non-empty string")
+    if secret.startswith(_SHA_PREFIX):
+        hexdigest = secret[len(_SHA_PREFIX) :].lower()
+        if not _HEX64.match(hexdigest):
+            raise KeysError(f"{where} ({name}): a sha256: key needs 64 hex digits")
+        digest = bytes.fromhex(hexdigest)
+    else:
+        if len(secret) < 16:
+            raise KeysError(f"{where} ({name}): a plain key needs at least 16 characters")
+        digest = hashlib.sha256(secret.encode()).digest()
+    if maps is not None:
+        if not isinstance(maps, list) or not all(isinstance(m, str) and m for m in maps):
+            raise KeysError(f"{where} ({name}): maps must be a list of map names")
+        maps = frozenset(maps)
+    return ApiKey(digest, Principal(name, role, maps))
+
+
+def parse_keys(data: Any, source: str = "keys") -> list[ApiKey]:
+    """Keys from a parsed keys file: ``{"keys": [{"key", "role", "name"?, "maps"?}]}``."""
+    if not isinstance(data, dict) or not isinstance(data.get("keys"), list):
+        raise KeysError(f"{source}: expected a list of keys under 'keys'")
+    keys = [_entry(raw, i, source) for i, raw in enumerate(data["keys"])]
+    digests = [k.digest for k in keys]
+    if len(set(digests)) != len(digests):
+        raise KeysError(f"{source}: the same key appears twice")
+    names = [k.principal.name for k in keys]
+    if len(set(names)) != len(names):
+        raise KeysError(f"{source}: key names must be unique")
+    return keys
+
+
+class KeyRing:
+    """The configured keys; :meth:`identify` finds a presented key's principal."""
+
+    def __init__(self, keys: list[ApiKey], *, enabled: bool = True) -> None:
+        self.keys = keys
+        self.enabled = enabled
+
+    @classmethod
+    def from_settings(cls, settings: Settings) -> KeyRing:
+        """The keys of ``settings``; raises :class:`KeysError` when there are none outside
+        development mode (the service must not run open by accident)."""
+        keys: list[ApiKey] = []
+        if settings.keys_file is not None:
+            keys = parse_keys(_read_file(settings.keys_file), str(settings.keys_file))
+        if settings.dev:
+            if keys:
+                log.warning("development mode: the %d configured key(s) are ignored", len(keys))
+            log.warning("development mode: authentication is OFF; do not expose this service")
+            return cls([], enabled=False)
+        if not keys:
+            where = f"the keys file {settings.keys_file}" if settings.keys_file else "no keys file"
+            raise KeysError(
+                f"no API keys configured ({where}): set SGVLOC_KEYS_FILE (or --keys-file) to a "
+                "TOML/JSON file of keys with roles, or run in development mode (--dev or "
+                "SGVLOC_DEV=1) to switch authentication off"
+            )
+        by_role = {r: sum(k.principal.role == r for k in keys) for r in ROLES}
+        log.info(
+            "authentication on: %d key(s) (%s)",
+            len(keys),
+            ", ".join(f"{n} {r}" for r, n in by_role.items() if n),
+        )
+        return cls(keys, enabled=True)
+
+    def identify(self, presented: str) -> Principal | None:
+        """The principal of ``presented``, or None. Constant time in the key's content:
+        every configured digest is compared, whatever matched before."""
+        digest = hashlib.sha256(presented.encode()).digest()
+        found: Principal | None = None
+        for key in self.keys:
+            if hmac.compare_digest(digest, key.digest):
+                found = key.principal
+        return found
+
+
+def _bearer(request: Request) -> str | None:
+    header = request.headers.get("authorization")
+    if not header:
+        return None
+    scheme, _, token = header.partition(" ")
+    token = token.strip()
+    if scheme.lower() != "bearer" or not token:
+        return None
+    return token
+
+
+def _unauthorized(message: str) -> ApiError:
+    return ApiError(401, "unauthorized", message, headers={"WWW-Authenticate": "Bearer"})
+
+
+def _allowed_roles(operation: str, settings: Settings) -> frozenset[Role] | None:
+    """The roles that may call ``operation`` (None: open). Unknown operations: nobody."""
+    if operation not in ROUTE_ROLES:
+        log.error("route %r has no entry in the role table: refused", operation)
+        return frozenset()
+    rule = ROUTE_ROLES[operation]
+    if isinstance(rule, str):  # "probe:<setting>"
+        return None if getattr(settings, rule.split(":", 1)[1]) == "open" else _PROBE_ROLES
+    return rule
+
+
+async def authorize(request: Request) -> Principal:
+    """The router dependency: 401/403 unless the caller may use this route (and map).
+
+    The principal is left in ``request.state.principal`` for the route (e.g. to filter
+    the map list of a key restricted to some maps).
+    """
+    settings: Settings = request.app.state.settings
+    ring: KeyRing = request.app.state.keyring
+    route = request.scope.get("route")
+    operation = getattr(route, "operation_id", None) or ""
+    allowed = _allowed_roles(operation, settings)
+    if not ring.enabled:
+        principal = DEV_PRINCIPAL
+    elif allowed is None:
+        principal = Principal("anonymous", "viewer", frozenset())
+    else:
+        token = _bearer(request)
+        if token is None:
+            raise _unauthorized("this route needs an API key: send 'Authorization: Bearer <key>'")
+        found = ring.identify(token)
+        if found is None:
+            raise _unauthorized("the API key is not valid")
+        principal = found
+        if principal.role not in allowed:
+            log.info("key %r (%s) refused for %s", principal.name, principal.role, operation)
+            raise ApiError(
+                403,
+                "forbidden",
+                f"role {principal.role!r} may not {operation.replace('_', ' ')} (allowed: "
+                f"{', '.join(sorted(allowed))})",
+            )
+        map_name = request.path_params.get("map")
+        if map_name is not None and not principal.may_use_map(map_name):
+            log.info("key %r refused for map %r", principal.name, map_name)
+            raise ApiError(403, "forbidden", f"this key may not use map {map_name!r}")
+    request.state.principal = principal
+    return principal
+
+
+def principal_of(request: Request) -> Principal:
+    """The caller, as :func:`authorize` found it."""
+    return getattr(request.state, "principal", DEV_PRINCIPAL)

@@ -1,0 +1,51 @@
+"""The service's configuration as clients may see it: limits and access settings."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Depends, Request, Response
+
+from ... import __version__
+from ..auth import KeyRing, authorize
+from ..body import encode
+from ..deps import SettingsDep
+from ..openapi import error_responses
+from ..schemas import AuthOut, ConfigOut, LimitsOut
+
+router = APIRouter(prefix="/v1", tags=["service"], dependencies=[Depends(authorize)])
+
+
+@router.get(
+    "/config",
+    response_model=ConfigOut,
+    operation_id="get_config",
+    responses=error_responses(401, 403, common=False),
+)
+async def get_config(request: Request, settings: SettingsDep) -> Response:
+    """Limits (body size, points, batch, top_k, localize admission, queue timeout) and
+    access settings in force. Viewer or admin keys."""
+    ring: KeyRing = request.app.state.keyring
+    s = settings
+    return encode(
+        request,
+        ConfigOut(
+            version=__version__,
+            limits=LimitsOut(
+                max_body_bytes=s.max_body_bytes,
+                max_points=s.max_points,
+                max_batch=s.max_batch,
+                max_top_k=s.max_top_k,
+                max_inflight_localize=s.inflight_limit,
+                request_timeout_s=s.request_timeout_s,
+                retry_after_s=s.retry_after_s,
+                workers=s.workers,
+            ),
+            auth=AuthOut(
+                enabled=ring.enabled,
+                keys=len(ring.keys),
+                metrics=s.metrics_auth,
+                readyz=s.readyz_auth,
+            ),
+            snapshot_every=s.snapshot_every,
+            snapshot_delay_s=s.snapshot_delay_s,
+        ),
+    )

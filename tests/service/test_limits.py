@@ -1,0 +1,191 @@
+"""Admission and timeouts: a full localize queue is a 429 at once, a request that waits
+too long for a worker is a 503, both with Retry-After; the limits in force are reported
+by ``GET /v1/config``. (Body size, points, batch and top_k: test_bad_input.py.)"""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+
+import anyio
+import httpx
+import numpy as np
+import pytest
+from conftest import Server
+from svc_helpers import (
+    MAX_BATCH,
+    MAX_BODY_BYTES,
+    MAX_POINTS,
+    MAX_TOP_K,
+    PRECOMPUTED,
+    error_of,
+    post_msgpack,
+    random_features,
+)
+
+from sgvloc.api import create_app
+from sgvloc.core.encoders import EncoderSpec
+from sgvloc.settings import Settings
+from sgvloc_client import wire
+
+SPEC = EncoderSpec.model_validate(PRECOMPUTED)
+_MSGPACK = {"Content-Type": wire.MSGPACK}
+
+
+def test_config_reports_the_limits(client: httpx.Client) -> None:
+    r = client.get("/v1/config")
+    assert r.status_code == 200
+    cfg = r.json()
+    assert cfg["limits"] == {
+        "max_body_bytes": MAX_BODY_BYTES,
+        "max_points": MAX_POINTS,
+        "max_batch": MAX_BATCH,
+        "max_top_k": MAX_TOP_K,
+        "max_inflight_localize": 8,  # 4 x 2 workers
+        "request_timeout_s": 30.0,
+        "retry_after_s": 1,
+        "workers": 2,
+    }
+    assert cfg["auth"]["enabled"] is False  # the shared test server is in development mode
+
+
+def test_inflight_default_follows_workers() -> None:
+    assert Settings(workers=3).inflight_limit == 12
+    assert Settings(workers=3, max_inflight_localize=5).inflight_limit == 5
+    with pytest.raises(ValueError):
+        Settings(max_inflight_localize=0)
+
+
+# -- in process: the admission counter and the worker pool, held by the test -------------
+
+
+def _app(tmp_path: Path, **settings: object):
+    app = create_app(Settings(data_dir=tmp_path, dev=True, **settings))
+    # no lifespan under ASGITransport: load the (empty) data dir and make the pools here
+    app.state.manager.load_all()
+    app.state.cpu_limiter = anyio.CapacityLimiter(app.state.settings.workers)
+    app.state.thread_limiter = anyio.CapacityLimiter(app.state.settings.workers)
+    return app
+
+
+def _localize_body() -> bytes:
+    return wire.packb({"features": random_features(np.random.default_rng(0))})
+
+
+def test_full_localize_queue_is_429_at_once(tmp_path: Path) -> None:
+    app = _app(tmp_path, max_inflight_localize=3, retry_after_s=2)
+    app.state.manager.create("m", SPEC)
+
+    async def go() -> list[httpx.Response]:
+        transport = httpx.ASGITransport(app=app)
+        headers = {"Content-Type": wire.MSGPACK}
+        async with httpx.AsyncClient(transport=transport, base_url="http://t") as c:
+            app.state.admission.inflight = 3  # three localizations in flight
+            full = await c.post("/v1/maps/m/localize", content=_localize_body(), headers=headers)
+            app.state.admission.inflight = 2  # one finished
+            ok = await c.post("/v1/maps/m/localize", content=_localize_body(), headers=headers)
+            return [full, ok]
+
+    full, ok = asyncio.run(go())
+    assert full.status_code == 429 and full.headers["retry-after"] == "2"
+    err = error_of(full)
+    assert err["code"] == "overloaded" and "max_inflight_localize=3" in err["message"]
+    assert ok.status_code == 200, ok.text
+    assert app.state.admission.inflight == 2  # the admitted request gave its slot back
+
+
+def test_waiting_too_long_for_a_worker_is_503(tmp_path: Path) -> None:
+    app = _app(tmp_path, workers=1, request_timeout_s=0.2)
+    app.state.manager.create("m", SPEC)
+
+    async def go() -> list[httpx.Response]:
+        transport = httpx.ASGITransport(app=app)
+        headers = {"Content-Type": wire.MSGPACK}
+        async with httpx.AsyncClient(transport=transport, base_url="http://t") as c:
+            busy = object()
+            await app.state.cpu_limiter.acquire_on_behalf_of(busy)  # the one worker is busy
+            try:
+                loc = await c.post("/v1/maps/m/localize", content=_localize_body(), headers=headers)
+                kf = await c.get("/v1/maps/m/keyframes/1")
+            finally:
+                app.state.cpu_limiter.release_on_behalf_of(busy)
+            after = await c.get("/v1/maps/m/keyframes/1")
+            return [loc, kf, after]
+
+    loc, kf, after = asyncio.run(go())
+    for r in (loc, kf):
+        assert r.status_code == 503 and r.headers["retry-after"] == "1"
+        err = error_of(r)
+        assert err["code"] == "queue_timeout" and "request_timeout_s=0.2" in err["message"]
+    assert after.status_code == 404  # a free worker again: the request runs
+    assert app.state.admission.inflight == 0
+
+
+# -- a real server: a slow client holds the only localize slot ----------------------------
+
+
+@pytest.fixture(scope="module")
+def one_slot_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
+    root = tmp_path_factory.mktemp("limits")
+    srv = Server(
+        data_dir=root / "data",
+        log_path=root / "server.log",
+        env={"SGVLOC_MAX_INFLIGHT_LOCALIZE": "1"},
+    )
+    srv.start()
+    try:
+        yield srv
+    finally:
+        srv.stop()
+
+
+def test_slot_is_held_until_the_answer(one_slot_server: Server) -> None:
+    url = one_slot_server.url
+    with httpx.Client(base_url=url, timeout=60) as c:
+        assert c.post("/v1/maps", json={"name": "one", "encoder": PRECOMPUTED}).status_code == 201
+        feats = random_features(np.random.default_rng(0))
+        kfs = {"keyframes": [{"T_map_sensor": np.eye(4), "features": feats}]}
+        assert post_msgpack(c, "/v1/maps/one/keyframes", kfs).status_code == 201
+    body = _localize_body()
+    release, sent = threading.Event(), threading.Event()
+    slow: dict[str, httpx.Response] = {}
+
+    def chunks() -> Iterator[bytes]:  # a client that sends its body slowly
+        yield body[:10]
+        sent.set()
+        release.wait(60)
+        yield body[10:]
+
+    def send_slowly() -> None:
+        with httpx.Client(base_url=url, timeout=120) as c:
+            for _ in range(100):  # 429 if a probe below held the slot when it arrived
+                slow["r"] = c.post(
+                    "/v1/maps/one/localize",
+                    content=chunks(),
+                    headers={"Content-Type": wire.MSGPACK, "Content-Length": str(len(body))},
+                )
+                if slow["r"].status_code != 429:
+                    return
+
+    thread = threading.Thread(target=send_slowly)
+    thread.start()
+    seen = []
+    try:
+        assert sent.wait(60)
+        with httpx.Client(base_url=url, timeout=60) as c:
+            for _ in range(200):  # until the slow request holds the slot
+                r = c.post("/v1/maps/one/localize", content=body, headers=_MSGPACK)
+                seen.append(r.status_code)
+                if r.status_code == 429:
+                    break
+                threading.Event().wait(0.05)
+    finally:
+        release.set()
+        thread.join(120)
+    assert seen[-1] == 429, seen
+    assert r.headers["retry-after"] == "1" and error_of(r)["code"] == "overloaded"
+    assert slow["r"].status_code == 200, slow["r"].text
+    with httpx.Client(base_url=url, timeout=60) as c:  # the slot is free again
+        assert c.post("/v1/maps/one/localize", content=body, headers=_MSGPACK).status_code == 200
