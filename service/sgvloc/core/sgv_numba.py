@@ -14,7 +14,8 @@ Two paths, chosen per candidate by the size of its ``M``:
   cache. ``M v`` is accumulated as ``sum_i v_i M[i, :]`` (``M`` is exactly symmetric:
   ``(a - b)^2 == (b - a)^2`` in floating point), i.e. vectorised row updates without any
   floating-point reduction, so no ``fastmath`` is needed and the result does not depend
-  on the number of threads.
+  on the number of threads. Batches of at most :data:`SERIAL_MAX_ENTRIES` entries run
+  on the calling thread (no parallel region to stall on a busy machine).
 - **free** (matrix-free, for large ``m`` such as 15000): every product rebuilds the rows;
   rows are split into a fixed number of chunks (``prange``), each accumulating into its
   own vector, summed in a fixed order afterwards: deterministic whatever the thread count,
@@ -45,6 +46,10 @@ log = logging.getLogger(__name__)
 
 #: Row chunks of the matrix-free path (fixed, so results do not depend on thread count).
 FREE_CHUNKS = 16
+
+#: Dense batches with at most this many entries of ``M`` in all run single-threaded
+#: (about 1-2 ms of work on one core: k = 20 at n = 256 is 1.3M).
+SERIAL_MAX_ENTRIES = 2_000_000
 
 _LOCK = threading.Lock()
 _WARM = False
@@ -128,21 +133,36 @@ def _dense_one(pts, inv_d2, diag, iterations, v):  # pragma: no cover - jitted
     return lam
 
 
+@njit(cache=True, nogil=True)
+def _dense_candidate(src, dst, mask, b, inv_d2, diag, iterations, lam, v_out):  # pragma: no cover
+    """Candidate ``b`` on the dense path: writes ``lam[b]`` and ``v_out[b]``."""
+    pts, idx = _compact(src, dst, mask, b)
+    m = idx.shape[0]
+    if m == 0:
+        lam[b] = 0.0
+        return
+    v = np.empty(m, np.float64)
+    lam[b] = _dense_one(pts, inv_d2, diag, iterations, v)
+    for t in range(m):
+        v_out[b, idx[t]] = v[t]
+
+
 @njit(parallel=True, cache=True, nogil=True)
 def _dense_batch(src, dst, mask, dense, inv_d2, diag, iterations, lam, v_out):  # pragma: no cover
-    """Candidates with ``dense[b]``: one thread each; writes ``lam[b]`` and ``v_out[b]``."""
+    """Candidates with ``dense[b]``, one thread each."""
     for b in prange(src.shape[0]):
-        if not dense[b]:
-            continue
-        pts, idx = _compact(src, dst, mask, b)
-        m = idx.shape[0]
-        if m == 0:
-            lam[b] = 0.0
-            continue
-        v = np.empty(m, np.float64)
-        lam[b] = _dense_one(pts, inv_d2, diag, iterations, v)
-        for t in range(m):
-            v_out[b, idx[t]] = v[t]
+        if dense[b]:
+            _dense_candidate(src, dst, mask, b, inv_d2, diag, iterations, lam, v_out)
+
+
+@njit(cache=True, nogil=True)
+def _dense_batch_serial(
+    src, dst, mask, dense, inv_d2, diag, iterations, lam, v_out
+):  # pragma: no cover
+    """:func:`_dense_batch` on the calling thread only (small batches)."""
+    for b in range(src.shape[0]):
+        if dense[b]:
+            _dense_candidate(src, dst, mask, b, inv_d2, diag, iterations, lam, v_out)
 
 
 @njit(parallel=True, cache=True, nogil=True)
@@ -223,9 +243,14 @@ def power_iteration(
     dg = np.float32(diag)
     lam = np.zeros(k, np.float64)  # [k]
     v = np.zeros((k, n), np.float64)  # [k, n]
+    # Small batches run on the calling thread: a parallel region is only as fast as its
+    # slowest thread, and on a busy 2-core machine a descheduled one costs a time slice
+    # (measured: ~8 ms, dwarfing the work below this size).
+    work = int((counts[dense].astype(np.int64) ** 2).sum())
+    batch = _dense_batch if work > SERIAL_MAX_ENTRIES else _dense_batch_serial
     with _LOCK:
         if dense.any():
-            _dense_batch(src, dst, mask, dense, inv_d2, dg, int(iterations), lam, v)
+            batch(src, dst, mask, dense, inv_d2, dg, int(iterations), lam, v)
         for b in np.flatnonzero(~dense):
             pts, idx = _compact(src, dst, mask, b)
             lam[b], vb = _free_one(pts, inv_d2, dg, int(iterations))
@@ -246,7 +271,9 @@ def warm_up() -> float:
     dst = src.copy()
     mask = np.ones((2, 8), dtype=np.bool_)
     mask[1, 3] = False
-    power_iteration(src, dst, mask, 0.4, 2, 1.0, 2**40)  # dense
+    power_iteration(src, dst, mask, 0.4, 2, 1.0, 2**40)  # dense, serial
+    big = np.zeros((2, 1100, 3), dtype=np.float32)
+    power_iteration(big, big, np.ones((2, 1100), np.bool_), 0.4, 1, 1.0, 2**40)  # parallel
     power_iteration(src, dst, mask, 0.4, 2, 0.0, 0)  # matrix-free
     took = time.perf_counter() - t0
     if not _WARM:

@@ -1,0 +1,71 @@
+"""``sgvloc bench`` building blocks on tiny sizes: they run, agree on the winner and
+produce JSON-serialisable results and tables (no timing is asserted)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from sgvloc import bench
+
+
+def test_rerank_section_runs_all_methods_on_the_same_inputs():
+    res = bench.bench_rerank([2, 3], [40], repeats=1, rir_repeats=1, rir_max_k=2)
+    rows = {(r["n"], r["k"]): r for r in res["rows"]}
+    assert set(rows) == {(40, 2), (40, 3)}
+    small = rows[(40, 2)]
+    for key in ("sgv_torch", "nn", "ransac_rir", "fgr_rir", "ratio_ransac_rir"):
+        assert key in small
+    assert "ransac_rir" not in rows[(40, 3)]  # above rir_max_k
+    assert all(r["sgv_top1_is_revisit"] for r in res["rows"])
+    assert res["growth"]
+    json.dumps(res)
+    table = bench.format_rerank(res)
+    assert "RANSAC/SGV" in table and table.count("\n") >= 3
+
+
+def test_rerank_inputs_revisit_is_consistent():
+    qk, qf, kps, fts = bench.rerank_inputs(np.random.default_rng(0), 50, 3, dim=8)
+    assert qk.shape == (50, 3) and qf.shape == (50, 8) and len(kps) == len(fts) == 3
+    assert all(k.shape == (50, 3) and f.shape == (50, 8) for k, f in zip(kps, fts, strict=True))
+
+
+def test_memory_probe_reports_peak():
+    res = bench.sgv_memory_probe(300, 1, "torch")
+    assert "error" not in res, res.get("error")
+    assert res["peak_rss_mib"] > 10 and res["delta_rss_mib"] >= 0 and res["path"] == "dense"
+
+
+def test_retrieval_section_recall_and_tables():
+    res = bench.bench_retrieval([2000], dim=16, queries=20, flat_queries=5, hnsw_max=2000)
+    (row,) = res["rows"]
+    assert row["size"] == 2000 and row["dim"] == 16
+    assert row["ivf"]["nlist"] <= 2000 // 39
+    recalls = [s["recall"] for s in row["ivf"]["sweep"]]
+    assert all(0.0 <= r <= 1.0 for r in recalls)
+    assert recalls[-1] >= recalls[0]  # more probes never find less
+    assert "hnsw" in row
+    json.dumps(res)
+    assert "IVF recall@20" in bench.format_retrieval(res)
+
+
+def test_large_sizes_use_the_smaller_dimension():
+    db, q = bench.descriptors(np.random.default_rng(0), 500, 12, 7)
+    assert db.shape == (500, 12) and q.shape == (7, 12) and db.dtype == np.float32
+
+
+def test_encoding_section_per_stage():
+    res = bench.bench_encoding([12000], repeats=1)
+    (row,) = res["rows"]
+    assert row["points"] == 12000 and row["keypoints"] > 0
+    stages = ("preprocess_ms", "global_ms", "normals_ms", "keypoints_ms", "fpfh_ms")
+    assert row["total_ms"] == pytest.approx(sum(row[s] for s in stages), rel=0.25)
+    assert "FPFH ms" in bench.format_encoding(res)
+
+
+def test_densify():
+    scan = np.random.default_rng(0).normal(size=(100, 3)).astype(np.float32)
+    out = bench.densify(scan, 250, np.random.default_rng(1))
+    assert out.shape == (250, 3) and out.dtype == np.float32
