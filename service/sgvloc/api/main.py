@@ -18,6 +18,7 @@ from contextlib import asynccontextmanager
 import anyio
 import anyio.to_thread
 from fastapi import FastAPI
+from fastapi.routing import APIRoute
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from .. import __version__
@@ -138,6 +139,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.admission = Admission(settings.inflight_limit)
     for module in (maps, keyframes, localize, probes, config):
         app.include_router(module.router)
+    # for the Allow header of 405 answers: every route's path and methods
+    app.state.route_methods = [
+        (route.path_regex, set(route.methods) - {"HEAD"})
+        for module in (maps, keyframes, localize, probes, config)
+        for route in module.router.routes
+        if isinstance(route, APIRoute)
+    ]
     install_error_handlers(app)
     install_openapi(app)
     app.add_middleware(MetricsMiddleware, metrics=metrics)
