@@ -139,6 +139,89 @@ def new_key_command(
     typer.echo(entry)
 
 
+# -- loadtest (sgvloc.loadtest) ----------------------------------------------------------
+
+
+@app.command("loadtest")
+def loadtest_command(
+    url: Annotated[
+        str | None,
+        typer.Option(help="a service on this machine; default: start one (--dev, temp data)"),
+    ] = None,
+    clients: Annotated[int, typer.Option(min=1, max=256, help="concurrent clients")] = 16,
+    duration: Annotated[float, typer.Option(min=0.5, max=3600, help="seconds of load")] = 60.0,
+    insert_fraction: Annotated[
+        float, typer.Option(min=0.0, max=1.0, help="share of requests that are bulk inserts")
+    ] = 0.2,
+    workers: Annotated[int, typer.Option(min=1, help="--workers of a started service")] = 2,
+    api_key: Annotated[
+        str | None, typer.Option(help="bearer token (mapper or admin)", envvar="SGVLOC_API_KEY")
+    ] = None,
+    json_out: Annotated[Path | None, typer.Option("--json", help="write the figures here")] = None,
+) -> None:
+    """Load a local service with N clients for D seconds (localize + bulk inserts); report
+    errors, p50/p99 latency and throughput. Exits 1 if any request failed (429/503 with
+    Retry-After are counted apart, as deliberate refusals)."""
+    import json
+    import os
+    import socket
+    import subprocess
+    import sys
+    import tempfile
+    import time
+
+    import httpx
+
+    from .loadtest import run_loadtest
+
+    _configure_logging("warning")
+    proc = None
+    tmp = None
+    if url is None:
+        with socket.socket() as sock:
+            sock.bind(("127.0.0.1", 0))
+            port = sock.getsockname()[1]
+        tmp = tempfile.TemporaryDirectory(prefix="sgvloc-loadtest-")
+        url = f"http://127.0.0.1:{port}"
+        cmd = [sys.executable, "-m", "sgvloc.cli", "serve", "--dev", "--host", "127.0.0.1"]
+        cmd += ["--port", str(port), "--data-dir", tmp.name, "--workers", str(workers)]
+        env = {**os.environ, "SGVLOC_LOG_LEVEL": "warning"}
+        proc = subprocess.Popen(cmd, env=env)
+        deadline = time.monotonic() + 120
+        while True:
+            try:
+                if httpx.get(f"{url}/readyz", timeout=2).status_code == 200:
+                    break
+            except httpx.TransportError:
+                pass
+            if proc.poll() is not None or time.monotonic() > deadline:
+                typer.echo("loadtest: the service did not start", err=True)
+                raise typer.Exit(2)
+            time.sleep(0.2)
+    try:
+        result = run_loadtest(
+            url,
+            clients=clients,
+            duration_s=duration,
+            insert_fraction=insert_fraction,
+            api_key=api_key,
+        )
+    except (ValueError, RuntimeError, httpx.HTTPError) as exc:
+        typer.echo(f"loadtest: {exc}", err=True)
+        raise typer.Exit(2) from None
+    finally:
+        if proc is not None:
+            proc.terminate()
+            proc.wait(timeout=60)
+        if tmp is not None:
+            tmp.cleanup()
+    typer.echo(result.summary())
+    if json_out is not None:
+        json_out.write_text(json.dumps(result.as_dict(), indent=2))
+    if result.errors:
+        raise typer.Exit(1)
+
+
 # -- build-map (sgvloc.build_map) ---------------------------------------------------------
 
 

@@ -1,0 +1,219 @@
+"""A bounded load test of a running service on this machine (``sgvloc loadtest``).
+
+N client threads, each with its own connection, send a mix of localize requests and
+bulk inserts to one map for D seconds. Every answer is recorded; the report gives the
+requests per kind, errors (anything but a 2xx, or a 429/503 with ``Retry-After``, which
+are the service refusing work on purpose and are counted apart), latency p50/p99 and
+throughput. Only loopback URLs are accepted: this is not a tool to load other hosts.
+
+Requests carry precomputed features (a map of kind ``precomputed``), so the figures are
+the service's own cost (HTTP, decoding, FAISS, re-ranking, SQLite commits), not the
+handcrafted encoder's.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+import uuid
+from dataclasses import asdict, dataclass, field
+from typing import Any
+from urllib.parse import urlparse
+
+import httpx
+import numpy as np
+
+from sgvloc_client import wire
+
+log = logging.getLogger(__name__)
+
+LOOPBACK = ("127.0.0.1", "localhost", "::1")
+G, N, D = 256, 256, 32  # features per keyframe: global dim, keypoints, local dim
+
+
+@dataclass
+class KindStats:
+    """Answers of one request kind."""
+
+    requests: int = 0
+    ok: int = 0
+    refused: int = 0  # 429/503 with Retry-After: deliberate
+    errors: int = 0
+    p50_ms: float = 0.0
+    p99_ms: float = 0.0
+    latencies_ms: list[float] = field(default_factory=list, repr=False)
+
+
+@dataclass
+class LoadResult:
+    """The figures of one run."""
+
+    url: str
+    clients: int
+    duration_s: float
+    kinds: dict[str, KindStats]
+    error_samples: list[str]
+
+    @property
+    def errors(self) -> int:
+        return sum(k.errors for k in self.kinds.values())
+
+    @property
+    def requests(self) -> int:
+        return sum(k.requests for k in self.kinds.values())
+
+    @property
+    def throughput(self) -> float:
+        """Successful requests per second."""
+        return sum(k.ok for k in self.kinds.values()) / self.duration_s
+
+    def as_dict(self) -> dict[str, Any]:
+        kinds = {
+            name: {k: v for k, v in asdict(s).items() if k != "latencies_ms"}
+            for name, s in self.kinds.items()
+        }
+        return {
+            "url": self.url,
+            "clients": self.clients,
+            "duration_s": round(self.duration_s, 2),
+            "requests": self.requests,
+            "errors": self.errors,
+            "throughput_rps": round(self.throughput, 2),
+            "kinds": kinds,
+            "error_samples": self.error_samples,
+        }
+
+    def summary(self) -> str:
+        lines = [
+            f"{self.clients} clients for {self.duration_s:.1f} s against {self.url}: "
+            f"{self.requests} requests, {self.errors} errors, "
+            f"{self.throughput:.1f} successful requests/s"
+        ]
+        for name, s in self.kinds.items():
+            lines.append(
+                f"  {name:9s} {s.requests:6d} sent, {s.ok:6d} ok, {s.refused:4d} refused "
+                f"(429/503), {s.errors:3d} errors, p50 {s.p50_ms:7.1f} ms, p99 {s.p99_ms:7.1f} ms"
+            )
+        lines += [f"  error: {e}" for e in self.error_samples]
+        return "\n".join(lines)
+
+
+def _features(rng: np.random.Generator) -> dict[str, np.ndarray]:
+    return {
+        "global_descriptor": rng.normal(size=G).astype(np.float32),
+        "keypoints": rng.uniform(-30, 30, size=(N, 3)).astype(np.float32),
+        "local_features": rng.normal(size=(N, D)).astype(np.float32),
+    }
+
+
+def check_loopback(url: str) -> None:
+    """Refuse URLs that are not on this machine."""
+    host = urlparse(url).hostname
+    if host not in LOOPBACK:
+        raise ValueError(f"the load test only runs against this machine (127.0.0.1), not {host!r}")
+
+
+def run_loadtest(
+    url: str,
+    *,
+    clients: int = 16,
+    duration_s: float = 60.0,
+    insert_fraction: float = 0.2,
+    batch: int = 4,
+    seed_keyframes: int = 200,
+    api_key: str | None = None,
+    map_name: str | None = None,
+    timeout_s: float = 60.0,
+) -> LoadResult:
+    """Load ``url`` with ``clients`` threads for ``duration_s`` seconds.
+
+    A fresh map (``precomputed``, flat index) is created and seeded with
+    ``seed_keyframes`` keyframes; then each client sends, at random, a bulk insert of
+    ``batch`` keyframes (fraction ``insert_fraction``) or a localize (SGV re-ranking, no
+    ICP). The map is deleted at the end.
+    """
+    check_loopback(url)
+    if clients < 1 or duration_s <= 0:
+        raise ValueError("clients must be >= 1 and duration_s > 0")
+    headers = {"Authorization": f"Bearer {api_key}"} if api_key else {}
+    name = map_name or f"loadtest-{uuid.uuid4().hex[:8]}"
+    spec = {"kind": "precomputed", "name": "loadtest", "global_dim": G, "local_dim": D}
+    rng = np.random.default_rng(0)
+    with httpx.Client(base_url=url, headers=headers, timeout=timeout_s) as c:
+        r = c.post("/v1/maps", json={"name": name, "encoder": spec})
+        if r.status_code != 201:
+            raise RuntimeError(f"cannot create map {name!r}: {r.status_code} {r.text}")
+        eye = np.eye(4)
+        for start in range(0, seed_keyframes, 10):
+            kfs = [
+                {"T_map_sensor": eye, "features": _features(rng)}
+                for _ in range(min(10, seed_keyframes - start))
+            ]
+            r = c.post(
+                f"/v1/maps/{name}/keyframes",
+                content=wire.packb({"keyframes": kfs}),
+                headers={"Content-Type": wire.MSGPACK},
+            )
+            if r.status_code != 201:
+                raise RuntimeError(f"cannot seed map {name!r}: {r.status_code} {r.text}")
+
+    kinds = {"localize": KindStats(), "insert": KindStats()}
+    samples: list[str] = []
+    lock = threading.Lock()
+    start = time.monotonic()
+    deadline = start + duration_s
+
+    def client(i: int) -> None:
+        crng = np.random.default_rng(1000 + i)
+        # bodies made ahead, so the clients measure the service, not numpy
+        loc_bodies = [wire.packb({"features": _features(crng), "refine": "none"}) for _ in range(8)]
+        with httpx.Client(base_url=url, headers=headers, timeout=timeout_s) as c:
+            n = 0
+            while time.monotonic() < deadline:
+                n += 1
+                if crng.random() < insert_fraction:
+                    kind, path = "insert", f"/v1/maps/{name}/keyframes"
+                    kfs = [
+                        {"key": f"c{i}-{n}-{j}", "T_map_sensor": np.eye(4), "features": f}
+                        for j, f in enumerate(_features(crng) for _ in range(batch))
+                    ]
+                    body = wire.packb({"keyframes": kfs})
+                else:
+                    kind, path = "localize", f"/v1/maps/{name}/localize"
+                    body = loc_bodies[n % len(loc_bodies)]
+                t0 = time.perf_counter()
+                try:
+                    r = c.post(path, content=body, headers={"Content-Type": wire.MSGPACK})
+                    status, text, retry = r.status_code, r.text[:200], "retry-after" in r.headers
+                except httpx.TransportError as exc:
+                    status, text, retry = 0, repr(exc), False
+                ms = (time.perf_counter() - t0) * 1e3
+                with lock:
+                    s = kinds[kind]
+                    s.requests += 1
+                    if 200 <= status < 300:
+                        s.ok += 1
+                        s.latencies_ms.append(ms)
+                    elif status in (429, 503) and retry:
+                        s.refused += 1
+                    else:
+                        s.errors += 1
+                        if len(samples) < 5:
+                            samples.append(f"{kind} {status}: {text}")
+                if status in (429, 503):
+                    time.sleep(0.05)
+
+    threads = [threading.Thread(target=client, args=(i,), daemon=True) for i in range(clients)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(duration_s + timeout_s + 30)
+    elapsed = time.monotonic() - start
+    for s in kinds.values():
+        if s.latencies_ms:
+            s.p50_ms = round(float(np.percentile(s.latencies_ms, 50)), 1)
+            s.p99_ms = round(float(np.percentile(s.latencies_ms, 99)), 1)
+    with httpx.Client(base_url=url, headers=headers, timeout=timeout_s) as c:
+        c.delete(f"/v1/maps/{name}")
+    return LoadResult(url, clients, elapsed, kinds, samples)

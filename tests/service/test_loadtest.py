@@ -1,0 +1,23 @@
+"""The load test in its short form (4 clients, 5 s) against the shared test server;
+the long form (16 clients, 60 s) is ``sgvloc loadtest``, run by hand."""
+
+from __future__ import annotations
+
+import pytest
+
+from sgvloc.loadtest import check_loopback, run_loadtest
+
+
+def test_short_load_has_no_errors(server) -> None:
+    result = run_loadtest(server.url, clients=4, duration_s=5.0, seed_keyframes=50)
+    assert result.errors == 0, result.summary()
+    loc, ins = result.kinds["localize"], result.kinds["insert"]
+    assert loc.ok > 0 and ins.ok > 0, result.summary()
+    assert 0 < loc.p50_ms <= loc.p99_ms
+    assert result.as_dict()["requests"] == result.requests
+
+
+@pytest.mark.parametrize("url", ["http://10.0.0.1:8470", "https://example.org"])
+def test_only_this_machine(url: str) -> None:
+    with pytest.raises(ValueError, match="this machine"):
+        check_loopback(url)
