@@ -448,6 +448,37 @@ def synth_command(
     )
 
 
+@app.command("train")
+def train_command(
+    data: Annotated[
+        list[Path], typer.Option(help="kitti-bev-style sequence folder (imgs/, pose.txt); repeat")
+    ],
+    out: Annotated[Path, typer.Option(help="folder for checkpoint.pt, curves.png, log.json")],
+    val: Annotated[
+        list[Path] | None, typer.Option(help="held-out sequence for validation curves; repeat")
+    ] = None,
+    steps: Annotated[int, typer.Option(min=1, help="optimiser steps in all")] = 3000,
+    batch: Annotated[int, typer.Option(min=1, help="scan pairs per step")] = 8,
+    seed: Annotated[int, typer.Option(help="random seed")] = 0,
+    device: Annotated[str, typer.Option(help="cpu | cuda | auto")] = "cpu",
+    resume: Annotated[bool, typer.Option(help="continue from OUT/checkpoint.pt")] = True,
+) -> None:
+    """Train the learned BEV encoder (a small CNN) on BEV image sequences with poses."""
+    from .core.errors import SgvlocError
+    from .train import Sequence, TrainConfig, train
+
+    _configure_logging("info")
+    try:
+        cfg = TrainConfig(steps=steps, batch=batch, seed=seed, device=device)
+        seqs = [Sequence.load(p) for p in data]
+        vals = [Sequence.load(p) for p in val or []]
+        ckpt = train(seqs, out, cfg, vals, resume=resume)
+    except SgvlocError as exc:
+        typer.echo(f"sgvloc train: {exc}", err=True)
+        raise typer.Exit(2) from None
+    typer.echo(f"wrote {ckpt}")
+
+
 def main() -> None:
     """Entry point of the ``sgvloc`` console script."""
     app()

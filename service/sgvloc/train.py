@@ -1,0 +1,520 @@
+"""A learned BEV encoder (small 2-D CNN) and its training on kitti-bev-style sequences.
+
+Model (:class:`BEVNet`), on the kitti-bev density image ``[1, 151, 151]`` (zero-padded to
+152 at the bottom/right, so pixel coordinates do not move):
+
+- a U-shaped CNN (strides 2, 4, 8) whose output cells are 2 x 2 pixels (0.8 m): a local
+  descriptor map ``[D, 76, 76]`` (L2-normalised per cell) and a saliency map ``[76, 76]``;
+- keypoints: the most salient occupied cells after 3 x 3 non-maximum suppression, lifted to
+  metres at the cell centre (:func:`sgvloc.core.bev.pixel_to_metres`), ``z = 0``;
+- global descriptor: GeM over the stride-8 features, a linear layer, L2-normalised.
+  Yaw invariance is learned (random yaw augmentation of every training image).
+
+Training (:func:`train`), seeded and resumable (``checkpoint.pt`` holds model, optimiser,
+step and random state): each step samples pairs of scans of one sequence less than
+``pos_radius`` apart, rotates each image about the sensor by a random yaw, and from the
+ground-truth poses pairs every occupied anchor cell with the cell it falls in in the other
+image. Losses:
+
+- local: InfoNCE over sampled corresponding cells (the other sampled cells of the
+  positive image are the negatives, hard ones included);
+- saliency: binary cross-entropy towards "this cell's descriptor nearest neighbour is its
+  true counterpart" (detached), and towards 0 on empty cells;
+- global: InfoNCE over the batch (anchor vs positives; other places more than
+  ``neg_radius`` away are negatives, closer ones are masked out).
+
+Writes ``checkpoint.pt``, ``curves.png`` (loss and validation curves) and ``log.json``.
+CPU by default, CUDA with ``device="cuda"``/``"auto"``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from .core.bev import KITTI_BEV, load_bev_image, metres_to_pixel, pixel_to_metres
+from .core.errors import InputError
+from .core.features import EncoderIdentity, Features
+from .core.io import read_poses
+
+log = logging.getLogger(__name__)
+
+#: side of the padded input image (151 -> 152, divisible by 8)
+INPUT_SIZE = 152
+#: output cells per side (2 x 2 pixels each)
+CELLS = INPUT_SIZE // 2
+
+
+# ---------------------------------------------------------------------------------------
+# model
+
+
+def _block(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
+    return nn.Sequential(
+        nn.Conv2d(cin, cout, 3, stride=stride, padding=1, bias=False),
+        nn.BatchNorm2d(cout),
+        nn.ReLU(inplace=True),
+    )
+
+
+class GeM(nn.Module):
+    """Generalised-mean pooling over H x W with a learned exponent."""
+
+    def __init__(self, p: float = 3.0, eps: float = 1e-6) -> None:
+        super().__init__()
+        self.p = nn.Parameter(torch.tensor(p))
+        self.eps = eps
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:  # [B, C, H, W] -> [B, C]
+        return x.clamp(min=self.eps).pow(self.p).mean(dim=(2, 3)).pow(1.0 / self.p)
+
+
+class BEVNet(nn.Module):
+    """BEV image -> (global [B, G], local descriptor map [B, D, 76, 76], saliency [B, 76, 76])."""
+
+    def __init__(self, width: int = 32, local_dim: int = 64, global_dim: int = 256) -> None:
+        super().__init__()
+        w = width
+        self.local_dim, self.global_dim, self.width = local_dim, global_dim, width
+        self.stem = nn.Sequential(_block(1, w), _block(w, w, 2))  # [B, w, 76, 76]
+        self.enc2 = nn.Sequential(_block(w, 2 * w, 2), _block(2 * w, 2 * w))  # 38
+        self.enc3 = nn.Sequential(_block(2 * w, 4 * w, 2), _block(4 * w, 4 * w))  # 19
+        self.dec2 = _block(6 * w, 2 * w)
+        self.dec1 = _block(3 * w, 2 * w)
+        self.local_head = nn.Conv2d(2 * w, local_dim, 1)
+        self.saliency_head = nn.Conv2d(2 * w, 1, 1)
+        self.gem = GeM()
+        self.global_head = nn.Linear(4 * w, global_dim)
+
+    def forward(self, img: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``img`` ``[B, 1, 152, 152]`` in [0, 1]."""
+        s1 = self.stem(img)  # [B, w, 76, 76]
+        s2 = self.enc2(s1)  # [B, 2w, 38, 38]
+        s3 = self.enc3(s2)  # [B, 4w, 19, 19]
+        d2 = self.dec2(torch.cat([F.interpolate(s3, size=s2.shape[-2:]), s2], dim=1))
+        d1 = self.dec1(torch.cat([F.interpolate(d2, size=s1.shape[-2:]), s1], dim=1))
+        local = F.normalize(self.local_head(d1), dim=1)  # [B, D, 76, 76]
+        saliency = self.saliency_head(d1)[:, 0]  # [B, 76, 76] logits
+        g = F.normalize(self.global_head(self.gem(s3)), dim=1)  # [B, G]
+        return g, local, saliency
+
+
+def to_input(images: np.ndarray) -> torch.Tensor:
+    """uint8 images ``[B, 151, 151]`` -> float tensor ``[B, 1, 152, 152]`` in [0, 1]."""
+    x = torch.from_numpy(np.asarray(images, dtype=np.float32) / 255.0)
+    return F.pad(x, (0, INPUT_SIZE - x.shape[-1], 0, INPUT_SIZE - x.shape[-2]))[:, None]
+
+
+def occupied_cells(images: torch.Tensor) -> torch.Tensor:
+    """``[B, 1, 152, 152]`` -> bool ``[B, 76, 76]``: cells with an occupied pixel."""
+    return F.max_pool2d(images, 2)[:, 0] > 0
+
+
+def cell_to_metres(cells_r: np.ndarray, cells_c: np.ndarray) -> np.ndarray:
+    """Metric ``(x, y)`` ``[N, 2]`` of output cell centres (cell covers pixels 2i, 2i+1)."""
+    return pixel_to_metres(2 * np.asarray(cells_r) + 0.5, 2 * np.asarray(cells_c) + 0.5)
+
+
+def metres_to_cell(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Output cell ``(rows, cols)`` (int, may be out of range) containing metric points."""
+    r, c = metres_to_pixel(xy)
+    return np.floor((r + 0.5) / 2).astype(np.int64), np.floor((c + 0.5) / 2).astype(np.int64)
+
+
+class LearnedBEVEncoder:
+    """Runs a :class:`BEVNet` on BEV images and returns :class:`Features` (``z = 0``)."""
+
+    NAME = "bevnet"
+
+    def __init__(self, model: BEVNet, num_keypoints: int = 256, weights_id: str = "") -> None:
+        self.model = model.eval()
+        self.num_keypoints = num_keypoints
+        self.global_dim, self.local_dim = model.global_dim, model.local_dim
+        self.identity = EncoderIdentity(
+            self.NAME,
+            "1",
+            {
+                "weights": weights_id,
+                "num_keypoints": num_keypoints,
+                "width": model.width,
+                "raster": KITTI_BEV.model_dump(),
+            },
+        )
+
+    @torch.inference_mode()
+    def encode_image(self, image: np.ndarray) -> Features:
+        """Encode one kitti-bev image ``[151, 151]`` uint8."""
+        x = to_input(image[None])
+        g, local, sal = self.model(x)
+        occ = occupied_cells(x)[0]
+        s = sal[0].masked_fill(~occ, -math.inf)
+        peak = s == F.max_pool2d(s[None, None], 3, stride=1, padding=1)[0, 0]
+        s = s.masked_fill(~peak, -math.inf).flatten()
+        k = int(min(self.num_keypoints, int(torch.isfinite(s).sum())))
+        idx = torch.topk(s, k).indices.numpy() if k else np.zeros(0, np.int64)
+        rows, cols = idx // CELLS, idx % CELLS
+        xy = cell_to_metres(rows, cols)
+        feats = local[0].flatten(1)[:, idx].T.numpy()  # [k, D]
+        kp = np.column_stack([xy, np.zeros(len(xy))]).reshape(-1, 3)
+        return Features.validated(g[0].numpy(), kp, feats, self.identity)
+
+
+# ---------------------------------------------------------------------------------------
+# data
+
+
+@dataclass
+class Sequence:
+    """One kitti-bev-style sequence in memory: images ``[N, 151, 151]`` uint8, poses."""
+
+    name: str
+    images: np.ndarray
+    poses: np.ndarray  # [N, 4, 4] T_world_lidar
+
+    @classmethod
+    def load(cls, path: str | Path, stride: int = 1) -> Sequence:
+        """Read ``imgs/*.png`` and ``pose.txt`` of a folder (every ``stride``-th scan)."""
+        path = Path(path)
+        files = sorted((path / "imgs").glob("*.png"))
+        poses = read_poses(path / "pose.txt")
+        if not files or len(files) != len(poses):
+            raise InputError(f"{path}: {len(files)} images but {len(poses)} poses")
+        files, poses = files[::stride], poses[::stride]
+        return cls(path.name, np.stack([load_bev_image(f) for f in files]), poses)
+
+
+def rotate_image(img: np.ndarray, yaw: float) -> np.ndarray:
+    """The BEV image of the scan rotated by ``yaw`` (rad) about the sensor (bilinear).
+
+    Destination pixel ``(v', u')`` (row, col) is metric ``p' = R p``; its source is
+    ``p = R^T p'``, read bilinearly (zero outside). Pure numpy.
+    """
+    n = img.shape[0]
+    h = KITTI_BEV.half_cells + 0.5  # the sensor's continuous pixel coordinate
+    c, s = math.cos(yaw), math.sin(yaw)
+    v1, u1 = np.mgrid[0:n, 0:n].astype(np.float64)  # destination rows, cols
+    a, b = h - v1, h - u1  # x', y' in pixels
+    v = h - (c * a + s * b)  # source row: x = c x' + s y'
+    u = h - (-s * a + c * b)  # source col: y = -s x' + c y'
+    v0, u0 = np.floor(v).astype(np.int64), np.floor(u).astype(np.int64)
+    fv, fu = v - v0, u - u0
+    src = np.zeros((n + 2, n + 2), dtype=np.float64)  # one pixel of zeros around
+    src[1:-1, 1:-1] = img
+    v0 = np.clip(v0 + 1, 0, n)
+    u0 = np.clip(u0 + 1, 0, n)
+    out = (
+        src[v0, u0] * (1 - fv) * (1 - fu)
+        + src[v0 + 1, u0] * fv * (1 - fu)
+        + src[v0, u0 + 1] * (1 - fv) * fu
+        + src[v0 + 1, u0 + 1] * fv * fu
+    )
+    inside = (v > -1) & (v < n) & (u > -1) & (u < n)
+    return np.rint(np.where(inside, out, 0.0)).astype(np.uint8)
+
+
+def yaw_matrix2(yaw: float) -> np.ndarray:
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, -s], [s, c]])
+
+
+@dataclass
+class TrainConfig:
+    """Settings of :func:`train` (all recorded in ``log.json``)."""
+
+    steps: int = 3000
+    batch: int = 8
+    lr: float = 1e-3
+    seed: int = 0
+    pos_radius: float = 3.0
+    neg_radius: float = 10.0
+    cells_per_pair: int = 256
+    temperature: float = 0.07
+    width: int = 32
+    local_dim: int = 64
+    global_dim: int = 256
+    val_every: int = 200
+    checkpoint_every: int = 200
+    device: str = "cpu"
+    stride: int = 1
+    extra: dict = field(default_factory=dict)
+
+
+def sample_batch(
+    seqs: list[Sequence], cfg: TrainConfig, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[tuple[np.ndarray, np.ndarray]], np.ndarray]:
+    """Images of anchors and positives ``[B, 151, 151]`` (yaw-augmented), their positions
+    in a common frame ``[B, 2]`` (for global negatives), per pair the corresponding cells
+    ``(anchor flat cell ids [m], positive flat cell ids [m])``, and the sequence index.
+    """
+    a_imgs, p_imgs, pos, corr, sid = [], [], [], [], []
+    for _ in range(cfg.batch):
+        si = int(rng.integers(len(seqs)))
+        s = seqs[si]
+        xyz = s.poses[:, :3, 3]
+        i = int(rng.integers(len(s.images)))
+        d = np.linalg.norm(xyz[:, :2] - xyz[i, :2], axis=1)
+        cand = np.nonzero((d < cfg.pos_radius) & (np.arange(len(d)) != i))[0]
+        j = int(rng.choice(cand)) if len(cand) else i
+        ya, yb = rng.uniform(0, 2 * np.pi, 2)
+        ia, ib = rotate_image(s.images[i], ya), rotate_image(s.images[j], yb)
+        # anchor cells (occupied) -> metres (augmented A) -> A -> B -> augmented B -> cell
+        occ = np.zeros((INPUT_SIZE, INPUT_SIZE), bool)
+        occ[:151, :151] = ia > 0
+        occ = occ.reshape(CELLS, 2, CELLS, 2).any(axis=(1, 3))
+        r, c = np.nonzero(occ)
+        xy_a = cell_to_metres(r, c) @ yaw_matrix2(ya)  # R^T applied to rows
+        T_ba = np.linalg.inv(s.poses[j]) @ s.poses[i]
+        xy_b = xy_a @ T_ba[:2, :2].T + T_ba[:2, 3]
+        xy_b = xy_b @ yaw_matrix2(yb).T
+        rb, cb = metres_to_cell(xy_b)
+        ok = (rb >= 0) & (rb < CELLS) & (cb >= 0) & (cb < CELLS)
+        occ_b = np.zeros((INPUT_SIZE, INPUT_SIZE), bool)
+        occ_b[:151, :151] = ib > 0
+        occ_b = occ_b.reshape(CELLS, 2, CELLS, 2).any(axis=(1, 3))
+        ok[ok] &= occ_b[rb[ok], cb[ok]]
+        ids = np.nonzero(ok)[0]
+        if len(ids) > cfg.cells_per_pair:
+            ids = rng.choice(ids, cfg.cells_per_pair, replace=False)
+        corr.append((r[ids] * CELLS + c[ids], rb[ids] * CELLS + cb[ids]))
+        a_imgs.append(ia)
+        p_imgs.append(ib)
+        pos.append(xyz[i, :2] + 1e5 * si)  # different sequences are far apart
+        sid.append(si)
+    return np.stack(a_imgs), np.stack(p_imgs), np.stack(pos), corr, np.array(sid)
+
+
+# ---------------------------------------------------------------------------------------
+# losses
+
+
+def losses(
+    model: BEVNet,
+    a_imgs: np.ndarray,
+    p_imgs: np.ndarray,
+    positions: np.ndarray,
+    corr: list[tuple[np.ndarray, np.ndarray]],
+    cfg: TrainConfig,
+    device: torch.device,
+) -> dict[str, torch.Tensor]:
+    """Local InfoNCE, saliency BCE and global InfoNCE for one batch; ``total`` sums them."""
+    x = torch.cat([to_input(a_imgs), to_input(p_imgs)]).to(device)  # [2B, 1, 152, 152]
+    g, local, sal = model(x)
+    b = len(a_imgs)
+    loc = local.flatten(2)  # [2B, D, C*C]
+    salf = sal.flatten(1)  # [2B, C*C]
+    occ = occupied_cells(x).flatten(1)  # [2B, C*C]
+    l_local, l_sal, n_pairs = x.new_zeros(()), x.new_zeros(()), 0
+    for k, (ia, ib) in enumerate(corr):
+        if len(ia) < 8:
+            continue
+        ia_t = torch.as_tensor(ia, device=device)
+        ib_t = torch.as_tensor(ib, device=device)
+        da = loc[k][:, ia_t].T  # [m, D]
+        db = loc[b + k][:, ib_t].T  # [m, D]
+        logits = da @ db.T / cfg.temperature  # [m, m]
+        target = torch.arange(len(ia), device=device)
+        l_local = l_local + 0.5 * (
+            F.cross_entropy(logits, target) + F.cross_entropy(logits.T, target)
+        )
+        correct = (logits.argmax(1) == target).float().detach()
+        # saliency: matchable cells -> 1, other sampled cells -> 0, empty cells -> 0
+        empty = torch.nonzero(~occ[k])[:, 0]
+        if len(empty) > len(ia):
+            empty = empty[torch.randperm(len(empty), device=device)[: len(ia)]]
+        s_logit = torch.cat([salf[k][ia_t], salf[k][empty]])
+        s_target = torch.cat([correct, torch.zeros(len(empty), device=device)])
+        l_sal = l_sal + F.binary_cross_entropy_with_logits(s_logit, s_target)
+        n_pairs += 1
+    n_pairs = max(n_pairs, 1)
+    l_local, l_sal = l_local / n_pairs, l_sal / n_pairs
+    # global: anchors vs positives, far ones are negatives, near ones masked
+    pos_t = torch.as_tensor(positions, dtype=torch.float32, device=device)
+    dist = torch.cdist(pos_t, pos_t)  # [B, B]
+    logits = g[:b] @ g[b:].T / cfg.temperature
+    mask = (dist < cfg.neg_radius) & ~torch.eye(b, dtype=torch.bool, device=device)
+    logits = logits.masked_fill(mask, -1e4)
+    l_global = F.cross_entropy(logits, torch.arange(b, device=device))
+    total = l_local + 0.5 * l_sal + l_global
+    return {"total": total, "local": l_local, "saliency": l_sal, "global": l_global}
+
+
+# ---------------------------------------------------------------------------------------
+# training loop
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    if name == "cuda" and not torch.cuda.is_available():
+        raise InputError("device 'cuda' requested but CUDA is absent")
+    return torch.device(name)
+
+
+def build_model(cfg: TrainConfig) -> BEVNet:
+    return BEVNet(cfg.width, cfg.local_dim, cfg.global_dim)
+
+
+def load_checkpoint(path: str | Path) -> tuple[BEVNet, dict]:
+    """Model (eval mode, CPU) and the checkpoint dictionary from ``checkpoint.pt``."""
+    ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    cfg = TrainConfig(**ckpt["config"])
+    model = build_model(cfg)
+    model.load_state_dict(ckpt["model"])
+    return model.eval(), ckpt
+
+
+def _plot(history: list[dict], val: list[dict], path: Path) -> None:
+    try:
+        import matplotlib
+    except ImportError:  # pragma: no cover - the service extra has it
+        log.warning("matplotlib is not installed: no %s", path.name)
+        return
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(1, 2, figsize=(10, 4))
+    steps = [h["step"] for h in history]
+    for key in ("total", "local", "saliency", "global"):
+        ax[0].plot(steps, [h[key] for h in history], label=key)
+    ax[0].set_xlabel("step")
+    ax[0].set_title("training loss")
+    ax[0].legend()
+    if val:
+        for key in ("total", "nn_correct"):
+            ax[1].plot([v["step"] for v in val], [v[key] for v in val], "o-", label=key)
+        ax[1].legend()
+    ax[1].set_xlabel("step")
+    ax[1].set_title("validation")
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+
+
+def _validate(
+    model: BEVNet, val: list[Sequence], cfg: TrainConfig, device: torch.device
+) -> dict[str, float]:
+    """Loss and the share of correct descriptor nearest neighbours on fixed val batches."""
+    rng = np.random.default_rng(12345)
+    model.eval()
+    totals, correct = [], []
+    with torch.no_grad():
+        for _ in range(4):
+            a, p, pos, corr, _ = sample_batch(val, cfg, rng)
+            totals.append(float(losses(model, a, p, pos, corr, cfg, device)["total"]))
+            x = torch.cat([to_input(a), to_input(p)]).to(device)
+            _, local, _ = model(x)
+            loc = local.flatten(2)
+            for k, (ia, ib) in enumerate(corr):
+                if len(ia) < 8:
+                    continue
+                da = loc[k][:, torch.as_tensor(ia, device=device)].T
+                db = loc[len(a) + k][:, torch.as_tensor(ib, device=device)].T
+                hit = (da @ db.T).argmax(1) == torch.arange(len(ia), device=device)
+                correct.append(float(hit.float().mean()))
+    model.train()
+    return {"total": float(np.mean(totals)), "nn_correct": float(np.mean(correct or [0.0]))}
+
+
+class _NoBar:
+    def update(self, _: int) -> None: ...
+
+    def set_postfix(self, **_: object) -> None: ...
+
+    def close(self) -> None: ...
+
+
+def train(
+    train_seqs: list[Sequence],
+    out: str | Path,
+    cfg: TrainConfig | None = None,
+    val_seqs: list[Sequence] | None = None,
+    *,
+    resume: bool = True,
+    progress: bool = True,
+) -> Path:
+    """Train (or resume) a :class:`BEVNet`; returns the checkpoint path.
+
+    Resumes from ``OUT/checkpoint.pt`` when it exists and ``resume`` is true. Raises
+    :class:`InputError` if no training sequence has images.
+    """
+    cfg = cfg or TrainConfig()
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    if not train_seqs or not any(len(s.images) for s in train_seqs):
+        raise InputError("no training images")
+    device = resolve_device(cfg.device)
+    torch.manual_seed(cfg.seed)
+    rng = np.random.default_rng(cfg.seed)
+    model = build_model(cfg).to(device)
+    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=1e-4)
+    ckpt_path = out / "checkpoint.pt"
+    step, history, val_hist = 0, [], []
+    if resume and ckpt_path.exists():
+        ckpt = torch.load(ckpt_path, map_location=device, weights_only=False)
+        model.load_state_dict(ckpt["model"])
+        opt.load_state_dict(ckpt["optimizer"])
+        step, history, val_hist = ckpt["step"], ckpt["history"], ckpt["val"]
+        rng.bit_generator.state = ckpt["rng"]
+        torch.set_rng_state(ckpt["torch_rng"].cpu())
+        log.info("resumed from %s at step %d", ckpt_path, step)
+
+    def save() -> None:
+        torch.save(
+            {
+                "model": model.state_dict(),
+                "optimizer": opt.state_dict(),
+                "step": step,
+                "history": history,
+                "val": val_hist,
+                "rng": rng.bit_generator.state,
+                "torch_rng": torch.get_rng_state(),
+                "config": asdict(cfg),
+            },
+            ckpt_path,
+        )
+        (out / "log.json").write_text(
+            json.dumps({"config": asdict(cfg), "history": history, "val": val_hist}, indent=1)
+        )
+        _plot(history, val_hist, out / "curves.png")
+
+    try:
+        from tqdm import tqdm
+    except ImportError:  # pragma: no cover - the service extra has it
+        progress = False
+
+        def tqdm(**_: object) -> _NoBar:  # type: ignore[misc]
+            return _NoBar()
+
+    bar = tqdm(total=cfg.steps, initial=step, disable=not progress, unit="step")
+    model.train()
+    t0 = time.perf_counter()
+    while step < cfg.steps:
+        a, p, pos, corr, _ = sample_batch(train_seqs, cfg, rng)
+        parts = losses(model, a, p, pos, corr, cfg, device)
+        opt.zero_grad()
+        parts["total"].backward()
+        opt.step()
+        step += 1
+        history.append({"step": step, **{k: float(v.detach()) for k, v in parts.items()}})
+        bar.update(1)
+        bar.set_postfix(loss=f"{history[-1]['total']:.3f}")
+        if val_seqs and (step % cfg.val_every == 0 or step == cfg.steps):
+            val_hist.append({"step": step, **_validate(model, val_seqs, cfg, device)})
+            log.info("step %d validation %s", step, val_hist[-1])
+        if step % cfg.checkpoint_every == 0 or step == cfg.steps:
+            save()
+    bar.close()
+    if not ckpt_path.exists():
+        save()
+    log.info("trained %d steps in %.0f s", step, time.perf_counter() - t0)
+    return ckpt_path
