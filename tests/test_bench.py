@@ -16,7 +16,7 @@ def test_rerank_section_runs_all_methods_on_the_same_inputs():
     rows = {(r["n"], r["k"]): r for r in res["rows"]}
     assert set(rows) == {(40, 2), (40, 3)}
     small = rows[(40, 2)]
-    for key in ("sgv_torch", "nn", "ransac_rir", "fgr_rir", "ratio_ransac_rir"):
+    for key in ("sgv_torch", "nn", "sgv_total", "ransac_rir", "fgr_rir", "ratio_ransac_rir"):
         assert key in small
     assert "ransac_rir" not in rows[(40, 3)]  # above rir_max_k
     assert all(r["sgv_top1_is_revisit"] for r in res["rows"])

@@ -55,6 +55,13 @@ def timed(fn: Callable[[], Any], repeats: int, warmup: int = 1) -> dict[str, flo
     return {"median_ms": float(np.median(times)), "min_ms": float(np.min(times)), "n": repeats}
 
 
+def _settle(seconds: float = 0.25) -> None:
+    """Pause between methods so that idle worker threads of the previous one (OpenBLAS
+    spins ~0.1 s after a call, OpenMP pools a little) are parked before the next is timed:
+    on 2 cores a spinning pool steals a core from the next method's threads."""
+    time.sleep(seconds)
+
+
 def machine_info() -> dict[str, Any]:
     """CPU count, platform and library versions (recorded with every result)."""
     import os
@@ -191,8 +198,9 @@ def bench_rerank(
         "growth": growth,
         "large_n": large,
         "notes": [
-            "times include feature matching (SGV: NN per query keypoint, the 'nn' column "
-            "alone; RIR: Open3D mutual matching), as in the localizer",
+            "identical correspondences: SGV's nearest-neighbour matches; 'SGV' columns and "
+            "RIR columns score those pairs (matching not included); 'NN' is the matching "
+            "alone and 'SGV total' matching + numba kernel (sgv_rerank_scores)",
             f"RIR only up to k={rir_max_k}, {rir_repeats} repeats: one registration per "
             "candidate, slow by design (refine=none: no ICP)",
             "large-n memory: RSS high-water mark (VmHWM, reset just before the call) of a "
@@ -205,34 +213,58 @@ def bench_rerank(
 def _rerank_case(
     n: int, k: int, cfgs: dict, pose_cfg: Any, repeats: int, rir: bool, rir_repeats: int
 ) -> dict[str, Any]:
-    """One (n, k) point: every method on the same generated query and candidates."""
-    from .core.pose import fgr_pose, ransac_pose
-    from .core.sgv import nn_correspondences, sgv_rerank_scores
+    """One (n, k) point: every method on the same generated query and candidates.
+
+    The correspondences are SGV's (nearest neighbour in feature space per query keypoint,
+    :func:`~sgvloc.core.sgv.nn_correspondences`); SGV scores them, and RANSAC/FGR register
+    exactly the same pairs (Open3D ``*_based_on_correspondence``, as in
+    :mod:`sgvloc.core.pose`) and score the inlier ratio. Matching is timed on its own
+    (``nn``) and end to end with SGV (``sgv_total``).
+    """
+    from .core import pose
+    from .core.sgv import nn_correspondences, sgv_rerank_scores, sgv_scores
 
     rng = np.random.default_rng(1000 * n + k)
     qk, qf, kps, fts = rerank_inputs(rng, n, k)
+    ft_pad = np.stack(fts)  # [k, n, D]: all candidates have n keypoints here
+    idx = nn_correspondences(qf, ft_pad).numpy()  # [k, n]
+    src = np.ascontiguousarray(np.broadcast_to(qk[None], (k, n, 3)))  # [k, n, 3]
+    dst = np.stack([kp[i] for kp, i in zip(kps, idx, strict=True)])  # [k, n, 3]
     row: dict[str, Any] = {"n": n, "k": k}
     for b, cfg in cfgs.items():
-        row[f"sgv_{b}"] = timed(lambda cfg=cfg: sgv_rerank_scores(qk, qf, kps, fts, cfg), repeats)
-    ft_pad = np.stack(fts)  # [k, n, D]: all candidates have n keypoints here
+        _settle()
+        row[f"sgv_{b}"] = timed(lambda cfg=cfg: sgv_scores(src, dst, None, cfg), repeats)
+    _settle()
     row["nn"] = timed(lambda: nn_correspondences(qf, ft_pad), repeats)
-    # sanity: the revisit (candidate 0) ranks first
     first = next(iter(cfgs.values()))
-    row["sgv_top1_is_revisit"] = bool(sgv_rerank_scores(qk, qf, kps, fts, first).order()[0] == 0)
+    _settle()
+    row["sgv_total"] = timed(lambda: sgv_rerank_scores(qk, qf, kps, fts, first), repeats)
+    # sanity: the revisit (candidate 0) ranks first
+    row["sgv_top1_is_revisit"] = bool(sgv_scores(src, dst, None, first).order()[0] == 0)
     if rir:
-        for name, fn in (("ransac_rir", ransac_pose), ("fgr_rir", fgr_pose)):
+        pairs = np.stack([np.arange(n), np.zeros(n, dtype=np.int64)], axis=1)  # [n, 2]
+        qk64, dst64 = qk.astype(np.float64), dst.astype(np.float64)
+        for name, estimate in (("ransac_rir", pose._ransac), ("fgr_rir", pose._fgr)):
 
-            def run_rir(fn=fn) -> None:
-                for kp, ft in zip(kps, fts, strict=True):
-                    fn(qk, qf, kp, ft, pose_cfg)
+            def run_rir(estimate=estimate) -> list[float]:
+                ratios = []
+                for b in range(k):
+                    pairs[:, 1] = idx[b]
+                    kp = kps[b].astype(np.float64)
+                    T = estimate(qk64, kp, pairs, pose_cfg)
+                    dist = pose_cfg.max_correspondence_distance
+                    ratios.append(pose.inlier_ratio(qk64, dst64[b], T, dist)[1])
+                return ratios
 
+            _settle()
             row[name] = timed(run_rir, rir_repeats)
+            row[f"{name}_top1_is_revisit"] = bool(np.argmax(run_rir()) == 0)
     return row
 
 
 def _rerank_line(row: dict[str, Any], main: str) -> str:
     parts = [f"  n={row['n']:5d} k={row['k']:3d}"]
-    for key in ("sgv_numba", "sgv_torch", "nn", "ransac_rir", "fgr_rir"):
+    for key in ("sgv_numba", "sgv_torch", "nn", "sgv_total", "ransac_rir", "fgr_rir"):
         if key in row:
             parts.append(f"{key} {row[key]['median_ms']:8.2f} ms")
     return "  ".join(parts)
@@ -379,7 +411,7 @@ def sgv_memory_probe(n: int, k: int, backend: str) -> dict[str, Any]:
 
 
 def descriptors(
-    rng: np.random.Generator, size: int, dim: int, queries: int, noise: float = 0.7
+    rng: np.random.Generator, size: int, dim: int, queries: int, noise: float = 0.35
 ) -> tuple[np.ndarray, np.ndarray]:
     """``size`` database descriptors of places along a route and ``queries`` revisits.
 
@@ -671,6 +703,7 @@ def format_rerank(res: dict[str, Any]) -> str:
         "SGV numba ms",
         "SGV torch ms",
         "NN ms",
+        "SGV total ms",
         "RANSAC-RIR ms",
         "FGR-RIR ms",
         "RANSAC/SGV",
@@ -686,6 +719,7 @@ def format_rerank(res: dict[str, Any]) -> str:
                 _ms(r.get("sgv_numba")),
                 _ms(r.get("sgv_torch")),
                 _ms(r.get("nn")),
+                _ms(r.get("sgv_total")),
                 _ms(r.get("ransac_rir")),
                 _ms(r.get("fgr_rir")),
                 f"{r['ratio_ransac_rir']:.0f}x" if "ratio_ransac_rir" in r else "-",

@@ -299,7 +299,7 @@ _PAD_SIMILARITY = -3.0
 
 
 def _nn_numpy(q: np.ndarray, c: np.ndarray, mask: np.ndarray, budget_bytes: int) -> np.ndarray:
-    """CPU body of :func:`nn_correspondences` (numpy/BLAS), same answers.
+    """CPU body of :func:`nn_correspondences`, same answers.
 
     One GEMM per block of query rows against all candidates at once, ``[rows, D + 1] x
     [D + 1, k * Nc]``: an extra feature dimension (1 for queries; 0 for real keypoints,
@@ -314,13 +314,17 @@ def _nn_numpy(q: np.ndarray, c: np.ndarray, mask: np.ndarray, budget_bytes: int)
     qe[:, :dim], qe[:, dim] = qn, 1.0
     ce = np.empty((k, nc, dim + 1), dtype=np.float32)  # [k, Nc, D + 1]
     ce[..., :dim], ce[..., dim] = cn, np.where(mask, 0.0, _PAD_SIMILARITY)
-    ct = np.ascontiguousarray(ce.reshape(k * nc, dim + 1).T)  # [D + 1, k * Nc]
+    ct = torch.from_numpy(np.ascontiguousarray(ce.reshape(k * nc, dim + 1).T))  # [D + 1, k*Nc]
+    qt = torch.from_numpy(qe)  # [N, D + 1]
     block = min(budget_bytes // _F32_BYTES, _NN_BLOCK_ENTRIES)
     rows = max(1, block // (k * nc))
     idx = np.empty((k, n), dtype=np.int64)  # [k, N]
-    for r0 in range(0, n, rows):
-        sim = (qe[r0 : r0 + rows] @ ct).reshape(-1, k, nc)  # [rows, k, Nc]
-        idx[:, r0 : r0 + rows] = sim.argmax(axis=2).T
+    with torch.inference_mode():
+        for r0 in range(0, n, rows):
+            # GEMM in torch (measured 1.5-2x faster than numpy's multi-threaded OpenBLAS on
+            # 2 busy cores), argmax in numpy (3x faster than torch's on this shape).
+            sim = torch.mm(qt[r0 : r0 + rows], ct).numpy().reshape(-1, k, nc)  # [rows, k, Nc]
+            idx[:, r0 : r0 + rows] = sim.argmax(axis=2).T
     idx[~mask.any(axis=1)] = -1  # candidates without keypoints have no correspondences
     return idx
 
