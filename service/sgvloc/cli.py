@@ -448,6 +448,77 @@ def synth_command(
     )
 
 
+# -- bench (sgvloc.bench) -------------------------------------------------------------------
+
+
+@app.command("bench")
+def bench_command(
+    only: Annotated[
+        str, typer.Option(help="comma-separated sections: rerank, retrieval, encoding")
+    ] = "rerank,retrieval,encoding",
+    out: Annotated[Path, typer.Option(help="JSON file with every figure")] = Path("bench.json"),
+    ks: Annotated[str, typer.Option(help="rerank: candidates per query")] = "2,5,10,20,50",
+    ns: Annotated[str, typer.Option(help="rerank: keypoints (correspondences)")] = "128,256,1000",
+    large_ns: Annotated[str, typer.Option(help="rerank: SGV alone, k=1")] = "5000,15000",
+    repeats: Annotated[int, typer.Option(min=1, help="rerank: timed runs per point")] = 7,
+    rir: Annotated[bool, typer.Option(help="rerank: run RANSAC-RIR and FGR-RIR")] = True,
+    rir_max_k: Annotated[int, typer.Option(help="rerank: RIR only up to this k")] = 20,
+    sizes: Annotated[str, typer.Option(help="retrieval: database sizes")] = "10000,100000,1000000",
+    dim: Annotated[int, typer.Option(help="retrieval: descriptor dimension")] = 620,
+    large_dim: Annotated[
+        int, typer.Option(help="retrieval: dimension from 500k descriptors on")
+    ] = 256,
+    hnsw_max: Annotated[int, typer.Option(help="retrieval: HNSW up to this size")] = 100000,
+    scan_sizes: Annotated[str, typer.Option(help="encoding: points per scan")] = "25000,120000",
+) -> None:
+    """Measure re-ranking, retrieval and encoding; print tables and write --out (JSON).
+
+    Medians after warm-up, every comparison in one process on the same inputs. The
+    defaults take a few minutes on 2 cores; CUDA timings of SGV are added when a GPU is
+    present.
+    """
+    import json
+
+    from . import bench
+
+    _configure_logging("warning")
+    chosen = [x.strip() for x in only.split(",") if x.strip()]
+    unknown = sorted(set(chosen) - set(bench.SECTIONS))
+    if unknown:
+        raise typer.BadParameter(f"unknown sections {unknown}; choose from {list(bench.SECTIONS)}")
+    result: dict = {"machine": bench.machine_info(), "command": " ".join(__import__("sys").argv)}
+    for section in chosen:
+        typer.echo(f"## {section}")
+        if section == "rerank":
+            res = bench.bench_rerank(
+                _int_list(ks),
+                _int_list(ns),
+                repeats=repeats,
+                rir=rir,
+                rir_max_k=rir_max_k,
+                large_ns=_int_list(large_ns),
+                echo=typer.echo,
+            )
+            cuda = bench.bench_sgv_cuda(_int_list(ks), _int_list(ns), large_ns=_int_list(large_ns))
+            if "skipped" not in cuda:
+                result["cuda"] = cuda
+        elif section == "retrieval":
+            res = bench.bench_retrieval(
+                _int_list(sizes), dim=dim, large_dim=large_dim, hnsw_max=hnsw_max, echo=typer.echo
+            )
+        else:
+            res = bench.bench_encoding(_int_list(scan_sizes), echo=typer.echo)
+        result[section] = res
+        typer.echo(bench.FORMATTERS[section](res))
+        for note in res.get("notes", []):
+            typer.echo(f"- {note}")
+        if section == "rerank" and "cuda" in result:
+            typer.echo(f"## SGV on CUDA ({result['cuda']['device']})")
+            typer.echo(bench.format_cuda(result["cuda"]))
+        out.write_text(json.dumps(result, indent=1))  # after every section: partial results
+    typer.echo(f"wrote {out}")
+
+
 @app.command("train")
 def train_command(
     data: Annotated[
