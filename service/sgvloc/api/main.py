@@ -64,7 +64,7 @@ class MetricsMiddleware:
 
 
 def _warm_up() -> None:
-    """Import the heavy engine libraries now (seconds), not inside the first requests."""
+    """Import the engine libraries and compile its kernels now, not in the first requests."""
     for module in ("sgvloc.core.sgv", "open3d"):  # torch for SGV; Open3D for FPFH and RANSAC
         t0 = time.perf_counter()
         try:
@@ -73,6 +73,10 @@ def _warm_up() -> None:
             log.warning("cannot import %s: %s", module, exc)
             continue
         log.debug("imported %s in %.1f s", module, time.perf_counter() - t0)
+    # compile (or load from numba's cache) the CPU SGV kernels: ~10 s on first use
+    from sgvloc.core import sgv
+
+    log.debug("SGV kernels ready in %.1f s", sgv.warm_up())
 
 
 def _load_maps(manager: MapManager) -> None:
