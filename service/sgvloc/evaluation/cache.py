@@ -4,6 +4,10 @@ One ``.npz`` per (encoder, scan file) under ``ROOT/<encoder fingerprint>/``, nam
 hash of the scan's absolute path, size and modification time, so a changed scan or
 another encoder setting never reuses stale features. Each file holds the global
 descriptor, keypoints, local features and the preprocessed cloud (for ICP refinement).
+
+A ``.png`` file is a kitti-bev BEV image (:func:`sgvloc.core.bev.load_bev_image`): it is
+described by the encoder's ``encode_image`` and has no cloud (an empty ``[0, 3]`` one is
+stored).
 Clouds are read only when asked for: ``np.load`` of an ``.npz`` reads members lazily.
 Writes go to a temporary file moved into place with ``os.replace``.
 """
@@ -20,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core.encoders import Encoder
+from ..core.errors import InputError
 from ..core.features import Features
 
 log = logging.getLogger(__name__)
@@ -56,8 +61,6 @@ class FeatureCache:
 
     def get(self, scan_path: str | os.PathLike) -> Features:
         """Features of a scan file: from the cache, or computed (and stored)."""
-        from ..core.io import read_scan
-
         f = self.path_for(scan_path)
         if f.exists():
             try:
@@ -73,10 +76,25 @@ class FeatureCache:
             except (OSError, KeyError, ValueError) as exc:  # damaged file: recompute
                 log.warning("feature cache file %s unreadable (%s); recomputing", f, exc)
         self.misses += 1
-        cloud = self.encoder.prepare(read_scan(scan_path).points)  # [M, 3]
-        feats = self.encoder.encode_cloud(cloud)
+        feats, cloud = self._compute(Path(scan_path))
         self._write(f, feats, cloud)
         return feats
+
+    def _compute(self, path: Path) -> tuple[Features, np.ndarray]:
+        if path.suffix.lower() == ".png":
+            from ..core.bev import load_bev_image
+
+            encode_image = getattr(self.encoder, "encode_image", None)
+            if encode_image is None:
+                raise InputError(
+                    f"encoder {self.encoder.identity.name!r} cannot encode BEV images "
+                    f"({path.name}); use an encoder with encode_image, e.g. kind 'bev'"
+                )
+            return encode_image(load_bev_image(path)), np.zeros((0, 3), np.float32)
+        from ..core.io import read_scan
+
+        cloud = self.encoder.prepare(read_scan(path).points)  # [M, 3]
+        return self.encoder.encode_cloud(cloud), cloud
 
     def cloud(self, scan_path: str | os.PathLike) -> np.ndarray:
         """The preprocessed cloud ``[M, 3]`` of a scan (computed if not cached)."""
