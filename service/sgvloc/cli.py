@@ -334,7 +334,11 @@ def _int_list(text: str) -> list[int]:
 @app.command("eval")
 def eval_command(
     data: Annotated[
-        Path, typer.Option(help="KITTI-layout sequence (velodyne/, poses.txt, times.txt)")
+        Path,
+        typer.Option(
+            help="KITTI-layout sequence (velodyne/, poses.txt, times.txt) or kitti-bev "
+            "folder (imgs/*.png, pose.txt; needs an image encoder, e.g. bev)"
+        ),
     ],
     db_until: Annotated[
         float | None, typer.Option(help="time split: database = scans of the first SECONDS")
@@ -367,21 +371,29 @@ def eval_command(
     cache_dir: Annotated[
         Path | None, typer.Option(help="feature cache (default ~/.cache/sgvloc/features)")
     ] = None,
-    out: Annotated[Path, typer.Option(help="folder for eval.json and ntopk.png")] = Path(
-        "eval-out"
-    ),
+    out: Annotated[
+        Path, typer.Option(help="folder for eval.json, ntopk.png and sgv_scores.png")
+    ] = Path("eval-out"),
     progress: Annotated[bool, typer.Option(help="show progress bars")] = True,
 ) -> None:
     """Evaluate every re-ranking method x top-k on a sequence (SPEC section 4).
 
-    Prints a Markdown table; writes OUT/eval.json (every figure and the exact
-    configuration) and OUT/ntopk.png (Recall@1 and re-ranking time against n_topk).
+    Prints a Markdown table, then the encoder's diagnostics (share of correct
+    nearest-neighbour local matches on true pairs; SGV scores of true vs false candidates
+    with their ROC AUC); writes OUT/eval.json (every figure and the exact configuration),
+    OUT/ntopk.png (Recall@1 and re-ranking time against n_topk) and OUT/sgv_scores.png.
     """
     from .core.config import LocalizerConfig
     from .core.encoders import EncoderSpec
     from .core.errors import SgvlocError
     from .core.rerank import METHODS
-    from .evaluation.report import markdown_table, plot_sweep, write_json
+    from .evaluation.report import (
+        diagnostics_table,
+        markdown_table,
+        plot_sgv_scores,
+        plot_sweep,
+        write_json,
+    )
     from .evaluation.runner import EvalConfig, run_evaluation
 
     _configure_logging("warning")
@@ -411,11 +423,17 @@ def eval_command(
         typer.echo(f"eval: {exc}", err=True)
         raise typer.Exit(1) from None
     typer.echo(markdown_table(result))
+    typer.echo("")
+    typer.echo(diagnostics_table(result))
+    typer.echo("")
     for note in result.notes:
         typer.echo(f"- {note}")
-    typer.echo(
-        f"wrote {write_json(result, out / 'eval.json')} and {plot_sweep(result, out / 'ntopk.png')}"
-    )
+    written = [
+        write_json(result, out / "eval.json"),
+        plot_sweep(result, out / "ntopk.png"),
+        plot_sgv_scores(result, out / "sgv_scores.png"),
+    ]
+    typer.echo(f"wrote {', '.join(map(str, written))}")
 
 
 @app.command("synth")

@@ -1,12 +1,17 @@
-"""`sgvloc eval` end to end on the shipped real fixture: table, JSON and PNG, all methods."""
+"""`sgvloc eval` end to end on the shipped real fixture: tables, JSON and PNGs, all methods."""
 
 import json
 
+import numpy as np
 import pytest
 from typer.testing import CliRunner
 
 from sgvloc.cli import app
+from sgvloc.core.encoders import EncoderSpec, make_encoder
+from sgvloc.core.io import KittiSequence
 from sgvloc.core.rerank import METHODS
+from sgvloc.evaluation.cache import FeatureCache
+from sgvloc.evaluation.diagnostics import pair_match_stats
 
 ARGS = ["--min-gap", "30", "--topk", "2,3", "--sweep", "1,2,3", "--sweep-rir", "2"]
 
@@ -45,6 +50,48 @@ def test_eval_writes_table_json_and_plot_with_every_method(first_run):
     cfg = report["config"]
     assert cfg["min_gap"] == 30 and cfg["topk"] == [2, 3] and cfg["encoder_fingerprint"]
     assert report["timings"]["feature_cache"]["misses"] == 15
+
+
+def test_eval_reports_local_matches_and_sgv_score_separation(first_run, balm_mini_dir):
+    res, report, _, out = first_run
+    png = (out / "sgv_scores.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
+    m = report["matches"]
+    assert m["pairs"] == 3 and not m["planar"] and m["radius_m"] == 1.0
+    assert m["query_keypoints_mean"] > 100 and m["db_keypoints_mean"] > 100
+    for key in ("nn_ratio", "mutual_ratio", "repeatability", "chance_ratio"):
+        assert 0.0 <= m[f"{key}_mean"] <= 1.0 and 0.0 <= m[f"{key}_median"] <= 1.0
+    # matching beats chance by far, and no matcher beats repeatability
+    assert m["nn_ratio_mean"] > 5 * m["chance_ratio_mean"]
+    assert m["nn_ratio_mean"] <= m["repeatability_mean"]
+    # the true pair is the nearest *visible* database scan: query 13 (85 s) sees scans up to
+    # 55 s, so not 11 (56.5 s), its nearest overall (fixture README)
+    assert [(p["query"], p["db"]) for p in m["per_pair"]] == [(12, 0), (13, 10), (14, 11)]
+    s = report["sgv_scores"]
+    assert s["k"] == 3 and s["threshold_m"] == 5.0
+    assert s["true"]["count"] + s["false"]["count"] == 9  # 3 queries x top-3
+    assert s["true"]["count"] >= 3 and 0.5 <= s["auc"] <= 1.0
+    assert s["true"]["p10"] <= s["true"]["p50"] <= s["true"]["p90"]
+    # the scores are the sgv re-ranking's own: its top-1 has the query's highest score
+    sgv3 = {r["query"]: r["ranked"] for r in report["per_query"]["sgv@3"]}
+    for q in s["per_query"]:
+        assert q["ids"][int(np.argmax(q["scores"]))] == sgv3[q["query"]][0]
+    assert "Local matches on true pairs" in res.output and "ROC AUC" in res.output
+
+
+def test_match_ratio_drops_with_a_wrong_ground_truth(first_run, balm_mini_dir):
+    """The real pair against the same pair with its pose off by 90 degrees of yaw."""
+    _, report, args, _ = first_run
+    cache = FeatureCache(args[args.index("--cache-dir") + 1], make_encoder(EncoderSpec()))
+    seq = KittiSequence(balm_mini_dir)
+    fq, fd = cache.get(seq.paths[12]), cache.get(seq.paths[0])
+    T = np.linalg.inv(seq.poses[0]) @ seq.poses[12]
+    turn = np.eye(4)
+    turn[:2, :2] = [[0.0, -1.0], [1.0, 0.0]]
+    args = (fq.keypoints, fq.local_features, fd.keypoints, fd.local_features)
+    good = pair_match_stats(*args, T)
+    assert good["nn_ratio"] == report["matches"]["per_pair"][0]["nn_ratio"]
+    assert pair_match_stats(*args, T @ turn)["nn_ratio"] < good["nn_ratio"] / 3
 
 
 def test_second_run_reuses_cached_features(first_run):

@@ -1,4 +1,5 @@
-"""Reports of an evaluation run: a Markdown table, a JSON file and the n_topk plot."""
+"""Reports of an evaluation run: Markdown tables, a JSON file, the n_topk plot and the
+SGV score histogram."""
 
 from __future__ import annotations
 
@@ -50,6 +51,56 @@ def markdown_table(result: EvalResult) -> str:
             _fmt(r["rerank_median_ms"], 1),
         ]
         lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def diagnostics_table(result: EvalResult) -> str:
+    """Encoder diagnostics: local matches on true pairs and SGV scores of true/false."""
+    m, sc = result.matches, result.sgv_scores
+    if not m or not sc:
+        return ""
+    enc = result.config.get("encoder", {}).get("kind", "?")
+    where = "x/y" if m["planar"] else "3-D"
+    lines = [
+        f"Local matches on true pairs (query vs nearest database scan; correct: within "
+        f"{m['radius_m']:g} m after the ground-truth pose, {where}):",
+        "",
+        "| encoder | pairs | kp query | kp db | NN correct mean | NN correct median "
+        "| mutual-NN correct mean | mutual matches | repeatability | chance |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| "
+        + " | ".join(
+            [
+                enc,
+                str(m["pairs"]),
+                _fmt(m["query_keypoints_mean"], 0),
+                _fmt(m["db_keypoints_mean"], 0),
+                _fmt(m["nn_ratio_mean"], 3),
+                _fmt(m["nn_ratio_median"], 3),
+                _fmt(m["mutual_ratio_mean"], 3),
+                _fmt(m["mutual_matches_mean"], 1),
+                _fmt(m["repeatability_mean"], 3),
+                _fmt(m["chance_ratio_mean"], 3),
+            ]
+        )
+        + " |",
+        "",
+        f"SGV scores of the first {sc['k']} retrieved candidates (true: within "
+        f"{sc['threshold_m']:g} m):",
+        "",
+        "| candidates | count | mean | p10 | p50 | p90 |",
+        "|---|---:|---:|---:|---:|---:|",
+    ]
+    for name in ("true", "false"):
+        d = sc[name]
+        cells = [name, str(d["count"])] + [_fmt(d[k], 4) for k in ("mean", "p10", "p50", "p90")]
+        lines.append("| " + " | ".join(cells) + " |")
+    lines += [
+        "",
+        f"SGV score ROC AUC (true vs false): {_fmt(sc['auc'], 3)} pooled; "
+        f"{_fmt(sc['auc_per_query_mean'], 3)} mean per query over {sc['auc_queries']} queries "
+        "with both",
+    ]
     return "\n".join(lines)
 
 
@@ -107,6 +158,51 @@ def plot_sweep(result: EvalResult, path: str | os.PathLike) -> Path:
     )
     name = Path(result.config["data"]).name
     fig.suptitle(f"{name}: {s['queries']} queries, {how}", fontsize=10)
+    fig.tight_layout()
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(p, dpi=110)
+    plt.close(fig)
+    return p
+
+
+def plot_sgv_scores(result: EvalResult, path: str | os.PathLike) -> Path:
+    """PNG histogram of SGV scores of true vs false candidates (density per group)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    sc = result.sgv_scores
+    per_q = sc.get("per_query", [])
+    groups = {
+        name: np.asarray(
+            [s for q in per_q for s, t in zip(q["scores"], q["true"], strict=True) if t == want],
+            dtype=np.float64,
+        )
+        for name, want in (("true", True), ("false", False))
+    }
+    every = np.concatenate(list(groups.values()))
+    lo, hi = (float(every.min()), float(every.max())) if every.size else (0.0, 1.0)
+    bins = np.linspace(lo, hi if hi > lo else lo + 1.0, 41)
+    fig, ax = plt.subplots(figsize=(6.5, 4.2))
+    for (name, xs), colour in zip(groups.items(), ("tab:green", "tab:red"), strict=True):
+        if xs.size:
+            ax.hist(
+                xs, bins=bins, density=True, alpha=0.55, color=colour, label=f"{name} (n={xs.size})"
+            )
+    per_n = result.config.get("localizer", {}).get("sgv", {}).get("normalise", "n") == "n"
+    ax.set(
+        xlabel="SGV score (v^T M v / n)" if per_n else "SGV score (v^T M v)",
+        ylabel="density",
+        title=f"SGV scores, top-{sc.get('k', '?')} candidates: ROC AUC {_fmt(sc.get('auc'), 3)}",
+    )
+    ax.grid(True, alpha=0.3)
+    if every.size:
+        ax.legend(fontsize=8)
+    name = Path(result.config["data"]).name
+    fig.suptitle(f"{name}: true = within {sc.get('threshold_m', 0):g} m of the query", fontsize=9)
     fig.tight_layout()
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)

@@ -1,5 +1,9 @@
 """Run the evaluation protocol (SPEC section 4) over one KITTI-layout sequence.
 
+The sequence is 3-D scans (``velodyne/``, ``poses.txt``, ``times.txt``) or kitti-bev BEV
+images (``imgs/*.png``, ``pose.txt``; :mod:`.data`). Images need an encoder with
+``encode_image``; they have no 3-D cloud, so refinement is forced to ``none``.
+
 Per query, in time order:
 
 1. features come from the on-disk cache (:mod:`.cache`), extracted once per encoder;
@@ -20,6 +24,15 @@ Pose of a query that is not localized: the estimate is used anyway (RTE/RRE coun
 all queries). When RANSAC has no estimate at all (fewer correspondences than its sample
 size), the estimate is the matched keyframe's pose, as if the query were at the keyframe;
 such queries are counted in ``no_estimate``.
+
+Encoder diagnostics (:mod:`.diagnostics`), per query:
+
+- local matches on the true pair (the query and the visible database scan nearest to it
+  in position): share of nearest-neighbour feature matches within 1 m after the
+  ground-truth pose;
+- SGV scores (the ``sgv`` method's score) of the first ``max(topk)`` retrieved
+  candidates, split into true (within the first threshold) and false; taken from the
+  ``sgv`` run at that k when ``sgv`` is among the methods, else computed once.
 """
 
 from __future__ import annotations
@@ -38,6 +51,7 @@ from ..core.config import LocalizerConfig
 from ..core.encoders import EncoderSpec
 from ..core.errors import InputError
 from ..core.rerank import METHODS
+from .diagnostics import score_separation, summarise_pairs
 from .metrics import first_true_rank, mrr, recall_at, rre, rte, success
 from .splits import Split, make_split
 
@@ -118,6 +132,8 @@ class EvalResult:
     per_query: dict[str, list[dict[str, Any]]]
     timings: dict[str, Any]
     notes: list[str] = field(default_factory=list)
+    matches: dict[str, Any] = field(default_factory=dict)
+    sgv_scores: dict[str, Any] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -128,6 +144,8 @@ class EvalResult:
             "per_query": self.per_query,
             "timings": self.timings,
             "notes": self.notes,
+            "matches": self.matches,
+            "sgv_scores": self.sgv_scores,
         }
 
 
@@ -142,16 +160,15 @@ def _progress(it, enabled: bool, **kw):
 def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
     """Evaluate every method of ``cfg`` at every k of its plan. See the module docstring."""
     from ..core.encoders import make_encoder
-    from ..core.io import KittiSequence
     from ..core.pose import ransac_pose, refine_icp
     from ..core.rerank import Candidate, rerank
     from ..core.retrieval import FaissIndex
     from .cache import FeatureCache, default_cache_dir
+    from .data import open_sequence
+    from .diagnostics import MATCH_RADIUS_M, is_planar, pair_match_stats
 
     t_run = time.perf_counter()
-    seq = KittiSequence(cfg.data)
-    if seq.poses is None or seq.times is None:
-        raise InputError(f"{cfg.data}: evaluation needs poses.txt and times.txt")
+    seq = open_sequence(cfg.data)
     poses = seq.poses  # [F, 4, 4] T_world_sensor
     split = make_split(
         seq.times,
@@ -168,6 +185,15 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
 
     # 1. features of every scan the run needs (cached on disk)
     encoder = make_encoder(cfg.encoder)
+    refine = cfg.refine
+    if seq.kind == "bev-images":
+        if not callable(getattr(encoder, "encode_image", None)):
+            raise InputError(
+                f"{cfg.data} holds BEV images (imgs/*.png) and encoder kind "
+                f"{cfg.encoder.kind!r} cannot encode images; use an image encoder, "
+                """e.g. --encoder '{"kind":"bev"}'"""
+            )
+        refine = "none"  # no 3-D cloud for ICP
     cache = FeatureCache(cfg.cache_dir or default_cache_dir(), encoder)
     needed = sorted(set(split.database.tolist()) | set(split.queries.tolist()))
     t0 = time.perf_counter()
@@ -176,6 +202,7 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
         for i in _progress(needed, progress, desc="features", unit="scan")
     }
     t_features = time.perf_counter() - t0
+    planar = is_planar(*(f.keypoints for f in feats.values()))
 
     plan = cfg.plan()
     kmax = max(max(ks) for ks in plan.values())
@@ -191,7 +218,7 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
                 fq.keypoints, fq.local_features, fk.keypoints, fk.local_features, loc_cfg.pose
             )
             has_estimate = pose.num_correspondences >= loc_cfg.pose.ransac_n
-            if cfg.refine == "icp" and has_estimate:
+            if refine == "icp" and has_estimate:
                 pose = refine_icp(
                     pose, cache.cloud(seq.paths[q]), cache.cloud(seq.paths[kf]), loc_cfg.pose
                 )
@@ -205,6 +232,9 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
     recs: dict[tuple[str, int], list[dict[str, Any]]] = {
         (m, k): [] for m, ks in plan.items() for k in ks
     }
+    k_scores = max(cfg.topk)  # SGV score statistics over this many retrieved candidates
+    match_pairs: list[dict[str, Any]] = []
+    score_recs: list[dict[str, Any]] = []
     t_queries = time.perf_counter()
     for q in _progress(split.queries.tolist(), progress, desc="queries", unit="query"):
         visible = split.database_for(q)
@@ -217,11 +247,14 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
         hits = index.search(feats[q].global_descriptor, min(kmax, len(index)))[0]
         retrieved = [Candidate(h.id, h.similarity, r, h.similarity) for r, h in enumerate(hits)]
         gt = poses[q]
+        sgv_out = None
         for method, ks in plan.items():
             for k in ks:
                 t = time.perf_counter()
                 out = rerank(method, feats[q], retrieved[:k], feats.__getitem__, index, loc_cfg)
                 ms = (time.perf_counter() - t) * 1e3
+                if method == "sgv" and k == k_scores:
+                    sgv_out = out
                 ids = [c.keyframe_id for c in out.candidates]
                 rec: dict[str, Any] = {
                     "query": q,
@@ -240,6 +273,36 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
                         has_estimate=has_est,
                     )
                 recs[(method, k)].append(rec)
+
+        # encoder diagnostics: matches on the true pair, SGV scores of true/false candidates
+        d = np.linalg.norm(poses[visible, :3, 3] - gt[:3, 3], axis=1)
+        db = int(visible[int(np.argmin(d))])
+        T_db_q = np.linalg.inv(poses[db]) @ gt
+        fq, fd = feats[q], feats[db]
+        stats = pair_match_stats(
+            fq.keypoints,
+            fq.local_features,
+            fd.keypoints,
+            fd.local_features,
+            T_db_q,
+            MATCH_RADIUS_M,
+            planar,
+        )
+        match_pairs.append({"query": q, "db": db, "distance_m": float(d.min()), **stats})
+        if sgv_out is None:
+            sgv_out = rerank(
+                "sgv", feats[q], retrieved[:k_scores], feats.__getitem__, index, loc_cfg
+            )
+        ids = [c.keyframe_id for c in sgv_out.candidates]
+        dist = np.linalg.norm(poses[ids, :3, 3] - gt[:3, 3], axis=1) if ids else np.zeros(0)
+        score_recs.append(
+            {
+                "query": q,
+                "ids": ids,
+                "scores": [float(c.score) for c in sgv_out.candidates],
+                "true": [bool(x) for x in dist <= cfg.thresholds[0]],
+            }
+        )
     t_queries = time.perf_counter() - t_queries
 
     # 3. aggregate
@@ -259,7 +322,7 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
     notes = [
         f"retrieval: top-{kmax} once per query; each (method, k) re-ranks the first k hits",
         "pose: RANSAC on local features against the re-ranked top-1"
-        + (", refined by ICP on the preprocessed clouds" if cfg.refine == "icp" else "")
+        + (", refined by ICP on the preprocessed clouds" if refine == "icp" else "")
         + "; the same estimator for every method",
         "RTE/RRE: means over all queries; a query that is not localized keeps its estimate; "
         "with no estimate at all (too few correspondences) the matched keyframe's pose is used",
@@ -274,7 +337,29 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
         "R@5 with top-k < 5 counts the k candidates there are; k is capped by the database "
         "size visible to a query",
         f"queries dropped (no database scan within {split.threshold:g} m): {len(split.dropped)}",
+        f"local matches: per query, its true pair (the visible database scan nearest in "
+        f"position); each query keypoint's nearest neighbour (L2) in feature space among the "
+        f"pair's keypoints is correct within {MATCH_RADIUS_M:g} m after the ground-truth pose"
+        + (
+            " (every keypoint has z = 0: distances in x/y only)"
+            if planar
+            else " (distances in 3-D)"
+        )
+        + "; repeatability = share of query keypoints with any keypoint that close, "
+        "chance = expected ratio of random matching",
+        f"SGV scores: the sgv method's score of the first {k_scores} retrieved candidates per "
+        f"query, true = within {cfg.thresholds[0]:g} m; AUC pooled over all queries and as "
+        "the mean of per-query AUCs",
     ]
+    if seq.kind == "bev-images":
+        notes.insert(
+            0,
+            f"data: BEV images (imgs/*.png), times from {seq.times_source}; features from "
+            "the encoder's encode_image; poses estimated from planar keypoints (x, y, yaw), "
+            "RTE/RRE against the full ground-truth pose",
+        )
+        if cfg.refine != "none":
+            notes.insert(1, "refine: forced to 'none' (BEV images have no 3-D cloud for ICP)")
     import torch
 
     timings = {
@@ -286,13 +371,19 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
     }
     config = cfg.model_dump(mode="json")
     config["data"] = str(Path(cfg.data).resolve())
+    config["data_kind"] = seq.kind
+    config["refine_effective"] = refine
     config["encoder_identity"] = encoder.identity.to_dict()
     config["encoder_fingerprint"] = encoder.identity.fingerprint
     config["plan"] = plan
     split_info = split.summary()
     split_info["query_indices"] = split.queries.tolist()
     split_info["dropped_indices"] = split.dropped.tolist()
-    return EvalResult(config, split_info, rows, sweep, per_query, timings, notes)
+    matches = summarise_pairs(match_pairs, planar, MATCH_RADIUS_M)
+    matches["per_pair"] = match_pairs
+    scores = score_separation(score_recs)
+    scores.update(k=k_scores, threshold_m=cfg.thresholds[0], per_query=score_recs)
+    return EvalResult(config, split_info, rows, sweep, per_query, timings, notes, matches, scores)
 
 
 def _mean(xs: list[float]) -> float:
