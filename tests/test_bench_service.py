@@ -1,0 +1,129 @@
+"""``sgvloc bench`` sections http and scaling on tiny sizes, against a real service
+subprocess (uvicorn on 127.0.0.1) loaded from a second process: the figures are there,
+no request failed, the PNG is written and no process or temporary folder is left
+behind. No timing is asserted."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sgvloc import bench_service as bs
+
+
+def _gone(pid: int) -> bool:
+    """True when no process has this id (ours are reaped by ``wait``)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    return False
+
+
+def test_http_section_tiny(tmp_path: Path) -> None:
+    res = bs.bench_http(
+        keyframes=40,
+        clients=[1, 2],
+        duration_s=1.0,
+        batch=20,
+        raw_scans=2,
+        raw_batch=1,
+        points=12_000,
+        work_dir=tmp_path,
+    )
+    json.dumps(res)
+    assert [r["clients"] for r in res["localize"]] == [1, 2]
+    for r in res["localize"]:
+        assert r["errors"] == 0 and r["refused"] == 0, r["error_samples"]
+        assert r["ok"] > 0 and r["ok"] == r["requests"]
+        assert 0 < r["p50_ms"] <= r["p99_ms"] and r["qps"] > 0
+        # the service's own stage times come back with every answer
+        assert set(r["server_median_ms"]) == {"encode", "retrieve", "rerank", "pose", "total"}
+        assert r["server_median_ms"]["total"] <= r["p50_ms"] * 1.5 + 50
+    ins, raw = res["insert_features"], res["insert_raw"]
+    assert ins["keyframes"] == 40 and ins["batches"] == 2 and ins["median_kf_s"] > 0
+    assert raw["keyframes"] == 2 and raw["batches"] == 2
+    assert raw["kib_per_keyframe"] > 100  # 12k float32 points
+    m = res["map"]
+    assert m["encoder"] == "handcrafted" and m["global_dim"] == 620 and m["local_dim"] == 33
+    assert m["store_mib"] > 0
+    assert {t["unit"] for t in res["targets"]} == {"ms", "keyframes/s"}  # no 4-client row
+    table = bs.format_http(res)
+    assert "p99 ms" in table and "kf/s median" in table and "ratio" in table
+    assert res["notes"]
+    # the service was stopped and its temporary data directory removed
+    assert res["server"]["pids"] and all(_gone(p) for p in res["server"]["pids"])
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_scaling_section_tiny(tmp_path: Path) -> None:
+    png = tmp_path / "out" / "scaling.png"
+    work = tmp_path / "work"
+    work.mkdir()
+    res = bs.bench_scaling(
+        sizes=[50, 20],
+        clients=[1],
+        duration_s=1.0,
+        batch=20,
+        keypoints=16,
+        points=12_000,
+        plot=png,
+        work_dir=work,
+    )
+    json.dumps(res)
+    rows = res["rows"]
+    assert [r["keyframes"] for r in rows] == [20, 50]  # sorted
+    assert rows[0]["insert"]["keyframes"] == 20 and rows[1]["insert"]["keyframes"] == 30
+    for r in rows:
+        lo = r["localize"]["1"]
+        assert lo["errors"] == 0 and lo["ok"] > 0, lo["error_samples"]
+        assert r["rss_mib"] > 50 and r["peak_rss_mib"] >= r["rss_mib"]
+    assert rows[1]["disk_mib"] > rows[0]["disk_mib"] > 0
+    assert res["map"]["num_keypoints"] == 16 and res["reload_s"] > 0
+    assert res["plot"] == str(png) and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "insert kf/s" in bs.format_scaling(res)
+    # two service processes (start and restart), both gone; nothing left on disk
+    assert len(res["server"]["pids"]) == 2 and all(_gone(p) for p in res["server"]["pids"])
+    assert list(work.iterdir()) == []
+
+
+def test_service_is_stopped_when_the_body_fails(tmp_path: Path) -> None:
+    rng = np.random.default_rng(0)
+    base = {
+        "global_descriptor": rng.random(620).astype(np.float32),
+        "keypoints": rng.normal(size=(4, 3)).astype(np.float32),
+        "local_features": rng.random((4, 33)).astype(np.float32),
+    }
+    srv = bs.ServiceProcess(tmp_path / "data", tmp_path / "server.log")
+    with pytest.raises(RuntimeError, match="client job _insert_features failed.*404"):
+        with srv, bs.ClientProcess() as cp:
+            # no such map: the client job's error comes back with the service's answer
+            cp.run(bs._insert_features, srv.url, "nope", [base], {}, 0, 1, 1, 0)
+    assert srv.proc is not None and srv.proc.poll() is not None and _gone(srv.proc.pid)
+
+
+def test_client_process_refuses_other_functions() -> None:
+    with bs.ClientProcess() as cp, pytest.raises(ValueError, match="not a client job"):
+        cp.run(os.getcwd)
+
+
+def test_synthetic_keyframe_is_a_rigid_copy() -> None:
+    rng = np.random.default_rng(0)
+    base = {
+        "global_descriptor": rng.random(8).astype(np.float32),
+        "keypoints": rng.normal(size=(30, 3)).astype(np.float32),
+        "local_features": rng.random((30, 5)).astype(np.float32),
+    }
+    kf = bs.synthetic_keyframe([base], rng, 123, {"encoder": "x"})
+    f = kf["features"]
+    assert kf["key"] == "kf123" and f["encoder"] == "x"
+    assert np.allclose(kf["T_map_sensor"][:2, 3], (230.0, 10.0))
+    # pairwise distances are kept up to the 2 cm jitter: a rotated, not a random, copy
+    d0 = np.linalg.norm(base["keypoints"][:, None] - base["keypoints"][None], axis=-1)
+    d1 = np.linalg.norm(f["keypoints"][:, None] - f["keypoints"][None], axis=-1)
+    assert np.abs(d0 - d1).max() < 0.2
+    assert np.allclose(np.linalg.norm(f["local_features"], axis=1), 1.0, atol=1e-5)
