@@ -127,3 +127,15 @@ def test_synthetic_keyframe_is_a_rigid_copy() -> None:
     d1 = np.linalg.norm(f["keypoints"][:, None] - f["keypoints"][None], axis=-1)
     assert np.abs(d0 - d1).max() < 0.2
     assert np.allclose(np.linalg.norm(f["local_features"], axis=1), 1.0, atol=1e-5)
+
+
+def test_procedural_scans_without_the_fixture(tmp_path: Path) -> None:
+    from sgvloc.core.encoders import EncoderSpec
+
+    db, queries, source = bs.source_scans(tmp_path)  # no scans.txt there
+    assert len(db) == 12 and len(queries) == 3 and "procedural" in source
+    bases, claim = bs.encode_bases(
+        db[:1], EncoderSpec.model_validate({"handcrafted": {"num_keypoints": 32}})
+    )
+    assert claim["encoder"] == "handcrafted" and len(claim["fingerprint"]) > 8
+    assert bases[0]["keypoints"].shape[0] <= 32 and bases[0]["local_features"].shape[1] == 33

@@ -320,17 +320,17 @@ def _client_main() -> None:
 # --------------------------------------------------------------------------------------
 
 
-def source_scans() -> tuple[list[np.ndarray], list[np.ndarray], str]:
+def source_scans(fixture: Path = FIXTURE) -> tuple[list[np.ndarray], list[np.ndarray], str]:
     """``(database scans, query scans, source)``: the real fixture's scans (``[P, 3]``),
     or procedural scenes when the fixture is not at hand (a wheel install)."""
-    roles = FIXTURE / "scans.txt"
-    files = sorted((FIXTURE / "velodyne").glob("*.bin"))
+    roles = fixture / "scans.txt"
+    files = sorted((fixture / "velodyne").glob("*.bin"))
     if roles.exists() and files:
         kinds = [ln.split()[1] for ln in roles.read_text().splitlines() if ln and ln[0] != "#"]
         scans = [np.fromfile(p, dtype=np.float32).reshape(-1, 4)[:, :3] for p in files]
         db = [s for s, k in zip(scans, kinds, strict=True) if k == "database"]
         q = [s for s, k in zip(scans, kinds, strict=True) if k == "query"]
-        return db, q, f"{FIXTURE.name} ({len(db)} database scans, {len(q)} query scans, real)"
+        return db, q, f"{fixture.name} ({len(db)} database scans, {len(q)} query scans, real)"
     from .bench import _procedural_scan
 
     rng = np.random.default_rng(7)
@@ -373,11 +373,12 @@ def synthetic_keyframe(
     yaw = rng.uniform(0.0, 2.0 * np.pi)
     c, s = np.cos(yaw), np.sin(yaw)
     rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=np.float32)
-    kp = b["keypoints"] @ rot.T + rng.normal(0.0, 0.02, b["keypoints"].shape).astype(np.float32)
-    lf = b["local_features"] + np.abs(rng.normal(0.0, 0.02, b["local_features"].shape))
-    lf = (lf / np.maximum(np.linalg.norm(lf, axis=1, keepdims=True), 1e-12)).astype(np.float32)
-    g = b["global_descriptor"]
-    g = (g + rng.normal(0.0, 0.02 * float(np.abs(g).mean()), g.shape)).astype(np.float32)
+    kp, lf, g = b["keypoints"], b["local_features"], b["global_descriptor"]
+    f32 = np.float32
+    kp = kp @ rot.T + f32(0.02) * rng.standard_normal(kp.shape, dtype=f32)
+    lf = lf + np.abs(f32(0.02) * rng.standard_normal(lf.shape, dtype=f32))
+    lf /= np.maximum(np.linalg.norm(lf, axis=1, keepdims=True), f32(1e-12))
+    g = g + f32(0.02 * float(np.abs(g).mean())) * rng.standard_normal(g.shape, dtype=f32)
     T = np.eye(4)
     T[:3, :3] = rot
     T[:2, 3] = (10.0 * (index % 100), 10.0 * (index // 100))
@@ -659,7 +660,7 @@ def bench_http(
     *,
     keyframes: int = 10_000,
     clients: list[int] | None = None,
-    duration_s: float = 10.0,
+    duration_s: float = 8.0,
     batch: int = 250,
     raw_scans: int = 24,
     raw_batch: int = 8,
@@ -811,7 +812,7 @@ def bench_scaling(
     *,
     sizes: list[int] | None = None,
     clients: list[int] | None = None,
-    duration_s: float = 4.0,
+    duration_s: float = 3.0,
     batch: int = 1000,
     keypoints: int = 64,
     points: int = 25_000,
@@ -970,7 +971,9 @@ def plot_scaling(res: dict[str, Any], path: Path) -> Path:
 
 
 def format_http(res: dict[str, Any]) -> str:
-    """Localize table, insert table and the targets with their ratios."""
+    """Localize table (QPS also as a ratio to the fewest clients), insert table and the
+    targets with their ratios (measured / target)."""
+    qps0 = res["localize"][0]["qps"] if res["localize"] else 0.0
     loc = _table(
         [
             "clients",
@@ -979,6 +982,7 @@ def format_http(res: dict[str, Any]) -> str:
             "p50 ms",
             "p99 ms",
             "QPS",
+            "QPS x first",
             "server encode",
             "retrieve",
             "rerank",
@@ -994,6 +998,7 @@ def format_http(res: dict[str, Any]) -> str:
                 _f(r["p50_ms"]),
                 _f(r["p99_ms"]),
                 f"{r['qps']:.1f}",
+                f"{r['qps'] / qps0:.2f}x" if qps0 else "-",
                 _f(r["server_median_ms"].get("encode")),
                 _f(r["server_median_ms"].get("retrieve"), 2),
                 _f(r["server_median_ms"].get("rerank")),
