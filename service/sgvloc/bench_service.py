@@ -936,6 +936,10 @@ def plot_scaling(res: dict[str, Any], path: Path) -> Path:
     for n in clients:
         for key, style in (("p50_ms", "-o"), ("p99_ms", "--x")):
             ax.plot(x, [r["localize"][n][key] for r in rows], style, label=f"{n} cl {key[:3]}")
+    n0 = clients[0] if clients else None
+    if n0 is not None:
+        retrieve = [r["localize"][n0]["server_median_ms"].get("retrieve") for r in rows]
+        ax.plot(x, retrieve, ":^", label=f"{n0} cl server retrieve (median)")
     ax.set(title="localize latency (client)", ylabel="ms")
     ax = axes[0][1]
     for n in clients:
@@ -949,6 +953,7 @@ def plot_scaling(res: dict[str, Any], path: Path) -> Path:
     ax.plot(x, [r["disk_mib"] for r in rows], "-s", label="map on disk")
     ax.set(title="memory and disk", ylabel="MiB")
     for ax in axes.flat:
+        ax.set_ylim(bottom=0)
         ax.set_xscale("log")
         ax.set_xlabel("keyframes in the map")
         ax.grid(True, alpha=0.3)
