@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -60,21 +61,23 @@ def test_http_section_tiny(tmp_path: Path) -> None:
     assert list(tmp_path.iterdir()) == []
 
 
-def test_scaling_section_tiny(tmp_path: Path) -> None:
-    png = tmp_path / "out" / "scaling.png"
+def test_scaling_section_through_the_cli(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from typer.testing import CliRunner
+
+    from sgvloc.cli import app
+
     work = tmp_path / "work"
     work.mkdir()
-    res = bs.bench_scaling(
-        sizes=[50, 20],
-        clients=[1],
-        duration_s=1.0,
-        batch=20,
-        keypoints=16,
-        points=12_000,
-        plot=png,
-        work_dir=work,
-    )
-    json.dumps(res)
+    monkeypatch.setattr(tempfile, "tempdir", str(work))  # the service's data directory
+    out = tmp_path / "out" / "b.json"
+    out.parent.mkdir()
+    args = ["bench", "--only", "scaling", "--out", str(out), "--scale-sizes", "50,20"]
+    args += ["--scale-clients", "1", "--scale-duration", "1", "--scale-batch", "20"]
+    args += ["--scale-keypoints", "16"]
+    run = CliRunner().invoke(app, args)
+    assert run.exit_code == 0, run.output
+    assert "insert kf/s" in run.output and "p50 x first" in run.output
+    res = json.loads(out.read_text())["scaling"]
     rows = res["rows"]
     assert [r["keyframes"] for r in rows] == [20, 50]  # sorted
     assert rows[0]["insert"]["keyframes"] == 20 and rows[1]["insert"]["keyframes"] == 30
@@ -84,11 +87,21 @@ def test_scaling_section_tiny(tmp_path: Path) -> None:
         assert r["rss_mib"] > 50 and r["peak_rss_mib"] >= r["rss_mib"]
     assert rows[1]["disk_mib"] > rows[0]["disk_mib"] > 0
     assert res["map"]["num_keypoints"] == 16 and res["reload_s"] > 0
+    png = out.parent / "b-scaling.png"  # next to --out by default
     assert res["plot"] == str(png) and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert "insert kf/s" in bs.format_scaling(res)
     # two service processes (start and restart), both gone; nothing left on disk
     assert len(res["server"]["pids"]) == 2 and all(_gone(p) for p in res["server"]["pids"])
     assert list(work.iterdir()) == []
+
+
+def test_cli_names_the_sections() -> None:
+    from typer.testing import CliRunner
+
+    from sgvloc.cli import app
+
+    run = CliRunner().invoke(app, ["bench", "--only", "http,nope"])
+    assert run.exit_code != 0
+    assert "nope" in run.output and "'http'" in run.output and "'scaling'" in run.output
 
 
 def test_service_is_stopped_when_the_body_fails(tmp_path: Path) -> None:

@@ -472,8 +472,9 @@ def synth_command(
 @app.command("bench")
 def bench_command(
     only: Annotated[
-        str, typer.Option(help="comma-separated sections: rerank, retrieval, encoding")
-    ] = "rerank,retrieval,encoding",
+        str,
+        typer.Option(help="comma-separated sections: rerank, retrieval, encoding, http, scaling"),
+    ] = "rerank,retrieval,encoding,http,scaling",
     out: Annotated[Path, typer.Option(help="JSON file with every figure")] = Path("bench.json"),
     ks: Annotated[str, typer.Option(help="rerank: candidates per query")] = "2,5,10,20,50",
     ns: Annotated[str, typer.Option(help="rerank: keypoints (correspondences)")] = "128,256,1000",
@@ -488,22 +489,54 @@ def bench_command(
     ] = 256,
     hnsw_max: Annotated[int, typer.Option(help="retrieval: HNSW up to this size")] = 100000,
     scan_sizes: Annotated[str, typer.Option(help="encoding: points per scan")] = "25000,120000",
+    http_keyframes: Annotated[int, typer.Option(min=1, help="http: keyframes in the map")] = 10000,
+    http_clients: Annotated[str, typer.Option(help="http: concurrent clients")] = "1,4,16",
+    http_duration: Annotated[
+        float, typer.Option(min=0.1, help="http: seconds of localize per client count")
+    ] = 8.0,
+    http_batch: Annotated[int, typer.Option(min=1, help="http: keyframes per insert")] = 250,
+    raw_scans: Annotated[int, typer.Option(min=0, help="http: raw scans to insert")] = 24,
+    raw_batch: Annotated[int, typer.Option(min=1, help="http: raw scans per insert")] = 8,
+    scale_sizes: Annotated[
+        str, typer.Option(help="scaling: map sizes (keyframes)")
+    ] = "1000,3000,10000,30000,100000",
+    scale_clients: Annotated[str, typer.Option(help="scaling: concurrent clients")] = "1,4",
+    scale_duration: Annotated[
+        float, typer.Option(min=0.1, help="scaling: seconds of localize per client count")
+    ] = 3.0,
+    scale_batch: Annotated[int, typer.Option(min=1, help="scaling: keyframes per insert")] = 1000,
+    scale_keypoints: Annotated[
+        int, typer.Option(min=1, help="scaling: keypoints per keyframe (map encoder)")
+    ] = 64,
+    scale_reload: Annotated[
+        bool, typer.Option(help="scaling: restart on the largest map, time until ready")
+    ] = True,
+    plot: Annotated[
+        Path | None, typer.Option(help="scaling: PNG of the curves (default: next to --out)")
+    ] = None,
+    service_workers: Annotated[
+        int, typer.Option(min=1, help="http, scaling: --workers of the started service")
+    ] = 2,
 ) -> None:
-    """Measure re-ranking, retrieval and encoding; print tables and write --out (JSON).
+    """Measure re-ranking, retrieval, encoding and the service end to end (http, scaling);
+    print tables and write --out (JSON).
 
     Medians after warm-up, every comparison in one process on the same inputs. The
     defaults take a few minutes on 2 cores; CUDA timings of SGV are added when a GPU is
-    present.
+    present. http and scaling start the service on 127.0.0.1 (--dev, temporary data)
+    and load it from a second process (see sgvloc.bench_service).
     """
     import json
 
-    from . import bench
+    from . import bench, bench_service
 
     _configure_logging("warning")
+    sections = bench.SECTIONS + bench_service.SECTIONS
+    formatters = {**bench.FORMATTERS, **bench_service.FORMATTERS}
     chosen = [x.strip() for x in only.split(",") if x.strip()]
-    unknown = sorted(set(chosen) - set(bench.SECTIONS))
+    unknown = sorted(set(chosen) - set(sections))
     if unknown:
-        raise typer.BadParameter(f"unknown sections {unknown}; choose from {list(bench.SECTIONS)}")
+        raise typer.BadParameter(f"unknown sections {unknown}; choose from {list(sections)}")
     result: dict = {"machine": bench.machine_info(), "command": " ".join(__import__("sys").argv)}
     for section in chosen:
         typer.echo(f"## {section}")
@@ -524,10 +557,33 @@ def bench_command(
             res = bench.bench_retrieval(
                 _int_list(sizes), dim=dim, large_dim=large_dim, hnsw_max=hnsw_max, echo=typer.echo
             )
-        else:
+        elif section == "encoding":
             res = bench.bench_encoding(_int_list(scan_sizes), echo=typer.echo)
+        elif section == "http":
+            res = bench_service.bench_http(
+                keyframes=http_keyframes,
+                clients=_int_list(http_clients),
+                duration_s=http_duration,
+                batch=http_batch,
+                raw_scans=raw_scans,
+                raw_batch=raw_batch,
+                workers=service_workers,
+                echo=typer.echo,
+            )
+        else:
+            res = bench_service.bench_scaling(
+                sizes=_int_list(scale_sizes),
+                clients=_int_list(scale_clients),
+                duration_s=scale_duration,
+                batch=scale_batch,
+                keypoints=scale_keypoints,
+                reload=scale_reload,
+                workers=service_workers,
+                plot=plot or out.with_name(f"{out.stem}-scaling.png"),
+                echo=typer.echo,
+            )
         result[section] = res
-        typer.echo(bench.FORMATTERS[section](res))
+        typer.echo(formatters[section](res))
         for note in res.get("notes", []):
             typer.echo(f"- {note}")
         if section == "rerank" and "cuda" in result:
