@@ -72,16 +72,15 @@ def serve(
     unless --dev says it is a development setup.
 
     CPU work runs in a pool of --workers threads inside this process (FAISS, Open3D and
-    torch release the GIL). There is deliberately no option for several worker
+    torch release the GIL); each library gets threads_per_worker threads of its own
+    (env SGVLOC_THREADS_PER_WORKER, default: cores // workers), unless OMP_NUM_THREADS and
+    the like are already set. There is deliberately no option for several worker
     processes, --preload or fork: FAISS/OpenMP can hang in forked children, each process
     would hold its own copy of every map, and Prometheus metrics would split across
     processes. Scale out with more containers, each loading the maps.
     """
-    import uvicorn
-
-    from .api import create_app
-    from .api.auth import KeysError
     from .settings import Settings
+    from .threads import limit_library_threads
 
     overrides = {
         "host": host,
@@ -97,6 +96,15 @@ def serve(
     except ValueError as exc:  # pydantic's ValidationError
         raise typer.BadParameter(str(exc)) from None
     _configure_logging(settings.log_level)
+    # before numpy, Open3D, FAISS and torch are loaded (by the app's modules)
+    threads = limit_library_threads(settings.library_threads)
+    logging.getLogger(__name__).info("library threads per worker: %s", threads)
+
+    import uvicorn
+
+    from .api import create_app
+    from .api.auth import KeysError
+
     try:
         application = create_app(settings)
     except KeysError as exc:
@@ -622,6 +630,27 @@ def train_command(
         typer.echo(f"sgvloc train: {exc}", err=True)
         raise typer.Exit(2) from None
     typer.echo(f"wrote {ckpt}")
+
+
+@app.command("export-weights")
+def export_weights_command(
+    checkpoint: Annotated[Path, typer.Argument(help="checkpoint.pt written by 'sgvloc train'")],
+    out: Annotated[Path, typer.Argument(help="weights file to write (use as model_path)")],
+    note: Annotated[str, typer.Option(help="free text stored in the file")] = "",
+) -> None:
+    """Export a training checkpoint as weights for the 'learned' encoder kind.
+
+    A map uses them with the encoder spec {"kind": "learned", "model_path": OUT}.
+    """
+    from .core.errors import SgvlocError
+    from .train import export_weights
+
+    try:
+        path = export_weights(checkpoint, out, note)
+    except SgvlocError as exc:
+        typer.echo(f"sgvloc export-weights: {exc}", err=True)
+        raise typer.Exit(2) from None
+    typer.echo(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB)")
 
 
 def main() -> None:

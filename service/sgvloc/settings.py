@@ -6,6 +6,7 @@ overridden by the ``sgvloc serve`` options.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Literal
 
@@ -26,6 +27,14 @@ class Settings(BaseSettings):
     data_dir: Path = Field(Path("./data"), description="maps live in <data_dir>/maps/<name>/")
     workers: int = Field(
         2, ge=1, le=256, description="threads running CPU work (encode, search, re-rank, pose)"
+    )
+    threads_per_worker: int | None = Field(
+        None,
+        ge=1,
+        le=256,
+        description="threads that the numeric libraries (OpenMP in Open3D and FAISS, BLAS, "
+        "numba, torch) may use inside one request. Default: usable cores // workers, at "
+        "least 1, so that the worker threads do not oversubscribe the cores",
     )
     max_body_bytes: int = Field(64 * 1024 * 1024, ge=1024, description="413 above this")
     max_batch: int = Field(1000, ge=1, description="keyframes per insert request")
@@ -80,6 +89,21 @@ class Settings(BaseSettings):
         return self.max_inflight_localize or 4 * self.workers
 
     @property
+    def library_threads(self) -> int:
+        """The effective ``threads_per_worker``."""
+        if self.threads_per_worker:
+            return self.threads_per_worker
+        return max(1, usable_cpus() // self.workers)
+
+    @property
     def maps_dir(self) -> Path:
         """``<data_dir>/maps``: one folder per map."""
         return self.data_dir / "maps"
+
+
+def usable_cpus() -> int:
+    """CPUs this process may run on (its affinity mask, e.g. a container's cpuset)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not on Linux
+        return os.cpu_count() or 1

@@ -27,7 +27,7 @@ from svc_helpers import (
 
 from sgvloc.api import create_app
 from sgvloc.core.encoders import EncoderSpec
-from sgvloc.settings import Settings
+from sgvloc.settings import Settings, usable_cpus
 from sgvloc_client import wire
 
 SPEC = EncoderSpec.model_validate(PRECOMPUTED)
@@ -47,8 +47,18 @@ def test_config_reports_the_limits(client: httpx.Client) -> None:
         "request_timeout_s": 30.0,
         "retry_after_s": 1,
         "workers": 2,
+        "threads_per_worker": max(1, usable_cpus() // 2),
     }
     assert cfg["auth"]["enabled"] is False  # the shared test server is in development mode
+
+
+def test_library_threads_follow_workers_and_cores() -> None:
+    cpus = usable_cpus()
+    assert Settings(workers=1).library_threads == cpus
+    assert Settings(workers=cpus * 2).library_threads == 1  # never 0
+    assert Settings(workers=8, threads_per_worker=3).library_threads == 3
+    with pytest.raises(ValueError):
+        Settings(threads_per_worker=0)
 
 
 def test_inflight_default_follows_workers() -> None:

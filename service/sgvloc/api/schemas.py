@@ -400,6 +400,10 @@ class LimitsOut(BaseModel):
     request_timeout_s: float = Field(description="longest wait for a worker thread (503)")
     retry_after_s: int = Field(description="Retry-After of 429/503 answers")
     workers: int = Field(description="threads running CPU work")
+    threads_per_worker: int = Field(
+        description="threads each numeric library may use inside one request (as configured; "
+        "OMP_NUM_THREADS and the like set by the operator take precedence)"
+    )
 
 
 class AuthOut(BaseModel):

@@ -38,6 +38,7 @@ async def get_config(request: Request, settings: SettingsDep) -> Response:
                 request_timeout_s=s.request_timeout_s,
                 retry_after_s=s.retry_after_s,
                 workers=s.workers,
+                threads_per_worker=s.library_threads,
             ),
             auth=AuthOut(
                 enabled=ring.enabled,

@@ -1,0 +1,39 @@
+"""Thread counts of the numeric libraries in a service process, set once at start-up.
+
+The service runs CPU work on ``workers`` threads at once. Each library called inside a
+request (Open3D and FAISS through OpenMP, NumPy and SciPy through OpenBLAS, numba, torch)
+brings its own pool of one thread per core, so by default two workers on two cores run
+four or more busy threads: they preempt each other, and a parallel region waits for its
+slowest, descheduled thread. ``sgvloc serve`` therefore gives each library
+``threads_per_worker`` threads (default: usable cores // workers) through the usual
+environment variables, before any of them is loaded.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import sys
+
+log = logging.getLogger(__name__)
+
+#: the variables the libraries read when they are loaded
+ENV_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")
+_LIBRARIES = ("numpy", "scipy", "torch", "open3d", "faiss", "numba")
+
+
+def limit_library_threads(n: int) -> dict[str, str]:
+    """Give every numeric library ``n`` threads, except where the environment already
+    names a count (the operator's choice wins); returns the variables in force.
+
+    Must run before the libraries are imported: OpenMP and OpenBLAS read their
+    environment once, when loaded. Raises ``ValueError`` if ``n < 1``.
+    """
+    if n < 1:
+        raise ValueError(f"thread count must be >= 1, got {n}")
+    loaded = [m for m in _LIBRARIES if m in sys.modules]
+    if loaded:
+        log.warning("thread limits set after %s were loaded: they may not apply", loaded)
+    for var in ENV_VARS:
+        os.environ.setdefault(var, str(n))
+    return {var: os.environ[var] for var in ENV_VARS}

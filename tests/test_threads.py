@@ -1,0 +1,49 @@
+"""Library thread limits of a service process (sgvloc.threads), in fresh interpreters."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+from sgvloc.threads import ENV_VARS
+
+PROBE = """
+import json, logging
+logging.basicConfig(level="WARNING")
+from sgvloc.threads import limit_library_threads
+env = limit_library_threads(1)
+import numba, torch
+print(json.dumps({"env": env, "torch": torch.get_num_threads(),
+                  "numba": numba.config.NUMBA_NUM_THREADS}))
+"""
+
+
+def _probe(**preset: str) -> tuple[dict, str]:
+    env = {k: v for k, v in os.environ.items() if k not in ENV_VARS}
+    env.update(preset)
+    run = subprocess.run(
+        [sys.executable, "-c", PROBE], env=env, capture_output=True, text=True, timeout=120
+    )
+    assert run.returncode == 0, run.stderr
+    return json.loads(run.stdout.strip().splitlines()[-1]), run.stderr
+
+
+def test_limits_reach_the_libraries() -> None:
+    out, err = _probe()
+    assert out["env"] == {var: "1" for var in ENV_VARS}
+    assert out["torch"] == 1 and out["numba"] == 1
+    assert "may not apply" not in err
+
+
+def test_the_operators_setting_wins() -> None:
+    out, _ = _probe(NUMBA_NUM_THREADS="2")
+    assert out["env"]["NUMBA_NUM_THREADS"] == "2" and out["env"]["OMP_NUM_THREADS"] == "1"
+    assert out["numba"] == 2
+
+
+def test_late_call_is_reported() -> None:
+    code = "import numpy\nfrom sgvloc.threads import limit_library_threads as f\nf(1)"
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert run.returncode == 0 and "may not apply" in run.stderr
