@@ -42,6 +42,13 @@ def test_eval_writes_table_json_and_plot_with_every_method(first_run):
         assert r["R@5_5m"] >= r["R@1_5m"] and r["R@1_20m"] >= r["R@1_5m"]
         assert 0.0 <= r["success_pct"] <= 100.0 and r["mean_rte_m"] >= 0.0
         assert r["rerank_median_ms"] >= 0.0
+        # pose success among the queries whose top-1 is a true match, from the per-query
+        # records: the same figure recomputed
+        recs = report["per_query"][f"{r['method']}@{r['k']}"]
+        true1 = [q for q in recs if q["rank@5m"] == 1]
+        if true1:
+            ok = [q["rte"] <= 2.0 and q["rre"] <= 5.0 for q in true1]
+            assert r["success_true_top1_pct"] == pytest.approx(100.0 * sum(ok) / len(ok))
     none2 = next(r for r in rows if r["method"] == "none" and r["k"] == 2)
     assert none2["R@1_20m"] == 100.0 and none2["success_pct"] >= 66.0
     # the sweep: cheap methods at every sweep k, RIR only at --sweep-rir plus the table's k

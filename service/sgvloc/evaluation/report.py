@@ -31,7 +31,7 @@ def markdown_table(result: EvalResult) -> str:
     head = ["method", "top-k"]
     for t in thr:
         head += [f"R@1 {t:g}m", f"R@5 {t:g}m", f"MRR {t:g}m"]
-    head += ["S %", "RTE m", "RRE deg", "rerank ms"]
+    head += ["S %", f"S % top-1 < {thr[0]:g}m", "RTE m", "RRE deg", "rerank ms"]
     lines = [
         f"{result.config['data']} ({split}): {s['queries']} queries, "
         f"{s['dropped_queries']} dropped (no database scan within {s['drop_threshold_m']:g} m), "
@@ -46,6 +46,7 @@ def markdown_table(result: EvalResult) -> str:
             cells += [_fmt(r[f"R@1_{t:g}m"]), _fmt(r[f"R@5_{t:g}m"]), _fmt(r[f"MRR_{t:g}m"])]
         cells += [
             _fmt(r.get("success_pct")),
+            _fmt(r.get("success_true_top1_pct")),
             _fmt(r.get("mean_rte_m"), 2),
             _fmt(r.get("mean_rre_deg"), 2),
             _fmt(r["rerank_median_ms"], 1),

@@ -407,7 +407,13 @@ def _aggregate(
     if with_pose:
         t = [r.get("rte", float("nan")) for r in recs]
         a = [r.get("rre", float("nan")) for r in recs]
-        out["success_pct"] = 100.0 * float(success(t, a).mean()) if recs else float("nan")
+        ok = success(t, a)
+        out["success_pct"] = 100.0 * float(ok.mean()) if recs else float("nan")
+        # pose success where the re-ranked top-1 is a true match (the pose step alone)
+        true1 = np.array([r[f"rank@{thresholds[0]:g}m"] == 1 for r in recs], dtype=bool)
+        out["success_true_top1_pct"] = (
+            100.0 * float(ok[true1].mean()) if true1.any() else float("nan")
+        )
         out["mean_rte_m"] = _mean(t)
         out["mean_rre_deg"] = _mean(a)
         out["median_rte_m"] = float(np.median(t)) if t else float("nan")
