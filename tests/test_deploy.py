@@ -137,6 +137,34 @@ def test_dockerfile_copies_existing_files_not_ignored(docker) -> None:
         assert readme.group(1) in sources
 
 
+def test_installed_package_carries_the_learned_weights(tmp_path: Path) -> None:
+    """The image installs the package non-editable (pip install ".[service]"): the wheel
+    built from what the Dockerfile copies must hold the shipped weights, byte for byte."""
+    import shutil
+    import zipfile
+
+    from sgvloc.core.encoders.learned import SHIPPED_WEIGHTS, shipped_weights_path
+
+    src = tmp_path / "src"
+    src.mkdir()
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy(ROOT / name, src / name)
+    for name in ("service", "client"):
+        shutil.copytree(ROOT / name, src / name, ignore=shutil.ignore_patterns("__pycache__"))
+    run = subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", str(src), "--no-deps", "--no-build-isolation"]
+        + ["-q", "-w", str(tmp_path / "dist")],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert run.returncode == 0, run.stderr
+    (wheel,) = (tmp_path / "dist").glob("sgvloc-*.whl")
+    with zipfile.ZipFile(wheel) as z:
+        data = z.read(f"sgvloc/weights/{SHIPPED_WEIGHTS}")
+    assert data == shipped_weights_path().read_bytes()
+
+
 def test_dockerfile_healthcheck_probes_healthz(docker, port) -> None:
     (hc,) = docker["HEALTHCHECK"]
     probe = exec_form(hc)

@@ -604,7 +604,11 @@ def bench_command(
 @app.command("train")
 def train_command(
     data: Annotated[
-        list[Path], typer.Option(help="kitti-bev-style sequence folder (imgs/, pose.txt); repeat")
+        list[Path],
+        typer.Option(
+            help="training sequence: kitti-bev folder (imgs/, pose.txt) or KITTI-layout scans "
+            "(velodyne/, poses.txt, times.txt; rasterised to BEV images); repeat"
+        ),
     ],
     out: Annotated[Path, typer.Option(help="folder for checkpoint.pt, curves.png, log.json")],
     val: Annotated[

@@ -1,14 +1,5 @@
-"""A learned BEV encoder (small 2-D CNN) and its training on kitti-bev-style sequences.
-
-Model (:class:`BEVNet`), on the kitti-bev density image ``[1, 151, 151]`` (zero-padded to
-152 at the bottom/right, so pixel coordinates do not move):
-
-- a U-shaped CNN (strides 2, 4, 8) whose output cells are 2 x 2 pixels (0.8 m): a local
-  descriptor map ``[D, 76, 76]`` (L2-normalised per cell) and a saliency map ``[76, 76]``;
-- keypoints: the most salient occupied cells after 3 x 3 non-maximum suppression, lifted to
-  metres at the cell centre (:func:`sgvloc.core.bev.pixel_to_metres`), ``z = 0``;
-- global descriptor: GeM over the stride-8 features, a linear layer, L2-normalised.
-  Yaw invariance is learned (random yaw augmentation of every training image).
+"""Training of the learned BEV encoder (:class:`sgvloc.core.bevnet.BEVNet`) on
+kitti-bev-style sequences, and export of its weights for the ``learned`` encoder kind.
 
 Training (:func:`train`), seeded and resumable (``checkpoint.pt`` holds model, optimiser,
 step and random state): each step samples pairs of scans of one sequence less than
@@ -39,134 +30,21 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
-from torch import nn
 
-from .core.bev import KITTI_BEV, load_bev_image, metres_to_pixel, pixel_to_metres
+from .core.bev import KITTI_BEV, load_bev_image, rasterize
+from .core.bevnet import (
+    CELLS,
+    INPUT_SIZE,
+    BEVNet,
+    cell_to_metres,
+    cut_faint,
+    metres_to_cell,
+    occupied_cells,
+    to_input,
+)
 from .core.errors import InputError
-from .core.features import EncoderIdentity, Features
-from .core.io import read_poses
 
 log = logging.getLogger(__name__)
-
-#: side of the padded input image (151 -> 152, divisible by 8)
-INPUT_SIZE = 152
-#: output cells per side (2 x 2 pixels each)
-CELLS = INPUT_SIZE // 2
-
-
-# ---------------------------------------------------------------------------------------
-# model
-
-
-def _block(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
-    return nn.Sequential(
-        nn.Conv2d(cin, cout, 3, stride=stride, padding=1, bias=False),
-        nn.BatchNorm2d(cout),
-        nn.ReLU(inplace=True),
-    )
-
-
-class GeM(nn.Module):
-    """Generalised-mean pooling over H x W with a learned exponent."""
-
-    def __init__(self, p: float = 3.0, eps: float = 1e-6) -> None:
-        super().__init__()
-        self.p = nn.Parameter(torch.tensor(p))
-        self.eps = eps
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:  # [B, C, H, W] -> [B, C]
-        return x.clamp(min=self.eps).pow(self.p).mean(dim=(2, 3)).pow(1.0 / self.p)
-
-
-class BEVNet(nn.Module):
-    """BEV image -> (global [B, G], local descriptor map [B, D, 76, 76], saliency [B, 76, 76])."""
-
-    def __init__(self, width: int = 32, local_dim: int = 64, global_dim: int = 256) -> None:
-        super().__init__()
-        w = width
-        self.local_dim, self.global_dim, self.width = local_dim, global_dim, width
-        self.stem = nn.Sequential(_block(1, w), _block(w, w, 2))  # [B, w, 76, 76]
-        self.enc2 = nn.Sequential(_block(w, 2 * w, 2), _block(2 * w, 2 * w))  # 38
-        self.enc3 = nn.Sequential(_block(2 * w, 4 * w, 2), _block(4 * w, 4 * w))  # 19
-        self.dec2 = _block(6 * w, 2 * w)
-        self.dec1 = _block(3 * w, 2 * w)
-        self.local_head = nn.Conv2d(2 * w, local_dim, 1)
-        self.saliency_head = nn.Conv2d(2 * w, 1, 1)
-        self.gem = GeM()
-        self.global_head = nn.Linear(4 * w, global_dim)
-
-    def forward(self, img: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """``img`` ``[B, 1, 152, 152]`` in [0, 1]."""
-        s1 = self.stem(img)  # [B, w, 76, 76]
-        s2 = self.enc2(s1)  # [B, 2w, 38, 38]
-        s3 = self.enc3(s2)  # [B, 4w, 19, 19]
-        d2 = self.dec2(torch.cat([F.interpolate(s3, size=s2.shape[-2:]), s2], dim=1))
-        d1 = self.dec1(torch.cat([F.interpolate(d2, size=s1.shape[-2:]), s1], dim=1))
-        local = F.normalize(self.local_head(d1), dim=1)  # [B, D, 76, 76]
-        saliency = self.saliency_head(d1)[:, 0]  # [B, 76, 76] logits
-        g = F.normalize(self.global_head(self.gem(s3)), dim=1)  # [B, G]
-        return g, local, saliency
-
-
-def to_input(images: np.ndarray) -> torch.Tensor:
-    """uint8 images ``[B, 151, 151]`` -> float tensor ``[B, 1, 152, 152]`` in [0, 1]."""
-    x = torch.from_numpy(np.asarray(images, dtype=np.float32) / 255.0)
-    return F.pad(x, (0, INPUT_SIZE - x.shape[-1], 0, INPUT_SIZE - x.shape[-2]))[:, None]
-
-
-def occupied_cells(images: torch.Tensor) -> torch.Tensor:
-    """``[B, 1, 152, 152]`` -> bool ``[B, 76, 76]``: cells with an occupied pixel."""
-    return F.max_pool2d(images, 2)[:, 0] > 0
-
-
-def cell_to_metres(cells_r: np.ndarray, cells_c: np.ndarray) -> np.ndarray:
-    """Metric ``(x, y)`` ``[N, 2]`` of output cell centres (cell covers pixels 2i, 2i+1)."""
-    return pixel_to_metres(2 * np.asarray(cells_r) + 0.5, 2 * np.asarray(cells_c) + 0.5)
-
-
-def metres_to_cell(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Output cell ``(rows, cols)`` (int, may be out of range) containing metric points."""
-    r, c = metres_to_pixel(xy)
-    return np.floor((r + 0.5) / 2).astype(np.int64), np.floor((c + 0.5) / 2).astype(np.int64)
-
-
-class LearnedBEVEncoder:
-    """Runs a :class:`BEVNet` on BEV images and returns :class:`Features` (``z = 0``)."""
-
-    NAME = "bevnet"
-
-    def __init__(self, model: BEVNet, num_keypoints: int = 256, weights_id: str = "") -> None:
-        self.model = model.eval()
-        self.num_keypoints = num_keypoints
-        self.global_dim, self.local_dim = model.global_dim, model.local_dim
-        self.identity = EncoderIdentity(
-            self.NAME,
-            "1",
-            {
-                "weights": weights_id,
-                "num_keypoints": num_keypoints,
-                "width": model.width,
-                "raster": KITTI_BEV.model_dump(),
-            },
-        )
-
-    @torch.inference_mode()
-    def encode_image(self, image: np.ndarray) -> Features:
-        """Encode one kitti-bev image ``[151, 151]`` uint8."""
-        x = to_input(image[None])
-        g, local, sal = self.model(x)
-        occ = occupied_cells(x)[0]
-        s = sal[0].masked_fill(~occ, -math.inf)
-        peak = s == F.max_pool2d(s[None, None], 3, stride=1, padding=1)[0, 0]
-        s = s.masked_fill(~peak, -math.inf).flatten()
-        k = int(min(self.num_keypoints, int(torch.isfinite(s).sum())))
-        idx = torch.topk(s, k).indices.numpy() if k else np.zeros(0, np.int64)
-        rows, cols = idx // CELLS, idx % CELLS
-        xy = cell_to_metres(rows, cols)
-        feats = local[0].flatten(1)[:, idx].T.numpy()  # [k, D]
-        kp = np.column_stack([xy, np.zeros(len(xy))]).reshape(-1, 3)
-        return Features.validated(g[0].numpy(), kp, feats, self.identity)
-
 
 # ---------------------------------------------------------------------------------------
 # data
@@ -182,14 +60,22 @@ class Sequence:
 
     @classmethod
     def load(cls, path: str | Path, stride: int = 1) -> Sequence:
-        """Read ``imgs/*.png`` and ``pose.txt`` of a folder (every ``stride``-th scan)."""
-        path = Path(path)
-        files = sorted((path / "imgs").glob("*.png"))
-        poses = read_poses(path / "pose.txt")
-        if not files or len(files) != len(poses):
-            raise InputError(f"{path}: {len(files)} images but {len(poses)} poses")
-        files, poses = files[::stride], poses[::stride]
-        return cls(path.name, np.stack([load_bev_image(f) for f in files]), poses)
+        """Read every ``stride``-th scan of a kitti-bev folder (``imgs/*.png``, ``pose.txt``)
+        or of a KITTI-layout sequence (``velodyne/``, ``poses.txt``, ``times.txt``, e.g. from
+        ``sgvloc synth``), whose scans are rasterised here (:func:`sgvloc.core.bev.rasterize`).
+
+        Raises :class:`InputError` if the folder is neither layout.
+        """
+        from .core.io import read_scan
+        from .evaluation.data import open_sequence
+
+        seq = open_sequence(path)
+        paths, poses = seq.paths[::stride], seq.poses[::stride]
+        if seq.kind == "bev-images":
+            images = [load_bev_image(p) for p in paths]
+        else:
+            images = [rasterize(read_scan(p).points).image for p in paths]
+        return cls(Path(path).name, np.stack(images), poses)
 
 
 def rotate_image(img: np.ndarray, yaw: float) -> np.ndarray:
@@ -245,7 +131,27 @@ class TrainConfig:
     checkpoint_every: int = 200
     device: str = "cpu"
     stride: int = 1
+    #: density augmentation: each image's grey levels scaled by a gain in [1 - a, 1 + a] and
+    #: a random share (up to ``dropout``) of its occupied pixels removed, so that the model
+    #: does not learn one sensor's point density (0 turns it off)
+    gain_jitter: float = 0.4
+    dropout: float = 0.3
+    #: pixels darker than this are zeroed after augmentation (:func:`cut_faint`); the
+    #: encoder applies the same cut (stored with the exported weights)
+    min_grey: int = 52
     extra: dict = field(default_factory=dict)
+
+
+def augment_density(img: np.ndarray, cfg: TrainConfig, rng: np.random.Generator) -> np.ndarray:
+    """Random gain on the grey levels and random removal of occupied pixels (uint8 in/out)."""
+    if cfg.gain_jitter <= 0 and cfg.dropout <= 0:
+        return img
+    gain = rng.uniform(1 - cfg.gain_jitter, 1 + cfg.gain_jitter)
+    out = np.clip(img.astype(np.float32) * gain, 0, 255)
+    out[(img > 0) & (out < 1)] = 1  # a gain never empties an occupied pixel
+    if cfg.dropout > 0:
+        out[rng.random(img.shape) < rng.uniform(0, cfg.dropout)] = 0
+    return out.astype(np.uint8)
 
 
 def sample_batch(
@@ -265,7 +171,8 @@ def sample_batch(
         cand = np.nonzero((d < cfg.pos_radius) & (np.arange(len(d)) != i))[0]
         j = int(rng.choice(cand)) if len(cand) else i
         ya, yb = rng.uniform(0, 2 * np.pi, 2)
-        ia, ib = rotate_image(s.images[i], ya), rotate_image(s.images[j], yb)
+        ia = cut_faint(augment_density(rotate_image(s.images[i], ya), cfg, rng), cfg.min_grey)
+        ib = cut_faint(augment_density(rotate_image(s.images[j], yb), cfg, rng), cfg.min_grey)
         # anchor cells (occupied) -> metres (augmented A) -> A -> B -> augmented B -> cell
         occ = np.zeros((INPUT_SIZE, INPUT_SIZE), bool)
         occ[:151, :151] = ia > 0
@@ -518,3 +425,35 @@ def train(
         save()
     log.info("trained %d steps in %.0f s", step, time.perf_counter() - t0)
     return ckpt_path
+
+
+def export_weights(checkpoint: str | Path, out: str | Path, note: str = "") -> Path:
+    """Write the model of a training checkpoint as a weights file for the ``learned``
+    encoder kind (float32 state dict, architecture and training facts; no optimiser).
+
+    Raises :class:`InputError` if the checkpoint is missing.
+    """
+    from .core.encoders.learned import WEIGHTS_FORMAT
+
+    checkpoint, out = Path(checkpoint), Path(out)
+    if not checkpoint.is_file():
+        raise InputError(f"no checkpoint at {checkpoint}")
+    model, ckpt = load_checkpoint(checkpoint)
+    cfg = ckpt["config"]
+    val = ckpt.get("val") or []
+    blob = {
+        "format": WEIGHTS_FORMAT,
+        "arch": {k: int(cfg.get(k, 0)) for k in ("width", "local_dim", "global_dim", "min_grey")},
+        "state_dict": {k: v.float() for k, v in model.state_dict().items()},
+        "meta": {
+            "steps": int(ckpt["step"]),
+            "config": json.dumps(cfg, sort_keys=True),
+            "last_validation": json.dumps(val[-1] if val else {}),
+            "note": note,
+        },
+    }
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_suffix(out.suffix + ".tmp")
+    torch.save(blob, tmp)
+    tmp.replace(out)
+    return out

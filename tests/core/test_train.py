@@ -9,16 +9,19 @@ import numpy as np
 import pytest
 import torch
 
-from sgvloc.core.bev import rasterize
+from sgvloc.core.bev import LearnedEncoderConfig, rasterize
+from sgvloc.core.bevnet import cell_to_metres, metres_to_cell
+from sgvloc.core.encoders import EncoderSpec, make_encoder
+from sgvloc.core.encoders.learned import LearnedEncoder
+from sgvloc.core.errors import InputError
 from sgvloc.train import (
-    LearnedBEVEncoder,
     Sequence,
     TrainConfig,
+    augment_density,
     build_model,
-    cell_to_metres,
+    export_weights,
     load_checkpoint,
     losses,
-    metres_to_cell,
     rotate_image,
     sample_batch,
     train,
@@ -79,6 +82,30 @@ def seq() -> Sequence:
     return make_sequence()
 
 
+def test_sequences_load_from_images_and_from_scans(seq: Sequence, tmp_path: Path) -> None:
+    import cv2
+
+    from sgvloc.core.io import write_kitti_bin
+
+    pts = world()
+    (tmp_path / "scans" / "velodyne").mkdir(parents=True)
+    (tmp_path / "bev" / "imgs").mkdir(parents=True)
+    for i, T in enumerate(seq.poses[:4]):
+        local = (pts - T[:3, 3]) @ T[:3, :3]
+        write_kitti_bin(tmp_path / "scans" / "velodyne" / f"{i:06d}.bin", local)
+        cv2.imwrite(str(tmp_path / "bev" / "imgs" / f"{i:06d}.png"), seq.images[i])
+    lines = "\n".join(" ".join(f"{v:.9f}" for v in T[:3].ravel()) for T in seq.poses[:4])
+    (tmp_path / "scans" / "poses.txt").write_text(lines + "\n")
+    (tmp_path / "scans" / "times.txt").write_text("0\n0.1\n0.2\n0.3\n")
+    (tmp_path / "bev" / "pose.txt").write_text(lines + "\n")
+    for folder in ("scans", "bev"):
+        got = Sequence.load(tmp_path / folder, stride=2)
+        np.testing.assert_array_equal(got.images, seq.images[:4:2])
+        np.testing.assert_allclose(got.poses, seq.poses[:4:2], atol=1e-6)
+    with pytest.raises(InputError):
+        Sequence.load(tmp_path)  # neither layout
+
+
 def test_rotation_and_cell_mapping_are_consistent(seq: Sequence) -> None:
     img = seq.images[3]
     # rotating by a yaw and back keeps most of the occupied pixels
@@ -114,7 +141,8 @@ def test_tiny_training_lowers_the_loss_and_checkpoints(seq: Sequence, tmp_path: 
     assert after < before
     assert state["step"] == 8 and len(state["history"]) == 8 and state["val"]
     # the checkpoint loads into an encoder with finite features of the documented shapes
-    enc = LearnedBEVEncoder(model, num_keypoints=64, weights_id="test")
+    net = LearnedEncoderConfig(num_keypoints=64, global_descriptor="network")
+    enc = LearnedEncoder.from_model(model, net, "test", min_grey=cfg.min_grey)
     f = enc.encode_image(seq.images[0])
     assert f.global_descriptor.shape == (32,)
     assert 1 <= f.num_keypoints <= 64
@@ -125,3 +153,37 @@ def test_tiny_training_lowers_the_loss_and_checkpoints(seq: Sequence, tmp_path: 
     _, state2 = load_checkpoint(ckpt)
     assert state2["step"] == 9 and len(state2["history"]) == 9
     assert state2["history"][:8] == state["history"]
+
+
+def test_exported_weights_make_a_learned_encoder_of_their_own(
+    seq: Sequence, tmp_path: Path
+) -> None:
+    ckpt = train([seq], tmp_path, tiny_config(2), progress=False)
+    weights = export_weights(ckpt, tmp_path / "w.pt", note="tiny")
+    net = LearnedEncoderConfig(global_descriptor="network")
+    spec = EncoderSpec(kind="learned", model_path=str(weights), learned=net)
+    enc = make_encoder(spec)
+    assert (enc.global_dim, enc.local_dim) == (32, 16)
+    assert enc.meta["steps"] == 2 and enc.meta["note"] == "tiny"
+    assert enc.min_grey == TrainConfig().min_grey  # the training cut travels with the weights
+    f = enc.encode_image(seq.images[1])
+    assert f.encoder == enc.identity and f.global_descriptor.shape == (32,)
+    # the identity follows the weights' bytes: other weights are another encoder
+    assert enc.identity != make_encoder(EncoderSpec(kind="learned")).identity
+    # a training checkpoint is not a weights file; a missing file is named
+    with pytest.raises(InputError, match="export-weights"):
+        make_encoder(EncoderSpec(kind="learned", model_path=str(ckpt)))
+    with pytest.raises(InputError, match="does not exist"):
+        make_encoder(EncoderSpec(kind="learned", model_path=str(tmp_path / "nope.pt")))
+
+
+def test_density_augmentation_keeps_the_shape_of_the_image(seq: Sequence) -> None:
+    img = seq.images[0]
+    cfg = TrainConfig(gain_jitter=0.4, dropout=0.3)
+    out = augment_density(img, cfg, np.random.default_rng(0))
+    assert out.shape == img.shape and out.dtype == np.uint8
+    assert not (out[img == 0]).any()  # nothing appears where nothing was
+    kept = (out > 0).sum() / (img > 0).sum()
+    assert 0.6 < kept <= 1.0
+    off = TrainConfig(gain_jitter=0.0, dropout=0.0)
+    assert augment_density(img, off, np.random.default_rng(0)) is img

@@ -224,3 +224,43 @@ class BEVEncoderConfig(BaseModel):
     )
     rings: int = Field(20, ge=2, description="global descriptor: radial bins")
     sectors: int = Field(60, ge=4, description="global descriptor: angular bins")
+
+
+class LearnedEncoderConfig(BaseModel):
+    """Settings of the learned BEV encoder (:mod:`sgvloc.core.encoders.learned`).
+
+    The raster is fixed to the kitti-bev one the network was trained on.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    num_keypoints: int = Field(
+        256, ge=1, le=5776, description="keypoints at most per scan (most salient cells)"
+    )
+    nms_radius: int = Field(
+        0,
+        ge=0,
+        le=4,
+        description="keypoints: a cell is kept only if it is the most salient within this "
+        "many cells (0: the most salient occupied cells, no suppression)",
+    )
+    keypoint_xy: Literal["centre", "centroid"] = Field(
+        "centroid",
+        description="keypoint position in its 0.8 m cell: the cell centre, or the "
+        "grey-weighted centroid of its 2 x 2 pixels",
+    )
+    keypoint_z: Literal["zero", "column_mean"] = Field(
+        "column_mean",
+        description="keypoint height: the mean voxel height of its cell's columns (scans; "
+        "0 for BEV images, which have no height), or 0",
+    )
+    global_descriptor: Literal["network", "polar"] = Field(
+        "polar",
+        description="global descriptor: the network's (GeM, 256-D) or the polar/FFT "
+        "descriptor of the same density image (620-D, as the 'bev' encoder's)",
+    )
+    global_rotations: Literal[1, 4] = Field(
+        4,
+        description="network global descriptor: mean over the image turned by "
+        "0/90/180/270 degrees about the sensor (4), or the image as it is (1)",
+    )

@@ -5,6 +5,8 @@
 - :class:`PrecomputedEncoder`: the client sends features from its own network;
 - :class:`BEVEncoder` (no weights): SIFT/ORB on the bird's-eye-view density image,
   polar/FFT global descriptor;
+- :class:`LearnedEncoder`: a small CNN on the same BEV image, trained in-project
+  (:mod:`sgvloc.train`), weights shipped in the package (torch imported when built);
 - :class:`TorchScriptEncoder`: a learned model loaded from a TorchScript file (torch is
   imported only when one is built).
 
@@ -14,6 +16,7 @@ A map stores its :class:`EncoderSpec`; :func:`make_encoder` rebuilds the encoder
 from .base import Encoder, EncoderSpec, make_encoder
 from .bev import BEVEncoder
 from .handcrafted import HandcraftedEncoder
+from .learned import LearnedEncoder
 from .precomputed import PrecomputedEncoder
 from .torchscript import TorchScriptEncoder
 
@@ -22,6 +25,7 @@ __all__ = [
     "Encoder",
     "EncoderSpec",
     "HandcraftedEncoder",
+    "LearnedEncoder",
     "PrecomputedEncoder",
     "TorchScriptEncoder",
     "make_encoder",

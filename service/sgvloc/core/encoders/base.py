@@ -10,7 +10,8 @@ Three kinds (see SPEC section 5):
 - ``handcrafted`` (default): polar-grid global descriptor + FPFH, no weights;
 - ``precomputed``: the client runs its own network and sends features;
 - ``torchscript``: a learned model loaded from a TorchScript file;
-- ``bev``: SIFT/ORB on the bird's-eye-view density image + polar/FFT descriptor, no weights.
+- ``bev``: SIFT/ORB on the bird's-eye-view density image + polar/FFT descriptor, no weights;
+- ``learned``: a small CNN on the same density image, trained in-project (weights shipped).
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from ..bev import BEVEncoderConfig
+from ..bev import BEVEncoderConfig, LearnedEncoderConfig
 from ..config import HandcraftedEncoderConfig, PreprocessConfig
 from ..errors import InputError
 from ..features import EncoderIdentity, Features
@@ -102,18 +103,26 @@ class EncoderSpec(BaseModel):
     - ``kind="handcrafted"``: uses ``preprocess`` and ``handcrafted``;
     - ``kind="torchscript"``: uses ``preprocess``, ``model_path`` and ``device``;
     - ``kind="precomputed"``: uses ``name``, ``global_dim`` and ``local_dim``;
-    - ``kind="bev"``: uses ``bev`` (its own box crop and voxels; ``preprocess`` is unused).
+    - ``kind="bev"``: uses ``bev`` (its own box crop and voxels; ``preprocess`` is unused);
+    - ``kind="learned"``: uses ``learned``, ``model_path`` (unset: the shipped weights) and
+      ``device`` (the same box crop and voxels as ``bev``).
     """
 
     model_config = ConfigDict(extra="forbid")
 
-    kind: Literal["handcrafted", "torchscript", "precomputed", "bev"] = "handcrafted"
+    kind: Literal["handcrafted", "torchscript", "precomputed", "bev", "learned"] = "handcrafted"
     preprocess: PreprocessConfig = PreprocessConfig()
     handcrafted: HandcraftedEncoderConfig = HandcraftedEncoderConfig()
     bev: BEVEncoderConfig = BEVEncoderConfig()
-    model_path: str | None = Field(None, description="torchscript: path of the model file")
+    learned: LearnedEncoderConfig = LearnedEncoderConfig()
+    model_path: str | None = Field(
+        None,
+        description="torchscript: path of the model file; learned: path of a weights file "
+        "(unset: the weights shipped with sgvloc)",
+    )
     device: Literal["auto", "cpu", "cuda"] = Field(
-        "cpu", description="torchscript: where the model runs ('auto' = CUDA if present)"
+        "cpu",
+        description="torchscript, learned: where the model runs ('auto' = CUDA if present)",
     )
     name: str | None = Field(None, description="precomputed: the client's network, e.g. 'egonn'")
     global_dim: int | None = Field(None, ge=1, description="precomputed: descriptor length")
@@ -133,7 +142,8 @@ class EncoderSpec(BaseModel):
 def make_encoder(spec: EncoderSpec) -> Encoder:
     """Build the encoder a spec describes.
 
-    Raises :class:`InputError` if a torchscript model file is missing or unreadable.
+    Raises :class:`InputError` if a torchscript model or weights file is missing or
+    unreadable.
     """
     if spec.kind == "handcrafted":
         from .handcrafted import HandcraftedEncoder
@@ -149,6 +159,10 @@ def make_encoder(spec: EncoderSpec) -> Encoder:
         from .bev import BEVEncoder
 
         return BEVEncoder(spec.bev)
+    if spec.kind == "learned":
+        from .learned import LearnedEncoder
+
+        return LearnedEncoder(spec.learned, spec.model_path, device=spec.device)
     if spec.kind == "torchscript":
         from .torchscript import TorchScriptEncoder
 

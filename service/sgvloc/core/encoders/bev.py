@@ -26,8 +26,10 @@ import logging
 import numpy as np
 
 from ..bev import (
+    KITTI_BEV,
     BEVEncoderConfig,
     BEVRaster,
+    BEVRasterConfig,
     pixel_to_metres,
     prepare_points,
     rasterize_cloud,
@@ -75,6 +77,18 @@ def weighted_polar_grid(
     w = np.concatenate([(1 - fu) * (1 - fv), (1 - fu) * fv, fu * (1 - fv), fu * fv])
     w *= np.tile(w0, 4)
     return np.bincount(idx, weights=w, minlength=rings * sectors).reshape(rings, sectors)
+
+
+def polar_fft_descriptor(
+    image: np.ndarray, raster: BEVRasterConfig = KITTI_BEV, rings: int = 20, sectors: int = 60
+) -> np.ndarray:
+    """Yaw-invariant global descriptor ``[rings * (sectors // 2 + 1)]`` float32 of a BEV
+    density image (not normalised): the grey levels (/255) of its pixels on a polar grid
+    around the sensor, then :func:`yaw_invariant_descriptor`."""
+    rows, cols = np.nonzero(image)
+    xy = pixel_to_metres(rows, cols, raster)  # [M, 2]
+    grid = weighted_polar_grid(xy, image[rows, cols] / 255.0, rings, sectors, raster.extent)
+    return yaw_invariant_descriptor(grid)
 
 
 def orb_bits_to_float(desc: np.ndarray) -> np.ndarray:
@@ -158,12 +172,7 @@ class BEVEncoder(Encoder):
     def global_descriptor(self, image: np.ndarray) -> np.ndarray:
         """Yaw-invariant descriptor ``[G]`` float32 of a density image (not normalised)."""
         c = self.config
-        rows, cols = np.nonzero(image)
-        xy = pixel_to_metres(rows, cols, c.raster)  # [M, 2]
-        grid = weighted_polar_grid(
-            xy, image[rows, cols] / 255.0, c.rings, c.sectors, c.raster.extent
-        )
-        return yaw_invariant_descriptor(grid)
+        return polar_fft_descriptor(image, c.raster, c.rings, c.sectors)
 
     def keypoints(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Detect and describe: pixel rows ``[N]``, cols ``[N]`` and local features ``[N, D]``.
@@ -227,4 +236,4 @@ class BEVEncoder(Encoder):
         )
 
 
-__all__ = ["BEVEncoder", "orb_bits_to_float", "weighted_polar_grid"]
+__all__ = ["BEVEncoder", "orb_bits_to_float", "polar_fft_descriptor", "weighted_polar_grid"]

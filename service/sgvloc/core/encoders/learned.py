@@ -1,0 +1,274 @@
+"""Learned BEV encoder: a small CNN (:class:`sgvloc.core.bevnet.BEVNet`) trained in-project.
+
+Per scan (deterministic):
+
+1. prepare: finite points, box crop and 0.4 m voxels (:func:`sgvloc.core.bev.prepare_points`),
+   as the handcrafted BEV encoder; the voxel cloud is what the localizer keeps for ICP;
+2. raster: the kitti-bev density image of the cloud (:func:`sgvloc.core.bev.rasterize_cloud`),
+   the input the network was trained on, without its faintest pixels (grey level below the
+   ``min_grey`` the weights were trained with, :func:`sgvloc.core.bevnet.cut_faint`);
+3. network: local descriptor map and saliency over 0.8 m cells, global descriptor;
+4. keypoints: the most salient occupied cells (optionally only local maxima of the
+   saliency, ``nms_radius``), lifted to metres at the grey-weighted centroid of the cell's
+   2 x 2 pixels (``keypoint_xy``) and, for scans, at the mean height of the cell's voxel
+   columns (``keypoint_z``; 3-D keypoints let RANSAC and SGV see a tilted sensor); local
+   features are the descriptors of those cells;
+5. global descriptor (``global_descriptor``): the network's, with ``global_rotations = 4``
+   the mean of the descriptors of the image turned by 0, 90, 180 and 270 degrees about the
+   sensor (exact pixel turns, as the sensor is the centre of the padded input),
+   re-normalised, which makes it invariant to quarter turns and flattens the yaw
+   dependence between them; or ``"polar"``: the polar/FFT descriptor of the same image
+   (:func:`sgvloc.core.encoders.bev.polar_fft_descriptor`, yaw-invariant by construction).
+
+The weights file (``model_path``; the weights shipped in the package when unset) holds
+``{"format": "sgvloc-bevnet", "arch": {...}, "state_dict": {...}, "meta": {...}}``
+(:func:`sgvloc.train.export_weights` writes one). Its SHA-256 is part of the identity, so
+features of different weights never mix.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..bev import (
+    KITTI_BEV,
+    BEVRaster,
+    LearnedEncoderConfig,
+    pixel_to_metres,
+    prepare_points,
+    rasterize_cloud,
+)
+from ..errors import InputError
+from ..features import EncoderIdentity, Features
+from .base import Encoder
+from .bev import polar_fft_descriptor
+from .torchscript import file_sha256
+
+log = logging.getLogger(__name__)
+
+#: weights file format tag
+WEIGHTS_FORMAT = "sgvloc-bevnet"
+#: the weights shipped with the package (sgvloc/weights/)
+SHIPPED_WEIGHTS = "bevnet-v1.pt"
+#: global_descriptor "polar": the grid of the 'bev' encoder's default
+POLAR_RINGS, POLAR_SECTORS = 20, 60
+POLAR_DIM = POLAR_RINGS * (POLAR_SECTORS // 2 + 1)
+
+
+def shipped_weights_path() -> Path:
+    """Path of the weights file shipped in the package."""
+    return Path(str(resources.files("sgvloc").joinpath("weights", SHIPPED_WEIGHTS)))
+
+
+def load_weights(path: str | Path) -> tuple[Any, dict[str, Any]]:
+    """Build a :class:`BEVNet` (eval mode, CPU) from a weights file; returns (model, meta).
+
+    ``meta["min_grey"]`` is the input cut the network was trained with
+    (:func:`sgvloc.core.bevnet.cut_faint`).
+
+    Raises :class:`InputError` if the file is missing or not an sgvloc BEVNet weights file.
+    """
+    import torch
+
+    from ..bevnet import BEVNet
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"learned encoder: weights file {str(path)!r} does not exist")
+    try:
+        blob = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - any unpickling failure is a bad file
+        raise InputError(f"learned encoder: cannot read weights {str(path)!r}: {exc}") from None
+    if not isinstance(blob, dict) or blob.get("format") != WEIGHTS_FORMAT:
+        raise InputError(
+            f"learned encoder: {str(path)!r} is not an sgvloc BEVNet weights file "
+            f"(expected format {WEIGHTS_FORMAT!r}; a training checkpoint is exported with "
+            "'sgvloc export-weights')"
+        )
+    arch = blob["arch"]
+    model = BEVNet(int(arch["width"]), int(arch["local_dim"]), int(arch["global_dim"]))
+    try:
+        model.load_state_dict(blob["state_dict"])
+    except RuntimeError as exc:
+        raise InputError(f"learned encoder: weights {str(path)!r} do not fit: {exc}") from None
+    meta = dict(blob.get("meta", {}))
+    meta["min_grey"] = int(arch.get("min_grey", 0))
+    return model.eval(), meta
+
+
+class LearnedEncoder(Encoder):
+    """BEV density image -> BEVNet global descriptor, salient cells and their descriptors."""
+
+    NAME = "bevnet"
+    VERSION = "1"
+
+    def __init__(
+        self,
+        config: LearnedEncoderConfig | None = None,
+        model_path: str | Path | None = None,
+        device: str = "cpu",
+    ) -> None:
+        """Load the weights (``model_path``, or the shipped ones) onto ``device``
+        (``"cpu"``, ``"cuda"`` or ``"auto"``).
+
+        Raises :class:`InputError` if the weights cannot be loaded or CUDA is absent.
+        """
+        path = Path(model_path) if model_path else shipped_weights_path()
+        model, meta = load_weights(path)
+        self._setup(model, config, file_sha256(path)[:16], device, meta)
+
+    @classmethod
+    def from_model(
+        cls,
+        model: Any,
+        config: LearnedEncoderConfig | None = None,
+        weights_id: str = "",
+        min_grey: int = 0,
+    ) -> LearnedEncoder:
+        """An encoder around an in-memory model (training, tests) trained on images cut
+        at ``min_grey``."""
+        self = cls.__new__(cls)
+        self._setup(model.eval(), config, weights_id, "cpu", {"min_grey": min_grey})
+        return self
+
+    def _setup(
+        self,
+        model: Any,
+        config: LearnedEncoderConfig | None,
+        weights_id: str,
+        device: str,
+        meta: dict[str, Any],
+    ) -> None:
+        import torch
+
+        if device == "auto":
+            device = "cuda" if torch.cuda.is_available() else "cpu"
+        if device == "cuda" and not torch.cuda.is_available():
+            raise InputError("learned encoder: device 'cuda' requested but CUDA is absent")
+        self.device = torch.device(device)
+        self.config = config or LearnedEncoderConfig()
+        self.model = model.to(self.device).eval()
+        self.meta = meta
+        self.min_grey = int(meta.get("min_grey", 0))
+        polar = self.config.global_descriptor == "polar"
+        self.global_dim = POLAR_DIM if polar else int(model.global_dim)
+        self.local_dim = int(model.local_dim)
+        self.preprocess_config = None  # prepare() is overridden: box crop + 0.4 m voxels
+        self.identity = EncoderIdentity(
+            name=self.NAME,
+            version=self.VERSION,
+            params={
+                "weights_sha256": weights_id,
+                "arch": {
+                    "width": int(model.width),
+                    "local_dim": self.local_dim,
+                    "global_dim": int(model.global_dim),
+                },
+                "min_grey": self.min_grey,
+                "encoder": self.config.model_dump(),
+                "raster": KITTI_BEV.model_dump(),
+            },
+        )
+
+    # -- scans -------------------------------------------------------------------------
+
+    def prepare(self, points: np.ndarray) -> np.ndarray:
+        """Raw scan ``[P, 3+]`` -> the 0.4 m voxel cloud in the box ``[M, 3]`` float32."""
+        return prepare_points(points, KITTI_BEV)
+
+    def encode_cloud(self, cloud: np.ndarray) -> Features:
+        """Encode a cloud made by :meth:`prepare` ``[M, 3]``.
+
+        Raises :class:`InputError` if the raster is empty (no column of two voxels).
+        """
+        raster = rasterize_cloud(np.asarray(cloud, dtype=np.float32), KITTI_BEV)
+        return self._encode(raster.image, raster)
+
+    # -- images ------------------------------------------------------------------------
+
+    def encode_image(self, image: np.ndarray) -> Features:
+        """Encode a kitti-bev density image ``[151, 151]`` uint8; keypoints at ``z = 0``.
+
+        Raises :class:`InputError` if the image has the wrong shape or dtype, or is empty.
+        """
+        img = np.asarray(image)
+        s = KITTI_BEV.size
+        if img.shape != (s, s) or img.dtype != np.uint8:
+            raise InputError(
+                f"BEV image is {list(img.shape)} {img.dtype}; expected [{s}, {s}] uint8"
+            )
+        return self._encode(img, None)
+
+    # -- shared ------------------------------------------------------------------------
+
+    def _encode(self, image: np.ndarray, raster: BEVRaster | None) -> Features:
+        import torch
+        import torch.nn.functional as F
+
+        from ..bevnet import CELLS, cell_to_metres, cut_faint, occupied_cells, to_input
+
+        image = cut_faint(image, self.min_grey)
+        if not image.any():
+            raise InputError(
+                "BEV image is empty (no column with two or more occupied 0.4 m voxels"
+                + (f", none at grey level {self.min_grey} or above" if self.min_grey else "")
+                + "); nothing to describe"
+            )
+        c = self.config
+        with torch.inference_mode():
+            x = to_input(image[None]).to(self.device)  # [1, 1, 152, 152]
+            g, local, sal = self.model(x)
+            if c.global_descriptor == "network" and c.global_rotations == 4:
+                turned = torch.cat([torch.rot90(x, t, dims=(2, 3)) for t in (1, 2, 3)])
+                g = torch.cat([g, self.model.global_descriptor(turned)])
+                g = F.normalize(g.mean(dim=0, keepdim=True), dim=1)
+            occ = occupied_cells(x)[0]
+            s = sal[0].masked_fill(~occ, -math.inf)
+            if c.nms_radius:
+                r = c.nms_radius
+                peak = s == F.max_pool2d(s[None, None], 2 * r + 1, stride=1, padding=r)[0, 0]
+                s = s.masked_fill(~peak, -math.inf)
+            s = s.flatten()
+            k = int(min(c.num_keypoints, int(torch.isfinite(s).sum())))
+            idx = torch.topk(s, k).indices if k else torch.zeros(0, dtype=torch.long)
+            feats = local[0].flatten(1)[:, idx.to(self.device)].T.float().cpu().numpy()
+            g_np = (
+                polar_fft_descriptor(image, KITTI_BEV, POLAR_RINGS, POLAR_SECTORS)
+                if c.global_descriptor == "polar"
+                else g[0].float().cpu().numpy()
+            )
+        idx_np = idx.cpu().numpy()
+        rows, cols = idx_np // CELLS, idx_np % CELLS
+        if c.keypoint_xy == "centroid":
+            # grey-weighted centroid of the cell's 2 x 2 pixels (the cell has an occupied one)
+            pad = np.zeros((CELLS * 2, CELLS * 2))
+            pad[: image.shape[0], : image.shape[1]] = image
+            w = pad.reshape(CELLS, 2, CELLS, 2)[rows, :, cols, :]  # [N, 2, 2]
+            tot = w.sum(axis=(1, 2))
+            dr = w[:, 1, :].sum(axis=1) / tot  # [N] share of the lower pixel row
+            dc = w[:, :, 1].sum(axis=1) / tot
+            xy = pixel_to_metres(2 * rows + dr, 2 * cols + dc).reshape(-1, 2)
+        else:
+            xy = cell_to_metres(rows, cols).reshape(-1, 2)
+        z = np.zeros(len(xy))
+        if raster is not None and c.keypoint_z == "column_mean" and len(xy):
+            # the cell's 2 x 2 pixels: mean of the finite column heights
+            hgt = np.full((CELLS * 2, CELLS * 2), np.nan)
+            hgt[: KITTI_BEV.size, : KITTI_BEV.size] = raster.height
+            blocks = hgt.reshape(CELLS, 2, CELLS, 2)[rows, :, cols, :].reshape(len(rows), -1)
+            with np.errstate(all="ignore"):
+                zc = np.nanmean(blocks, axis=1)
+            z = np.where(np.isfinite(zc), zc, 0.0)
+        kp = np.column_stack([xy, z]).reshape(-1, 3)
+        return Features.validated(
+            g_np, kp, feats, self.identity, global_dim=self.global_dim, local_dim=self.local_dim
+        )
+
+
+__all__ = ["LearnedEncoder", "load_weights", "shipped_weights_path"]

@@ -1,0 +1,162 @@
+"""The learned BEV encoder with the weights shipped in the package, on the real fixture."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from sgvloc.core.bev import KITTI_BEV, LearnedEncoderConfig, rasterize
+from sgvloc.core.encoders import EncoderSpec, LearnedEncoder, make_encoder
+from sgvloc.core.encoders.learned import shipped_weights_path
+from sgvloc.core.encoders.torchscript import file_sha256
+from sgvloc.core.errors import InputError
+from sgvloc.core.io import KittiSequence
+
+
+@pytest.fixture(scope="module")
+def enc() -> LearnedEncoder:
+    return make_encoder(EncoderSpec(kind="learned"))
+
+
+@pytest.fixture(scope="module")
+def scans(balm_mini_dir: Path) -> list[np.ndarray]:
+    seq = KittiSequence(balm_mini_dir)
+    return [seq[i].scan().points for i in range(len(seq))]
+
+
+def _yaw(points: np.ndarray, yaw: float) -> np.ndarray:
+    c, s = math.cos(yaw), math.sin(yaw)
+    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return (points[:, :3] @ R.T).astype(np.float32)
+
+
+def test_shipped_weights_are_small_and_named_in_the_identity(enc: LearnedEncoder) -> None:
+    path = shipped_weights_path()
+    assert path.is_file() and path.stat().st_size < 20e6
+    assert enc.identity.name == "bevnet"
+    assert enc.identity.params["weights_sha256"] == file_sha256(path)[:16]
+    assert enc.meta["steps"] > 0  # exported from a real training run
+    assert (enc.global_dim, enc.local_dim) == (620, 64)  # polar/FFT global by default
+
+
+def test_real_scan_gives_finite_features_of_the_documented_shapes(
+    enc: LearnedEncoder, scans: list[np.ndarray]
+) -> None:
+    f = enc.encode(scans[0])
+    g, kp, loc = f.global_descriptor, f.keypoints, f.local_features
+    assert g.shape == (620,) and np.isfinite(g).all()
+    assert np.linalg.norm(g) == pytest.approx(1.0, abs=1e-5)
+    n = f.num_keypoints
+    assert 32 <= n <= enc.config.num_keypoints
+    assert kp.shape == (n, 3) and loc.shape == (n, 64)
+    assert np.isfinite(kp).all() and np.isfinite(loc).all()
+    np.testing.assert_allclose(np.linalg.norm(loc, axis=1), 1.0, atol=1e-5)
+    assert kp[:, 2].any()  # keypoint_z "column_mean": heights from the scan's columns
+    assert (np.abs(kp[:, :2]) < KITTI_BEV.extent).all()
+    assert len(np.unique(kp[:, :2], axis=0)) == n  # one keypoint per cell
+    # deterministic, and the raster of the scan describes the same as the scan
+    again = enc.encode(scans[0])
+    np.testing.assert_array_equal(again.local_features, loc)
+    img = enc.encode_image(rasterize(scans[0]).image)
+    np.testing.assert_allclose(img.global_descriptor, g, atol=1e-6)
+    np.testing.assert_array_equal(img.keypoints[:, :2], kp[:, :2])
+    assert not img.keypoints[:, 2].any()  # an image has no heights
+
+
+def test_faint_pixels_are_not_described(enc: LearnedEncoder, scans: list[np.ndarray]) -> None:
+    """Pixels below the grey level the weights were trained from (ground rings of a tilted
+    sensor, object fringes) change nothing."""
+    assert enc.min_grey > 0 and enc.meta["min_grey"] == enc.min_grey
+    img = rasterize(scans[0]).image
+    noisy = img.copy()
+    rng = np.random.default_rng(0)
+    noisy[(img == 0) & (rng.random(img.shape) < 0.2)] = enc.min_grey - 1
+    a, b = enc.encode_image(img), enc.encode_image(noisy)
+    np.testing.assert_array_equal(a.keypoints, b.keypoints)
+    np.testing.assert_array_equal(a.global_descriptor, b.global_descriptor)
+
+
+@pytest.fixture(scope="module")
+def network_global() -> LearnedEncoder:
+    spec = EncoderSpec(kind="learned", learned=LearnedEncoderConfig(global_descriptor="network"))
+    return make_encoder(spec)
+
+
+@pytest.mark.parametrize("which", ["polar", "network"])
+@pytest.mark.parametrize("yaw_deg", [17.0, 45.0, 90.0, 133.0, 180.0, 251.0])
+def test_global_descriptor_is_nearly_yaw_invariant(
+    enc: LearnedEncoder,
+    network_global: LearnedEncoder,
+    scans: list[np.ndarray],
+    which: str,
+    yaw_deg: float,
+) -> None:
+    e = enc if which == "polar" else network_global
+    g0 = e.encode(scans[3]).global_descriptor
+    g1 = e.encode(_yaw(scans[3], math.radians(yaw_deg))).global_descriptor
+    assert g0.shape == ((620,) if which == "polar" else (256,))
+    assert 1.0 - float(g0 @ g1) < 0.05
+
+
+def test_the_network_global_descriptor_is_another_encoder(
+    enc: LearnedEncoder, network_global: LearnedEncoder, scans: list[np.ndarray]
+) -> None:
+    assert network_global.global_dim == 256 and network_global.identity != enc.identity
+    a, b = enc.encode(scans[0]), network_global.encode(scans[0])
+    np.testing.assert_array_equal(a.keypoints, b.keypoints)  # the same local features
+    np.testing.assert_array_equal(a.local_features, b.local_features)
+
+
+def test_global_descriptor_tells_places_apart(
+    enc: LearnedEncoder, scans: list[np.ndarray], balm_mini_dir: Path
+) -> None:
+    """Each revisit query of the fixture is on average nearer (cosine) to the database
+    scans within 5 m of it than to those more than 10 m away."""
+    seq = KittiSequence(balm_mini_dir)
+    pos = np.stack([seq[i].T_world_sensor[:3, 3] for i in range(len(seq))])
+    g = np.stack([enc.encode(s).global_descriptor for s in scans])
+    lines = (balm_mini_dir / "scans.txt").read_text().splitlines()
+    roles = [line.split()[1] for line in lines if line and not line.startswith("#")]
+    db = [i for i, r in enumerate(roles) if r == "database"]
+    for q in (i for i, r in enumerate(roles) if r == "query"):
+        d = np.linalg.norm(pos[db] - pos[q], axis=1)
+        sim = g[db] @ g[q]
+        assert sim[d < 5.0].mean() > sim[d > 10.0].mean()
+
+
+def test_planar_keypoints_at_cell_centres(enc: LearnedEncoder, scans: list[np.ndarray]) -> None:
+    cfg = LearnedEncoderConfig(keypoint_z="zero", keypoint_xy="centre")
+    flat = make_encoder(EncoderSpec(kind="learned", learned=cfg))
+    f, ref = flat.encode(scans[0]), enc.encode(scans[0])
+    assert not f.keypoints[:, 2].any() and flat.identity != enc.identity
+    # cell centres lie on the 0.8 m grid (odd multiples of 0.4 m); the default centroids
+    # stay inside their cell
+    k = f.keypoints[:, :2] / 0.4
+    np.testing.assert_allclose(k - np.round(k), 0.0, atol=1e-4)  # float32
+    assert (np.round(k).astype(int) % 2 == 1).all()
+    assert np.abs(ref.keypoints[:, :2] - f.keypoints[:, :2]).max() <= 0.2 + 1e-6
+
+
+def test_bad_input_is_named(enc: LearnedEncoder) -> None:
+    with pytest.raises(InputError, match="expected \\[151, 151\\] uint8"):
+        enc.encode_image(np.zeros((100, 100), np.uint8))
+    with pytest.raises(InputError, match="empty"):
+        enc.encode_image(np.zeros((151, 151), np.uint8))
+    with pytest.raises(InputError):
+        enc.encode(np.full((10, 3), 100.0, np.float32))  # nothing inside the box
+    if not torch.cuda.is_available():
+        with pytest.raises(InputError, match="CUDA"):
+            make_encoder(EncoderSpec(kind="learned", device="cuda"))
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cuda_gives_the_cpu_features(enc: LearnedEncoder, scans: list[np.ndarray]) -> None:
+    gpu = make_encoder(EncoderSpec(kind="learned", device="cuda"))
+    a, b = enc.encode(scans[0]), gpu.encode(scans[0])
+    np.testing.assert_allclose(a.global_descriptor, b.global_descriptor, atol=1e-3)
+    assert a.identity == b.identity
