@@ -62,7 +62,15 @@ def test_encoding_section_per_stage():
     assert row["points"] == 12000 and row["keypoints"] > 0
     stages = ("preprocess_ms", "global_ms", "normals_ms", "keypoints_ms", "fpfh_ms")
     assert row["total_ms"] == pytest.approx(sum(row[s] for s in stages), rel=0.25)
-    assert "FPFH ms" in bench.format_encoding(res)
+    # the BEV image encoders on the same scan, the learned one with the shipped weights
+    assert [r["encoder"] for r in res["image_encoders"]] == ["bev", "learned"]
+    for r in res["image_encoders"]:
+        assert r["points"] == 12000 and r["keypoints"] > 0
+        parts = r["prepare_ms"] + r["raster_ms"] + r["describe_ms"]
+        assert r["total_ms"] == pytest.approx(parts, rel=0.25)
+    assert res["image_encoders"][1]["identity"] == "bevnet"
+    text = bench.format_encoding(res)
+    assert "FPFH ms" in text and "describe ms" in text
 
 
 def test_densify():

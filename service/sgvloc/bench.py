@@ -610,9 +610,15 @@ def densify(scan: np.ndarray, points: int, rng: np.random.Generator, jitter: flo
 
 
 def bench_encoding(
-    sizes: list[int], *, repeats: int = 5, scan: np.ndarray | None = None, echo: Echo = _quiet
+    sizes: list[int],
+    *,
+    repeats: int = 5,
+    scan: np.ndarray | None = None,
+    image_encoders: tuple[str, ...] = ("bev", "learned"),
+    echo: Echo = _quiet,
 ) -> dict[str, Any]:
-    """Handcrafted encoder time per stage for scans of ``sizes`` points."""
+    """Handcrafted encoder time per stage for scans of ``sizes`` points, then the BEV
+    image encoders (``image_encoders``) per stage on the same scans."""
     from .core.encoders.handcrafted import (
         KEYPOINT_NMS_VOXEL,
         HandcraftedEncoder,
@@ -672,7 +678,56 @@ def bench_encoding(
             f"{row['global_ms']:.1f} + normals {row['normals_ms']:.0f} + keypoints "
             f"{row['keypoints_ms']:.1f} + FPFH {row['fpfh_ms']:.0f}"
         )
-    return {"source": source, "rows": rows, "encoder": c.model_dump()}
+    image_rows = []
+    for kind in image_encoders:
+        for size in sizes:
+            image_rows.append(_bench_image_encoder(kind, densify(base, size, rng), repeats))
+            r = image_rows[-1]
+            echo(
+                f"  {kind:>8s} {size:>7d} points: total {r['total_ms']:.0f} ms = prepare "
+                f"{r['prepare_ms']:.0f} + raster {r['raster_ms']:.1f} + describe "
+                f"{r['describe_ms']:.0f} ({r['keypoints']} keypoints)"
+            )
+    return {
+        "source": source,
+        "rows": rows,
+        "encoder": c.model_dump(),
+        "image_encoders": image_rows,
+    }
+
+
+def _bench_image_encoder(kind: str, raw: np.ndarray, repeats: int) -> dict[str, Any]:
+    """Stages of a BEV image encoder (``bev``, ``learned``) on one scan: prepare (box crop,
+    0.4 m voxels), raster (density image) and describe (keypoints, local and global
+    descriptors of the image)."""
+    from .core.bev import rasterize_cloud
+    from .core.encoders import EncoderSpec, make_encoder
+
+    enc = make_encoder(EncoderSpec(kind=kind))
+    stages: dict[str, list[float]] = {k: [] for k in ("prepare", "raster", "describe", "total")}
+    feats = None
+    for rep in range(repeats + 1):
+        t0 = time.perf_counter()
+        cloud = enc.prepare(raw)
+        t1 = time.perf_counter()
+        rasterize_cloud(cloud)
+        t2 = time.perf_counter()
+        feats = enc.encode_cloud(cloud)  # rasterises again, then describes
+        t3 = time.perf_counter()
+        if rep == 0:
+            continue  # warm-up
+        stages["prepare"].append((t1 - t0) * 1e3)
+        stages["raster"].append((t2 - t1) * 1e3)
+        stages["describe"].append((t3 - t2 - (t2 - t1)) * 1e3)
+        stages["total"].append((t3 - t2 + t1 - t0) * 1e3)
+    assert feats is not None
+    return {
+        "encoder": kind,
+        "identity": enc.identity.name,
+        "points": len(raw),
+        "keypoints": int(feats.num_keypoints),
+        **{f"{k}_ms": float(np.median(v)) for k, v in stages.items()},
+    }
 
 
 # --------------------------------------------------------------------------------------
@@ -809,7 +864,7 @@ def format_encoding(res: dict[str, Any]) -> str:
         ]
         for r in res["rows"]
     ]
-    return _table(
+    table = _table(
         [
             "points",
             "after preprocess",
@@ -822,6 +877,25 @@ def format_encoding(res: dict[str, Any]) -> str:
         ],
         rows,
     )
+    images = res.get("image_encoders") or []
+    if not images:
+        return table
+    image_table = _table(
+        ["encoder", "points", "prepare ms", "raster ms", "describe ms", "total ms", "keypoints"],
+        [
+            [
+                r["encoder"],
+                str(r["points"]),
+                f"{r['prepare_ms']:.1f}",
+                f"{r['raster_ms']:.1f}",
+                f"{r['describe_ms']:.1f}",
+                f"{r['total_ms']:.1f}",
+                str(r["keypoints"]),
+            ]
+            for r in images
+        ],
+    )
+    return f"{table}\n\n{image_table}"
 
 
 FORMATTERS = {
