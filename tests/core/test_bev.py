@@ -11,6 +11,7 @@ from sgvloc.core.bev import (
     KITTI_BEV,
     BEVRasterConfig,
     density_image,
+    ground_rotation,
     load_bev_image,
     metres_to_pixel,
     pixel_to_metres,
@@ -72,6 +73,10 @@ def test_raster_counts_voxels_per_column_by_hand() -> None:
     # the mean voxel height is kept per column; empty columns are NaN
     assert raster.height[63, 88] == pytest.approx(0.15, abs=1e-6)
     assert np.isnan(raster.height[0, 0])
+    # and the lowest voxel's height: voxel centroids of the column at (-0.3, 10.1) from z 0.1
+    assert raster.low[76, 50] == pytest.approx(0.15, abs=1e-6)
+    assert raster.low[75, 75] == pytest.approx(0.15, abs=1e-6)
+    assert np.isnan(raster.low[0, 0])
 
 
 def test_density_image_levels_and_empty_image() -> None:
@@ -118,3 +123,42 @@ def test_load_bev_image(tmp_path: Path) -> None:
         load_bev_image(tmp_path / "rgb.png")
     with pytest.raises(InputError, match="does not exist"):
         load_bev_image(tmp_path / "missing.png")
+
+
+def _rot(roll_deg: float, pitch_deg: float) -> np.ndarray:
+    a, b = np.radians(roll_deg), np.radians(pitch_deg)
+    rx = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+    ry = np.array([[np.cos(b), 0, np.sin(b)], [0, 1, 0], [-np.sin(b), 0, np.cos(b)]])
+    return ry @ rx
+
+
+def test_ground_rotation_levels_a_tilted_scan() -> None:
+    rng = np.random.default_rng(1)
+    g = rng.uniform(-14, 14, size=(3000, 2))
+    ground = np.c_[g, -1.7 + rng.normal(0, 0.02, len(g))]
+    wall = np.c_[np.full(1500, 6.0), rng.uniform(-10, 10, 1500), rng.uniform(-1.7, 4, 1500)]
+    ceiling = np.c_[rng.uniform(-5, 5, size=(2000, 2)), np.full(2000, 2.5)]  # above: not ground
+    world = np.concatenate([ground, wall, ceiling])
+    tilt = _rot(20.0, -10.0)  # sensor -> level frame
+    sensor = world @ tilt  # the points as the tilted sensor sees them (tilt.T applied)
+    R, deg = ground_rotation(sensor)
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-9)
+    # the levelled ground normal is +z, and the tilt is the angle between the z axes
+    np.testing.assert_allclose(R @ (tilt.T @ [0, 0, 1.0]), [0, 0, 1.0], atol=5e-3)
+    assert deg == pytest.approx(np.degrees(np.arccos(tilt[2, 2])), abs=0.3)
+    levelled = sensor @ R.T
+    assert np.abs(levelled[: len(ground), 2] + 1.7).max() < 0.15
+    # the same points give the same rotation (seeded); a level scan is left as it is
+    np.testing.assert_array_equal(ground_rotation(sensor)[0], R)
+    R0, deg0 = ground_rotation(world)
+    assert deg0 < 0.3 and np.abs(R0 - np.eye(3)).max() < 1e-2
+
+
+def test_ground_rotation_without_ground_is_identity() -> None:
+    rng = np.random.default_rng(2)
+    wall = np.c_[np.full(2000, 3.0), rng.uniform(-10, 10, 2000), rng.uniform(-2, 4, 2000)]
+    few = np.c_[rng.uniform(-5, 5, size=(50, 2)), np.full(50, -1.7)]
+    for pts in (wall, few, np.concatenate([wall, few]), np.zeros((0, 3))):
+        R, deg = ground_rotation(pts)
+        np.testing.assert_array_equal(R, np.eye(3))
+        assert deg == 0.0

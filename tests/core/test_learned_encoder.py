@@ -9,12 +9,19 @@ import numpy as np
 import pytest
 import torch
 
-from sgvloc.core.bev import KITTI_BEV, LearnedEncoderConfig, rasterize
+from sgvloc.core.bev import (
+    KITTI_BEV,
+    LearnedEncoderConfig,
+    ground_rotation,
+    rasterize,
+    rasterize_cloud,
+)
 from sgvloc.core.encoders import EncoderSpec, LearnedEncoder, make_encoder
 from sgvloc.core.encoders.learned import shipped_weights_path
 from sgvloc.core.encoders.torchscript import file_sha256
 from sgvloc.core.errors import InputError
 from sgvloc.core.io import KittiSequence
+from sgvloc.core.preprocess import voxel_downsample
 
 
 @pytest.fixture(scope="module")
@@ -55,16 +62,44 @@ def test_real_scan_gives_finite_features_of_the_documented_shapes(
     assert kp.shape == (n, 3) and loc.shape == (n, 64)
     assert np.isfinite(kp).all() and np.isfinite(loc).all()
     np.testing.assert_allclose(np.linalg.norm(loc, axis=1), 1.0, atol=1e-5)
-    assert kp[:, 2].any()  # keypoint_z "column_mean": heights from the scan's columns
-    assert (np.abs(kp[:, :2]) < KITTI_BEV.extent).all()
-    assert len(np.unique(kp[:, :2], axis=0)) == n  # one keypoint per cell
-    # deterministic, and the raster of the scan describes the same as the scan
+    assert kp[:, 2].any()  # keypoint_z "column_min": heights from the scan's columns
+    assert (np.abs(kp[:, :2]) < KITTI_BEV.extent + 1.0).all()
+    # deterministic, and the raster of the levelled scan describes the same as the scan,
+    # with the keypoints turned back into the sensor frame
     again = enc.encode(scans[0])
     np.testing.assert_array_equal(again.local_features, loc)
-    img = enc.encode_image(rasterize(scans[0]).image)
+    cloud = enc.prepare(scans[0])
+    R, _ = ground_rotation(cloud)
+    level = voxel_downsample((cloud @ R.T).astype(np.float32), KITTI_BEV.resolution)
+    img = enc.encode_image(rasterize_cloud(level).image)
     np.testing.assert_allclose(img.global_descriptor, g, atol=1e-6)
-    np.testing.assert_array_equal(img.keypoints[:, :2], kp[:, :2])
+    np.testing.assert_allclose(img.keypoints[:, :2], (kp @ R.T)[:, :2], atol=1e-4)
+    assert len(np.unique(img.keypoints[:, :2], axis=0)) == n  # one keypoint per cell
     assert not img.keypoints[:, 2].any()  # an image has no heights
+
+
+def _tilt(points: np.ndarray, deg: float) -> np.ndarray:
+    a = math.radians(deg)
+    R = np.array(
+        [[1.0, 0.0, 0.0], [0.0, math.cos(a), -math.sin(a)], [0.0, math.sin(a), math.cos(a)]]
+    )
+    return (points[:, :3] @ R.T).astype(np.float32), R
+
+
+def test_levelling_keeps_features_steady_under_sensor_tilt(
+    enc: LearnedEncoder, scans: list[np.ndarray]
+) -> None:
+    tilted, R = _tilt(scans[5], 15.0)
+    unlevelled = make_encoder(EncoderSpec(kind="learned", learned={"level": False}))
+    assert unlevelled.identity != enc.identity
+    steady = {}
+    for name, e in (("level", enc), ("raw", unlevelled)):
+        f, ft = e.encode(scans[5]), e.encode(tilted)
+        back = ft.keypoints @ R  # the tilted scan's keypoints in the original frame
+        d = np.linalg.norm(back[:, None, :] - f.keypoints[None], axis=2).min(axis=1)
+        steady[name] = (float(f.global_descriptor @ ft.global_descriptor), float((d < 0.5).mean()))
+    assert steady["level"][0] > 0.98 and steady["level"][1] > 0.75
+    assert steady["level"][1] > steady["raw"][1] + 0.2  # without levelling: about 0.45
 
 
 def test_faint_pixels_are_not_described(enc: LearnedEncoder, scans: list[np.ndarray]) -> None:
@@ -129,9 +164,10 @@ def test_global_descriptor_tells_places_apart(
 
 
 def test_planar_keypoints_at_cell_centres(enc: LearnedEncoder, scans: list[np.ndarray]) -> None:
-    cfg = LearnedEncoderConfig(keypoint_z="zero", keypoint_xy="centre")
+    cfg = LearnedEncoderConfig(keypoint_z="zero", keypoint_xy="centre", level=False)
     flat = make_encoder(EncoderSpec(kind="learned", learned=cfg))
-    f, ref = flat.encode(scans[0]), enc.encode(scans[0])
+    unlevelled = make_encoder(EncoderSpec(kind="learned", learned={"level": False}))
+    f, ref = flat.encode(scans[0]), unlevelled.encode(scans[0])
     assert not f.keypoints[:, 2].any() and flat.identity != enc.identity
     # cell centres lie on the 0.8 m grid (odd multiples of 0.4 m); the default centroids
     # stay inside their cell

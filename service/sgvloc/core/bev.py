@@ -70,12 +70,14 @@ class BEVRaster:
 
     - ``image``: uint8 grey density image (the kitti-bev image);
     - ``counts``: int32 occupied voxels per column;
-    - ``height``: float32 mean height (z, m) of the column's voxels, NaN where empty.
+    - ``height``: float32 mean height (z, m) of the column's voxels, NaN where empty;
+    - ``low``: float32 height of the column's lowest voxel, NaN where empty.
     """
 
     image: np.ndarray
     counts: np.ndarray
     height: np.ndarray
+    low: np.ndarray
     config: BEVRasterConfig
 
 
@@ -98,6 +100,69 @@ def prepare_points(points: np.ndarray, config: BEVRasterConfig = KITTI_BEV) -> n
             f"scan has no finite point with |x|, |y|, |z| < {config.extent} m; nothing to rasterise"
         )
     return pts
+
+
+def ground_rotation(
+    cloud: np.ndarray,
+    radius: float = 15.0,
+    threshold: float = 0.15,
+    max_tilt_deg: float = 45.0,
+    hypotheses: int = 256,
+    min_inliers: int = 100,
+    min_spread: float = 1.0,
+) -> tuple[np.ndarray, float]:
+    """Rotation ``R`` ``[3, 3]`` float64 that levels a scan's ground, and the tilt (degrees).
+
+    A plane is fitted to the points ``[M, 3+]`` within ``radius`` (x/y) of the sensor:
+    seeded RANSAC over ``hypotheses`` point triples (deterministic), keeping planes whose
+    normal is within ``max_tilt_deg`` of the sensor's z axis and which pass below the
+    sensor, with inliers within ``threshold`` m, then a least-squares refit on the inliers.
+    ``R`` turns that normal onto +z by the smallest rotation (no yaw), so ``cloud @ R.T``
+    is level. Identity and 0 when fewer than ``min_inliers`` points fit a plane or the
+    inliers spread less than ``min_spread`` m (std) across their main direction.
+    """
+    pts = np.asarray(cloud, dtype=np.float64)[:, :3]
+    pts = pts[np.einsum("ij,ij->i", pts[:, :2], pts[:, :2]) < radius * radius]
+    if len(pts) < max(3, min_inliers):
+        return np.eye(3), 0.0
+    if len(pts) > 4000:  # an even subsample keeps the fit cheap and deterministic
+        pts = pts[np.linspace(0, len(pts) - 1, 4000).astype(np.int64)]
+    rng = np.random.default_rng(0)
+    tri = pts[rng.integers(0, len(pts), size=(hypotheses, 3))]  # [H, 3, 3]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # [H, 3]
+    norm = np.linalg.norm(n, axis=1)
+    ok = norm > 1e-9
+    n = n[ok] / norm[ok, None]
+    n *= np.where(n[:, 2] < 0, -1.0, 1.0)[:, None]
+    d = -np.einsum("ij,ij->i", n, tri[ok, 0])  # plane n . p + d = 0; d > 0: below the sensor
+    keep = (n[:, 2] >= np.cos(np.radians(max_tilt_deg))) & (d > threshold)
+    if not keep.any():
+        return np.eye(3), 0.0
+    n, d = n[keep], d[keep]
+    inl = np.abs(pts @ n.T + d) <= threshold  # [M, H']
+    best = int(inl.sum(axis=0).argmax())
+    mask = inl[:, best]
+    if mask.sum() < min_inliers:
+        return np.eye(3), 0.0
+    sel = pts[mask]
+    centre = sel.mean(axis=0)
+    _, sv, vt = np.linalg.svd(sel - centre, full_matrices=False)
+    normal = vt[2] * (1.0 if vt[2, 2] >= 0 else -1.0)
+    # a ground patch spreads both ways; a strip (a tilted plane cutting a wall) does not
+    spread = sv[1] / np.sqrt(len(sel))  # inliers' std along their second axis (m)
+    if normal[2] < np.cos(np.radians(max_tilt_deg)) or spread < min_spread:
+        return np.eye(3), 0.0
+    return _rotation_onto_z(normal), float(np.degrees(np.arccos(min(normal[2], 1.0))))
+
+
+def _rotation_onto_z(n: np.ndarray) -> np.ndarray:
+    """Smallest rotation ``[3, 3]`` taking the unit vector ``n`` (``n_z > 0``) onto +z."""
+    v = np.array([n[1], -n[0], 0.0])  # n x z
+    s, c = np.linalg.norm(v), n[2]
+    if s < 1e-12:
+        return np.eye(3)
+    k = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+    return np.eye(3) + k + k @ k * ((1.0 - c) / (s * s))
 
 
 def metres_to_pixel(
@@ -160,11 +225,15 @@ def rasterize_cloud(cloud: np.ndarray, config: BEVRasterConfig = KITTI_BEV) -> B
     zsum = np.bincount(flat, weights=cloud[inside, 2], minlength=size * size)
     with np.errstate(invalid="ignore", divide="ignore"):
         height = np.where(counts > 0, zsum / np.maximum(counts, 1), np.nan)
+    low = np.full(size * size, np.inf)
+    np.minimum.at(low, flat, cloud[inside, 2])
+    low[np.isinf(low)] = np.nan
     counts = counts.reshape(size, size).astype(np.int32)
     return BEVRaster(
         image=density_image(counts, config.max_level),
         counts=counts,
         height=height.reshape(size, size).astype(np.float32),
+        low=low.reshape(size, size).astype(np.float32),
         config=config,
     )
 
@@ -249,10 +318,17 @@ class LearnedEncoderConfig(BaseModel):
         description="keypoint position in its 0.8 m cell: the cell centre, or the "
         "grey-weighted centroid of its 2 x 2 pixels",
     )
-    keypoint_z: Literal["zero", "column_mean"] = Field(
-        "column_mean",
-        description="keypoint height: the mean voxel height of its cell's columns (scans; "
-        "0 for BEV images, which have no height), or 0",
+    keypoint_z: Literal["zero", "column_mean", "column_min"] = Field(
+        "column_min",
+        description="keypoint height (scans; 0 for BEV images, which have no height): the "
+        "height of the lowest voxel in its cell (column_min, the steadiest between "
+        "viewpoints), the mean height of its cell's voxels (column_mean), or 0",
+    )
+    level: bool = Field(
+        True,
+        description="scans: rotate the voxel cloud so its fitted ground plane is level "
+        "before rasterising (the network was trained on level car-mounted scans; a hand-held "
+        "or tilted sensor otherwise changes the image), keypoints returned in the sensor frame",
     )
     global_descriptor: Literal["network", "polar"] = Field(
         "polar",

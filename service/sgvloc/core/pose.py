@@ -205,7 +205,9 @@ def ransac_pose(
 
     Reference settings (SPEC section 4): mutual filter, 0.5 m max correspondence distance,
     3-point samples, edge-length (0.8) and distance checkers, 10000 iterations, 0.999
-    confidence. Seeded, so the same inputs give the same answer.
+    confidence. Seeded; Open3D still runs the hypotheses on several threads, which race
+    for the early stop, so two runs on the same inputs can return slightly different
+    poses (each as good as the other under the inlier test).
     """
     return _register(_ransac, src_kp, src_feats, dst_kp, dst_feats, cfg)
 

@@ -4,16 +4,19 @@ Per scan (deterministic):
 
 1. prepare: finite points, box crop and 0.4 m voxels (:func:`sgvloc.core.bev.prepare_points`),
    as the handcrafted BEV encoder; the voxel cloud is what the localizer keeps for ICP;
-2. raster: the kitti-bev density image of the cloud (:func:`sgvloc.core.bev.rasterize_cloud`),
+2. level (``level``, scans): the cloud turned so that its ground plane is level
+   (:func:`sgvloc.core.bev.ground_rotation`, a seeded RANSAC plane fit) and re-voxelised,
+   as the network was trained on scans of a level car-mounted sensor;
+3. raster: the kitti-bev density image of the cloud (:func:`sgvloc.core.bev.rasterize_cloud`),
    the input the network was trained on, without its faintest pixels (grey level below the
    ``min_grey`` the weights were trained with, :func:`sgvloc.core.bevnet.cut_faint`);
-3. network: local descriptor map and saliency over 0.8 m cells, global descriptor;
-4. keypoints: the most salient occupied cells (optionally only local maxima of the
+4. network: local descriptor map and saliency over 0.8 m cells, global descriptor;
+5. keypoints: the most salient occupied cells (optionally only local maxima of the
    saliency, ``nms_radius``), lifted to metres at the grey-weighted centroid of the cell's
-   2 x 2 pixels (``keypoint_xy``) and, for scans, at the mean height of the cell's voxel
-   columns (``keypoint_z``; 3-D keypoints let RANSAC and SGV see a tilted sensor); local
-   features are the descriptors of those cells;
-5. global descriptor (``global_descriptor``): the network's, with ``global_rotations = 4``
+   2 x 2 pixels (``keypoint_xy``) and, for scans, at the height of the cell's lowest voxel
+   (``keypoint_z``), then turned back into the sensor frame; local features are the
+   descriptors of those cells;
+6. global descriptor (``global_descriptor``): the network's, with ``global_rotations = 4``
    the mean of the descriptors of the image turned by 0, 90, 180 and 270 degrees about the
    sensor (exact pixel turns, as the sensor is the centre of the padded input),
    re-normalised, which makes it invariant to quarter turns and flattens the yaw
@@ -40,12 +43,14 @@ from ..bev import (
     KITTI_BEV,
     BEVRaster,
     LearnedEncoderConfig,
+    ground_rotation,
     pixel_to_metres,
     prepare_points,
     rasterize_cloud,
 )
 from ..errors import InputError
 from ..features import EncoderIdentity, Features
+from ..preprocess import voxel_downsample
 from .base import Encoder
 from .bev import polar_fft_descriptor
 from .torchscript import file_sha256
@@ -187,8 +192,16 @@ class LearnedEncoder(Encoder):
 
         Raises :class:`InputError` if the raster is empty (no column of two voxels).
         """
-        raster = rasterize_cloud(np.asarray(cloud, dtype=np.float32), KITTI_BEV)
-        return self._encode(raster.image, raster)
+        cloud = np.asarray(cloud, dtype=np.float32)
+        if not self.config.level:
+            raster = rasterize_cloud(cloud, KITTI_BEV)
+            return self._encode(raster.image, raster)
+        R, _ = ground_rotation(cloud)
+        level = voxel_downsample((cloud @ R.T).astype(np.float32), KITTI_BEV.resolution)
+        raster = rasterize_cloud(level, KITTI_BEV)
+        f = self._encode(raster.image, raster)
+        kp = (f.keypoints.astype(np.float64) @ R).astype(np.float32)  # back to the sensor frame
+        return Features(f.global_descriptor, kp, f.local_features, f.encoder)
 
     # -- images ------------------------------------------------------------------------
 
@@ -257,13 +270,20 @@ class LearnedEncoder(Encoder):
         else:
             xy = cell_to_metres(rows, cols).reshape(-1, 2)
         z = np.zeros(len(xy))
-        if raster is not None and c.keypoint_z == "column_mean" and len(xy):
-            # the cell's 2 x 2 pixels: mean of the finite column heights
+        if raster is not None and c.keypoint_z != "zero" and len(xy):
+            # over the cell's 2 x 2 columns: the lowest voxel, or the voxel-weighted mean
+            low = c.keypoint_z == "column_min"
             hgt = np.full((CELLS * 2, CELLS * 2), np.nan)
-            hgt[: KITTI_BEV.size, : KITTI_BEV.size] = raster.height
+            cnt = np.zeros((CELLS * 2, CELLS * 2))
+            hgt[: KITTI_BEV.size, : KITTI_BEV.size] = raster.low if low else raster.height
+            cnt[: KITTI_BEV.size, : KITTI_BEV.size] = raster.counts
             blocks = hgt.reshape(CELLS, 2, CELLS, 2)[rows, :, cols, :].reshape(len(rows), -1)
             with np.errstate(all="ignore"):
-                zc = np.nanmean(blocks, axis=1)
+                if low:
+                    zc = np.nanmin(blocks, axis=1)
+                else:
+                    w = cnt.reshape(CELLS, 2, CELLS, 2)[rows, :, cols, :].reshape(len(rows), -1)
+                    zc = np.nansum(blocks * w, axis=1) / w.sum(axis=1)
             z = np.where(np.isfinite(zc), zc, 0.0)
         kp = np.column_stack([xy, z]).reshape(-1, 3)
         return Features.validated(
