@@ -76,14 +76,6 @@ def to_cloud(points: np.ndarray):
     return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
 
 
-def _feature(feats: np.ndarray):
-    import open3d as o3d
-
-    f = o3d.pipelines.registration.Feature()
-    f.data = np.ascontiguousarray(np.asarray(feats, dtype=np.float64).T)  # [D, N]
-    return f
-
-
 def feature_correspondences(
     src_feats: np.ndarray, dst_feats: np.ndarray, mutual: bool
 ) -> np.ndarray:
@@ -159,25 +151,87 @@ def _register(
     return judge(T, len(pairs), n_in, ratio, rmse, cfg)
 
 
-def _ransac(src: np.ndarray, dst: np.ndarray, pairs: np.ndarray, cfg: PoseConfig) -> np.ndarray:
-    import open3d as o3d
+def kabsch(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares rigid fits of batches of paired points ``[B, n, 3]`` -> ``R`` ``[B, 3, 3]``
+    and ``t`` ``[B, 3]`` with ``dst ~ src @ R.T + t`` (proper rotations, det +1)."""
+    cs, cd = src.mean(axis=1), dst.mean(axis=1)
+    H = np.einsum("bni,bnj->bij", src - cs[:, None], dst - cd[:, None])  # [B, 3, 3]
+    U, _, Vt = np.linalg.svd(H)
+    V = np.swapaxes(Vt, 1, 2)
+    d = np.sign(np.linalg.det(V @ np.swapaxes(U, 1, 2)))
+    V[:, :, 2] *= np.where(d == 0, 1.0, d)[:, None]
+    R = V @ np.swapaxes(U, 1, 2)
+    return R, cd - np.einsum("bij,bj->bi", R, cs)
 
-    reg = o3d.pipelines.registration
-    o3d.utility.random.seed(cfg.seed)
-    result = reg.registration_ransac_based_on_correspondence(
-        to_cloud(src),
-        to_cloud(dst),
-        o3d.utility.Vector2iVector(pairs.astype(np.int32)),
-        cfg.max_correspondence_distance,
-        reg.TransformationEstimationPointToPoint(False),
-        cfg.ransac_n,
-        [
-            reg.CorrespondenceCheckerBasedOnEdgeLength(cfg.edge_length_ratio),
-            reg.CorrespondenceCheckerBasedOnDistance(cfg.max_correspondence_distance),
-        ],
-        reg.RANSACConvergenceCriteria(cfg.max_iterations, cfg.confidence),
-    )
-    return np.asarray(result.transformation, dtype=np.float64).copy()
+
+def _ransac(src: np.ndarray, dst: np.ndarray, pairs: np.ndarray, cfg: PoseConfig) -> np.ndarray:
+    """Seeded RANSAC over correspondences (deterministic: the same inputs, the same pose).
+
+    Hypotheses from ``ransac_n`` distinct correspondences, drawn in batches; a sample is
+    kept when every pair of its points has lengths within ``edge_length_ratio`` in both
+    clouds and its fit moves each sampled point within ``max_correspondence_distance`` of
+    its partner (the checkers of SPEC section 4). The best hypothesis has the most inliers
+    (then the smallest squared error); the loop stops at ``max_iterations`` or once
+    ``confidence`` is reached for the best inlier share. The result is refitted on its
+    inliers unless that loses inliers.
+    """
+    ps, pd = src[pairs[:, 0]], dst[pairs[:, 1]]  # [C, 3]
+    C, n = len(pairs), cfg.ransac_n
+    thr2 = cfg.max_correspondence_distance**2
+    ratio = cfg.edge_length_ratio
+    iu, ju = np.triu_indices(n, 1)
+    rng = np.random.default_rng(cfg.seed)
+    batch = int(max(16, min(1000, 4_000_000 // max(C, 1))))  # [batch, C] stays small
+    best = (-1, np.inf)  # (inliers, squared error)
+    best_T = np.eye(4)
+    done, needed = 0, cfg.max_iterations
+    while done < needed:
+        b = min(batch, needed - done)
+        done += b
+        idx = rng.integers(0, C, size=(b, n))  # [b, n]
+        s, d = ps[idx], pd[idx]  # [b, n, 3]
+        ls = np.linalg.norm(s[:, iu] - s[:, ju], axis=2)  # [b, pairs]
+        ld = np.linalg.norm(d[:, iu] - d[:, ju], axis=2)
+        ok = ((ls >= ratio * ld) & (ld >= ratio * ls) & (ls > 0)).all(axis=1)
+        distinct = (np.sort(idx, axis=1)[:, 1:] != np.sort(idx, axis=1)[:, :-1]).all(axis=1)
+        ok &= distinct
+        if not ok.any():
+            continue
+        s, d = s[ok], d[ok]
+        R, t = kabsch(s, d)
+        fit = ((np.einsum("bij,bnj->bni", R, s) + t[:, None] - d) ** 2).sum(axis=2)
+        keep = (fit <= thr2).all(axis=1)
+        if not keep.any():
+            continue
+        R, t = R[keep], t[keep]
+        err = ((np.einsum("bij,cj->bci", R, ps) + t[:, None] - pd) ** 2).sum(axis=2)  # [b', C]
+        inl = err <= thr2
+        count = inl.sum(axis=1)
+        sse = np.where(inl, err, 0.0).sum(axis=1)
+        top = np.lexsort((sse, -count))[0]
+        if (count[top], -sse[top]) > (best[0], -best[1]):
+            best = (int(count[top]), float(sse[top]))
+            best_T = np.eye(4)
+            best_T[:3, :3], best_T[:3, 3] = R[top], t[top]
+            w = best[0] / C
+            if w >= 1.0:
+                break
+            miss = 1.0 - w**n
+            if cfg.confidence < 1.0 and 0.0 < miss < 1.0:
+                needed = min(
+                    cfg.max_iterations, int(np.ceil(np.log(1 - cfg.confidence) / np.log(miss)))
+                )
+    if best[0] < n:
+        return best_T
+    moved = ps @ best_T[:3, :3].T + best_T[:3, 3]
+    inl = ((moved - pd) ** 2).sum(axis=1) <= thr2
+    R, t = kabsch(ps[inl][None], pd[inl][None])
+    refit = np.eye(4)
+    refit[:3, :3], refit[:3, 3] = R[0], t[0]
+    moved = ps @ refit[:3, :3].T + refit[:3, 3]
+    if int((((moved - pd) ** 2).sum(axis=1) <= thr2).sum()) >= best[0]:
+        return refit
+    return best_T
 
 
 def _fgr(src: np.ndarray, dst: np.ndarray, pairs: np.ndarray, cfg: PoseConfig) -> np.ndarray:
@@ -205,9 +259,7 @@ def ransac_pose(
 
     Reference settings (SPEC section 4): mutual filter, 0.5 m max correspondence distance,
     3-point samples, edge-length (0.8) and distance checkers, 10000 iterations, 0.999
-    confidence. Seeded; Open3D still runs the hypotheses on several threads, which race
-    for the early stop, so two runs on the same inputs can return slightly different
-    poses (each as good as the other under the inlier test).
+    confidence. Seeded and deterministic (:func:`_ransac`).
     """
     return _register(_ransac, src_kp, src_feats, dst_kp, dst_feats, cfg)
 

@@ -5,9 +5,10 @@
   descriptor is replaced by the (weighted) mean of itself and its top ``qe_k`` neighbours
   (alpha-QE weights each neighbour by ``similarity ** qe_alpha``) and the index is
   searched again.
-- ``ransac-rir`` / ``fgr-rir``: register the query to every candidate (Open3D RANSAC or
-  Fast Global Registration on feature correspondences) and score by the registered inlier
-  ratio. Slow by design: one registration per candidate.
+- ``ransac-rir`` / ``fgr-rir``: register the query to every candidate (the seeded RANSAC
+  of :mod:`sgvloc.core.pose`, or Open3D's Fast Global Registration, on feature
+  correspondences) and score by the registered inlier ratio. Slow by design: one
+  registration per candidate.
 - ``sgv``: Spectral Geometric Verification, a registration-free score computed for all
   candidates in one batch (:mod:`sgvloc.core.sgv`).
 
