@@ -50,7 +50,7 @@ def test_http_section_tiny(tmp_path: Path) -> None:
     assert raw["keyframes"] == 2 and raw["batches"] == 2
     assert raw["kib_per_keyframe"] > 100  # 12k float32 points
     m = res["map"]
-    assert m["encoder"] == "handcrafted" and m["global_dim"] == 620 and m["local_dim"] == 33
+    assert m["encoder"] == "bevnet" and m["global_dim"] == 620 and m["local_dim"] == 64
     assert m["store_mib"] > 0
     assert {t["unit"] for t in res["targets"]} == {"ms", "keyframes/s"}  # no 4-client row
     table = bs.format_http(res)
@@ -148,7 +148,8 @@ def test_procedural_scans_without_the_fixture(tmp_path: Path) -> None:
     db, queries, source = bs.source_scans(tmp_path)  # no scans.txt there
     assert len(db) == 12 and len(queries) == 3 and "procedural" in source
     bases, claim = bs.encode_bases(
-        db[:1], EncoderSpec.model_validate({"handcrafted": {"num_keypoints": 32}})
+        db[:1],
+        EncoderSpec.model_validate({"kind": "handcrafted", "handcrafted": {"num_keypoints": 32}}),
     )
     assert claim["encoder"] == "handcrafted" and len(claim["fingerprint"]) > 8
     assert bases[0]["keypoints"].shape[0] <= 32 and bases[0]["local_features"].shape[1] == 33

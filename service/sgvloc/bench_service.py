@@ -14,23 +14,24 @@ the clock starts and asking for MessagePack answers. Latency is measured by the 
 (send to last byte of the answer); the service's own per-stage times come from the
 ``timings_ms`` of each localize answer (encode, retrieve, rerank, pose, total).
 
-``http`` (:func:`bench_http`): a map with the default handcrafted encoder (620-D global
-descriptor, 512 keypoints with 33-D FPFH) holding ``keyframes`` keyframes, inserted as
-precomputed features through the bulk endpoint. The features are *copies* of the real
-database scans of ``tests/fixtures/balm_mini`` encoded once here with the map's encoder:
-each copy's keypoints are turned by a random yaw and jittered (2 cm), its FPFH rows and
-global descriptor get small noise, and it sits at its own place of a 10 m grid. So every
-keyframe has the full size and shape of a real one (the per-candidate costs of SGV and
-RANSAC are real), but the map is 12 places repeated: retrieval and re-ranking results are
-not meaningful for accuracy. Queries are the fixture's held-out query scans, densified to
-``points`` points (5 cm jitter), posted raw so the server encodes them; ``top_k`` 20,
-``rerank`` sgv, ``refine`` none: keyframes inserted as features carry no cloud, so ICP
-could not run against them anyway. Closed-loop clients (send, wait, send again) run for
-``duration_s`` per client count; throughput is successful answers per second of the
-window. Bulk insert is timed per request (server time: decoding, validation, encoding of
-raw scans, one SQLite transaction with fsync, FAISS add): with precomputed features (the
-10k map's batches) and with raw scans (a second handcrafted map that keeps clouds, so
-the server encodes and stores each scan's preprocessed cloud).
+``http`` (:func:`bench_http`): a map with the default encoder (the learned BEV encoder:
+620-D global descriptor, up to 256 keypoints with 64-D descriptors) holding ``keyframes``
+keyframes, inserted as precomputed features through the bulk endpoint. The features are
+*copies* of the real database scans of ``tests/fixtures/balm_mini`` encoded once here with
+the map's encoder: each copy's keypoints are turned by a random yaw and jittered (2 cm),
+its local feature rows and global descriptor get small noise, and it sits at its own place
+of a 10 m grid. So every keyframe has the full size and shape of a real one (the
+per-candidate costs of SGV and RANSAC are real), but the map is 12 places repeated:
+retrieval and re-ranking results are not meaningful for accuracy. Queries are the
+fixture's held-out query scans, densified to ``points`` points (5 cm jitter), posted raw
+so the server encodes them; ``top_k`` 20, ``rerank`` sgv, ``refine`` none: keyframes
+inserted as features carry no cloud, so ICP could not run against them anyway. Closed-loop
+clients (send, wait, send again) run for ``duration_s`` per client count; throughput is
+successful answers per second of the window. Bulk insert is timed per request (server
+time: decoding, validation, encoding of raw scans, one SQLite transaction with fsync,
+FAISS add): with precomputed features (the 10k map's batches) and with raw scans (a second
+map of the same encoder that keeps clouds, so the server encodes and stores each scan's
+preprocessed cloud).
 
 ``scaling`` (:func:`bench_scaling`): one map grown in steps (default 1k, 3k, 10k, 30k,
 100k keyframes); after each step localize p50/p99/QPS (1 and 4 clients), insert
@@ -771,10 +772,11 @@ def bench_http(
         f"service: 'sgvloc serve --dev', {workers} worker threads, default settings except "
         f"max_inflight_localize={env['SGVLOC_MAX_INFLIGHT_LOCALIZE']} (no 429 by design); "
         "clients: threads of one spawned process, one connection each, MessagePack both ways",
-        f"map: default handcrafted encoder; {keyframes} keyframes inserted as precomputed "
-        f"features = perturbed copies (random yaw, 2 cm keypoint jitter, feature noise) of "
-        f"{len(bases)} encoded scans of {source}: real per-keyframe size and cost, but "
-        "12 places repeated, so retrieval/re-ranking results say nothing about accuracy",
+        f"map: the default encoder ({spec.kind}); {keyframes} keyframes inserted as "
+        "precomputed features = perturbed copies (random yaw, 2 cm keypoint jitter, "
+        f"feature noise) of {len(bases)} encoded scans of {source}: real per-keyframe "
+        "size and cost, but 12 places repeated, so retrieval/re-ranking results say "
+        "nothing about accuracy",
         f"queries: {len(bodies)} bodies cycling over the held-out query scans densified to "
         f"{points} points (5 cm jitter), raw (the server encodes them); top_k {top_k}, "
         "rerank sgv, refine none (feature keyframes carry no cloud, so no ICP)",
@@ -784,7 +786,8 @@ def bench_http(
         "service's total (HTTP, decoding, waiting for one of the worker threads)",
         "insert: keyframes/s per request (median over requests; bodies made before the "
         "clock starts), overall = all keyframes / all request time; raw scans go to a "
-        "second handcrafted map that keeps clouds (server-side encoding + cloud storage)",
+        "second map of the same encoder that keeps clouds (server-side encoding + cloud "
+        "storage)",
     ]
     return result
 
@@ -833,7 +836,9 @@ def bench_scaling(
     if sizes[0] < 1 or batch < 1 or keypoints < 1 or duration_s <= 0:
         raise ValueError("sizes, batch, keypoints and duration_s must be positive")
     db, queries, source = source_scans()
-    spec = EncoderSpec.model_validate({"handcrafted": {"num_keypoints": keypoints}})
+    spec = EncoderSpec.model_validate(
+        {"kind": "handcrafted", "handcrafted": {"num_keypoints": keypoints}}
+    )
     bases, claim = encode_bases(db, spec)
     bodies = query_bodies(queries, points, max(6, len(queries)), top_k)
     env = {"SGVLOC_MAX_INFLIGHT_LOCALIZE": str(max(4 * workers, max(clients)))}

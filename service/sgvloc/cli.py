@@ -262,7 +262,10 @@ def build_map_command(
     create: Annotated[bool, typer.Option(help="create the map if it does not exist")] = True,
     encoder: Annotated[
         str | None,
-        typer.Option(help="encoder of a new map: a kind (handcrafted) or a JSON EncoderSpec"),
+        typer.Option(
+            help="encoder of a new map: a kind (learned, handcrafted, bev) or a JSON "
+            "EncoderSpec (default: learned)"
+        ),
     ] = None,
     batch_size: Annotated[
         int, typer.Option(min=1, help="keyframes per request (or store transaction)")
@@ -371,7 +374,7 @@ def eval_command(
     ] = None,
     query_stride: Annotated[int, typer.Option(min=1, help="evaluate every n-th query")] = 1,
     encoder: Annotated[
-        str | None, typer.Option(help="encoder: a JSON EncoderSpec (default: handcrafted)")
+        str | None, typer.Option(help="encoder: a JSON EncoderSpec (default: learned)")
     ] = None,
     config: Annotated[
         Path | None, typer.Option(help="JSON LocalizerConfig (retrieval, sgv, pose settings)")

@@ -147,7 +147,7 @@ def test_build_map_into_data_dir_then_serve(
     with start_service(data_dir) as url, Client(url) as c:
         info = c.get_map("offline")
         assert (info.keyframes, info.version) == (num_database, first.map_version)
-        assert info.encoder.kind == "handcrafted"
+        assert info.encoder.kind == "learned"  # the default encoder
         frame = seq[queries[0]]  # a revisit, never inserted
         loc = c.localize("offline", points=frame.scan().xyzi())
         assert loc.localized, loc.reason

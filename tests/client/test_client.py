@@ -70,7 +70,7 @@ def test_map_lifecycle(service_url: str) -> None:
         info = c.create_map("lifecycle", retrieval="flat")
         assert isinstance(info, MapInfo)
         assert (info.name, info.keyframes) == ("lifecycle", 0)
-        assert info.encoder.kind == "handcrafted" and info.encoder.fingerprint
+        assert info.encoder.kind == "learned" and info.encoder.fingerprint  # the default
         assert info.encoder.global_dim > 0 and info.index_kind == "flat"
 
         assert "lifecycle" in [m.name for m in c.list_maps()]

@@ -14,6 +14,7 @@ from sgvloc.core.encoders import (
     Encoder,
     EncoderSpec,
     HandcraftedEncoder,
+    LearnedEncoder,
     PrecomputedEncoder,
     TorchScriptEncoder,
     make_encoder,
@@ -398,7 +399,8 @@ def test_precomputed_identity_depends_on_name_and_dims(pre):
 
 def test_spec_round_trip_and_factory(tmp_path):
     spec = EncoderSpec()
-    assert isinstance(make_encoder(spec), HandcraftedEncoder)
+    assert isinstance(make_encoder(spec), LearnedEncoder)  # the default
+    assert isinstance(make_encoder(EncoderSpec(kind="handcrafted")), HandcraftedEncoder)
     spec2 = EncoderSpec.model_validate_json(spec.model_dump_json())
     assert make_encoder(spec2).identity == make_encoder(spec).identity
     p = make_encoder(EncoderSpec(kind="precomputed", name="egonn", global_dim=256, local_dim=128))

@@ -122,8 +122,8 @@ def test_wrong_ground_truth_lowers_the_planar_match_ratio(bev_dir):
 
 
 def test_an_encoder_without_encode_image_is_refused(bev_dir, tmp_path):
-    res, _ = _eval(bev_dir, tmp_path, "--min-gap", "2.5")  # handcrafted: scans only
-    assert res.exit_code == 2
+    res, _ = _eval(bev_dir, tmp_path, "--min-gap", "2.5", "--encoder", '{"kind":"handcrafted"}')
+    assert res.exit_code == 2  # handcrafted: scans only
     assert "cannot encode images" in res.output and "handcrafted" in res.output
 
 

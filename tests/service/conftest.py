@@ -155,7 +155,7 @@ def balm_map(server: Server, balm_mini_dir: Path, balm_mini_roles: list) -> Balm
     db = [i for i, (_, role) in enumerate(balm_mini_roles) if role == "database"]
     queries = [i for i, (_, role) in enumerate(balm_mini_roles) if role == "query"]
     with httpx.Client(base_url=server.url, timeout=300.0) as c:
-        r = c.post("/v1/maps", json={"name": "balm"})
+        r = c.post("/v1/maps", json={"name": "balm", "encoder": {"kind": "handcrafted"}})
         assert r.status_code == 201, r.text
         keyframes = []
         for i in db:

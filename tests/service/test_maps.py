@@ -17,10 +17,11 @@ def test_create_describe_list(client: httpx.Client) -> None:
     assert r.status_code == 201, r.text
     info = r.json()
     assert info["name"] == "m-create" and info["version"] == 0 and info["keyframes"] == 0
-    assert info["encoder"]["kind"] == "handcrafted"
-    assert info["encoder"]["name"] == "handcrafted"
+    # the default encoder: the learned BEV encoder with the shipped weights
+    assert info["encoder"]["kind"] == "learned"
+    assert info["encoder"]["name"] == "bevnet"
     assert len(info["encoder"]["fingerprint"]) == 16
-    assert info["encoder"]["global_dim"] > 0 and info["encoder"]["local_dim"] == 33
+    assert info["encoder"]["global_dim"] == 620 and info["encoder"]["local_dim"] == 64
     assert info["retrieval"]["index"] == "hnsw" and info["index_kind"] == "hnsw"
     assert info["localizer"]["top_k"] == 7 and info["localizer"]["rerank"] == "none"
     assert info["created_at"].endswith("Z")

@@ -100,7 +100,7 @@ class MapCreate(_In):
     """``POST /v1/maps``."""
 
     name: str = Field(description="^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
-    encoder: EncoderSpec | None = Field(None, description="defaults to the handcrafted encoder")
+    encoder: EncoderSpec | None = Field(None, description="defaults to the learned BEV encoder")
     retrieval: RetrievalConfig | None = Field(
         None, description="FAISS index settings (same as localizer.retrieval)"
     )

@@ -93,6 +93,8 @@ def prepare_points(points: np.ndarray, config: BEVRasterConfig = KITTI_BEV) -> n
     Raises :class:`InputError` on a malformed scan or if no point is left.
     """
     pts = as_points(points)
+    if len(pts) == 0:
+        raise InputError("scan is empty: no points to rasterise")
     pts = crop_box(finite(pts), config.extent)
     pts = voxel_downsample(pts, config.resolution)
     if len(pts) == 0:

@@ -110,7 +110,7 @@ class EncoderSpec(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    kind: Literal["handcrafted", "torchscript", "precomputed", "bev", "learned"] = "handcrafted"
+    kind: Literal["handcrafted", "torchscript", "precomputed", "bev", "learned"] = "learned"
     preprocess: PreprocessConfig = PreprocessConfig()
     handcrafted: HandcraftedEncoderConfig = HandcraftedEncoderConfig()
     bev: BEVEncoderConfig = BEVEncoderConfig()
