@@ -568,8 +568,9 @@ def bench_retrieval(
             f"one query per search call (as the service does): {queries} queries for the "
             f"approximate indexes, {flat_queries} for flat (exact results for recall come "
             "from one batched flat search)",
-            f"dimension {dim} (the handcrafted encoder's global_dim) below {large_from} "
-            f"descriptors, {large_dim} from there on (build time and memory on 2 cores)",
+            f"dimension {dim} (the learned and handcrafted encoders' global_dim) below "
+            f"{large_from} descriptors, {large_dim} from there on (build time and memory on "
+            "2 cores)",
             f"recall@{k} of the approximate index against exact (flat) search",
         ],
     }
