@@ -31,7 +31,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .core.bev import KITTI_BEV, load_bev_image, rasterize
+from .core.bev import KITTI_BEV, level_cloud, load_bev_image, prepare_points, rasterize_cloud
 from .core.bevnet import (
     CELLS,
     INPUT_SIZE,
@@ -62,7 +62,9 @@ class Sequence:
     def load(cls, path: str | Path, stride: int = 1) -> Sequence:
         """Read every ``stride``-th scan of a kitti-bev folder (``imgs/*.png``, ``pose.txt``)
         or of a KITTI-layout sequence (``velodyne/``, ``poses.txt``, ``times.txt``, e.g. from
-        ``sgvloc synth``), whose scans are rasterised here (:func:`sgvloc.core.bev.rasterize`).
+        ``sgvloc synth``), whose scans are levelled and rasterised here as the learned
+        encoder does (:func:`sgvloc.core.bev.level_cloud`); their poses are then those of
+        the levelled frames.
 
         Raises :class:`InputError` if the folder is neither layout.
         """
@@ -74,7 +76,11 @@ class Sequence:
         if seq.kind == "bev-images":
             images = [load_bev_image(p) for p in paths]
         else:
-            images = [rasterize(read_scan(p).points).image for p in paths]
+            images, poses = [], poses.copy()
+            for i, p in enumerate(paths):
+                level, R = level_cloud(prepare_points(read_scan(p).points))
+                images.append(rasterize_cloud(level).image)
+                poses[i, :3, :3] = poses[i, :3, :3] @ R.T  # T_world_levelled
         return cls(Path(path).name, np.stack(images), poses)
 
 

@@ -13,6 +13,7 @@ from sgvloc.core.bev import (
     KITTI_BEV,
     LearnedEncoderConfig,
     ground_rotation,
+    level_cloud,
     rasterize,
     rasterize_cloud,
 )
@@ -71,6 +72,9 @@ def test_real_scan_gives_finite_features_of_the_documented_shapes(
     cloud = enc.prepare(scans[0])
     R, _ = ground_rotation(cloud)
     level = voxel_downsample((cloud @ R.T).astype(np.float32), KITTI_BEV.resolution)
+    level2, R2 = level_cloud(cloud)
+    np.testing.assert_array_equal(R2, R)
+    np.testing.assert_array_equal(level2, level)
     img = enc.encode_image(rasterize_cloud(level).image)
     np.testing.assert_allclose(img.global_descriptor, g, atol=1e-6)
     np.testing.assert_allclose(img.keypoints[:, :2], (kp @ R.T)[:, :2], atol=1e-4)

@@ -9,11 +9,18 @@ import numpy as np
 import pytest
 import torch
 
-from sgvloc.core.bev import LearnedEncoderConfig, rasterize
+from sgvloc.core.bev import (
+    LearnedEncoderConfig,
+    level_cloud,
+    prepare_points,
+    rasterize,
+    rasterize_cloud,
+)
 from sgvloc.core.bevnet import cell_to_metres, metres_to_cell
 from sgvloc.core.encoders import EncoderSpec, make_encoder
 from sgvloc.core.encoders.learned import LearnedEncoder
 from sgvloc.core.errors import InputError
+from sgvloc.core.io import read_scan
 from sgvloc.train import (
     Sequence,
     TrainConfig,
@@ -98,12 +105,45 @@ def test_sequences_load_from_images_and_from_scans(seq: Sequence, tmp_path: Path
     (tmp_path / "scans" / "poses.txt").write_text(lines + "\n")
     (tmp_path / "scans" / "times.txt").write_text("0\n0.1\n0.2\n0.3\n")
     (tmp_path / "bev" / "pose.txt").write_text(lines + "\n")
-    for folder in ("scans", "bev"):
-        got = Sequence.load(tmp_path / folder, stride=2)
-        np.testing.assert_array_equal(got.images, seq.images[:4:2])
-        np.testing.assert_allclose(got.poses, seq.poses[:4:2], atol=1e-6)
+    got = Sequence.load(tmp_path / "bev", stride=2)
+    np.testing.assert_array_equal(got.images, seq.images[:4:2])
+    np.testing.assert_allclose(got.poses, seq.poses[:4:2], atol=1e-6)
+    # scans are levelled as the learned encoder does, and their poses follow
+    got = Sequence.load(tmp_path / "scans", stride=2)
+    for j, i in enumerate((0, 2)):
+        scan = read_scan(tmp_path / "scans" / "velodyne" / f"{i:06d}.bin").points
+        level, R = level_cloud(prepare_points(scan))
+        np.testing.assert_array_equal(got.images[j], rasterize_cloud(level).image)
+        np.testing.assert_allclose(got.poses[j, :3, :3] @ R, seq.poses[i, :3, :3], atol=1e-6)
+        assert (got.images[j] == seq.images[i]).mean() > 0.95  # the scans are nearly level
     with pytest.raises(InputError):
         Sequence.load(tmp_path)  # neither layout
+
+
+def test_tilted_scans_load_as_level_images(seq: Sequence, tmp_path: Path) -> None:
+    from sgvloc.core.io import write_kitti_bin
+
+    a = math.radians(12.0)
+    tilt = np.array([[1, 0, 0], [0, math.cos(a), -math.sin(a)], [0, math.sin(a), math.cos(a)]])
+    g = np.mgrid[-10:70:0.5, -20:20:0.5].reshape(2, -1).T
+    pts = np.concatenate([world(), np.c_[g, np.full(len(g), -1.65)]])  # with a ground
+    (tmp_path / "velodyne").mkdir()
+    poses = []
+    for i, T in enumerate(seq.poses[:2]):
+        Tt = T.copy()
+        Tt[:3, :3] = T[:3, :3] @ tilt.T  # the sensor rolled by 12 degrees
+        poses.append(Tt)
+        local = (pts - Tt[:3, 3]) @ Tt[:3, :3]
+        write_kitti_bin(tmp_path / "velodyne" / f"{i:06d}.bin", local)
+    lines = "\n".join(" ".join(f"{v:.9f}" for v in T[:3].ravel()) for T in poses)
+    (tmp_path / "poses.txt").write_text(lines + "\n")
+    (tmp_path / "times.txt").write_text("0\n0.1\n")
+    got = Sequence.load(tmp_path)
+    for i in range(2):
+        # levelled: close to the untilted image, with the untilted pose
+        assert (got.images[i] == seq.images[i]).mean() > 0.9
+        R = got.poses[i, :3, :3].T @ seq.poses[i, :3, :3]
+        assert np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))) < 1.0
 
 
 def test_rotation_and_cell_mapping_are_consistent(seq: Sequence) -> None:

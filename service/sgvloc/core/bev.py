@@ -248,6 +248,17 @@ def rasterize(points: np.ndarray, config: BEVRasterConfig = KITTI_BEV) -> BEVRas
     return rasterize_cloud(prepare_points(points, config), config)
 
 
+def level_cloud(
+    cloud: np.ndarray, config: BEVRasterConfig = KITTI_BEV
+) -> tuple[np.ndarray, np.ndarray]:
+    """A cloud made by :func:`prepare_points` turned level on its ground plane
+    (:func:`ground_rotation`) and voxelised again at ``config.resolution``: ``[M', 3]``
+    float32 and the rotation ``R`` ``[3, 3]`` (levelled = sensor @ R.T)."""
+    R, _ = ground_rotation(cloud)
+    turned = (np.asarray(cloud, dtype=np.float64)[:, :3] @ R.T).astype(np.float32)
+    return voxel_downsample(turned, config.resolution), R
+
+
 def load_bev_image(path: str | Path, config: BEVRasterConfig = KITTI_BEV) -> np.ndarray:
     """Read one kitti-bev PNG as ``[S, S]`` uint8.
 

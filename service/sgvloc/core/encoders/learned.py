@@ -5,7 +5,7 @@ Per scan (deterministic):
 1. prepare: finite points, box crop and 0.4 m voxels (:func:`sgvloc.core.bev.prepare_points`),
    as the handcrafted BEV encoder; the voxel cloud is what the localizer keeps for ICP;
 2. level (``level``, scans): the cloud turned so that its ground plane is level
-   (:func:`sgvloc.core.bev.ground_rotation`, a seeded RANSAC plane fit) and re-voxelised,
+   (:func:`sgvloc.core.bev.level_cloud`, a seeded RANSAC plane fit) and re-voxelised,
    as the network was trained on scans of a level car-mounted sensor;
 3. raster: the kitti-bev density image of the cloud (:func:`sgvloc.core.bev.rasterize_cloud`),
    the input the network was trained on, without its faintest pixels (grey level below the
@@ -43,14 +43,13 @@ from ..bev import (
     KITTI_BEV,
     BEVRaster,
     LearnedEncoderConfig,
-    ground_rotation,
+    level_cloud,
     pixel_to_metres,
     prepare_points,
     rasterize_cloud,
 )
 from ..errors import InputError
 from ..features import EncoderIdentity, Features
-from ..preprocess import voxel_downsample
 from .base import Encoder
 from .bev import polar_fft_descriptor
 from .torchscript import file_sha256
@@ -196,8 +195,7 @@ class LearnedEncoder(Encoder):
         if not self.config.level:
             raster = rasterize_cloud(cloud, KITTI_BEV)
             return self._encode(raster.image, raster)
-        R, _ = ground_rotation(cloud)
-        level = voxel_downsample((cloud @ R.T).astype(np.float32), KITTI_BEV.resolution)
+        level, R = level_cloud(cloud, KITTI_BEV)
         raster = rasterize_cloud(level, KITTI_BEV)
         f = self._encode(raster.image, raster)
         kp = (f.keypoints.astype(np.float64) @ R).astype(np.float32)  # back to the sensor frame
