@@ -699,8 +699,9 @@ def bench_encoding(
 
 def _bench_image_encoder(kind: str, raw: np.ndarray, repeats: int) -> dict[str, Any]:
     """Stages of a BEV image encoder (``bev``, ``learned``) on one scan: prepare (box crop,
-    0.4 m voxels), raster (density image) and describe (keypoints, local and global
-    descriptors of the image)."""
+    0.4 m voxels), raster (density image of the prepared cloud) and describe (the rest of
+    ``encode_cloud``: for the learned encoder its levelling, then keypoints, local and
+    global descriptors of the image)."""
     from .core.bev import rasterize_cloud
     from .core.encoders import EncoderSpec, make_encoder
 

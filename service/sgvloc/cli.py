@@ -610,7 +610,7 @@ def train_command(
         list[Path],
         typer.Option(
             help="training sequence: kitti-bev folder (imgs/, pose.txt) or KITTI-layout scans "
-            "(velodyne/, poses.txt, times.txt; rasterised to BEV images); repeat"
+            "(velodyne/, poses.txt, times.txt; levelled and rasterised to BEV images); repeat"
         ),
     ],
     out: Annotated[Path, typer.Option(help="folder for checkpoint.pt, curves.png, log.json")],

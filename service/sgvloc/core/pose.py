@@ -193,8 +193,8 @@ def _ransac(src: np.ndarray, dst: np.ndarray, pairs: np.ndarray, cfg: PoseConfig
         ls = np.linalg.norm(s[:, iu] - s[:, ju], axis=2)  # [b, pairs]
         ld = np.linalg.norm(d[:, iu] - d[:, ju], axis=2)
         ok = ((ls >= ratio * ld) & (ld >= ratio * ls) & (ls > 0)).all(axis=1)
-        distinct = (np.sort(idx, axis=1)[:, 1:] != np.sort(idx, axis=1)[:, :-1]).all(axis=1)
-        ok &= distinct
+        srt = np.sort(idx, axis=1)
+        ok &= (srt[:, 1:] != srt[:, :-1]).all(axis=1)  # distinct correspondences
         if not ok.any():
             continue
         s, d = s[ok], d[ok]
