@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from sgvloc import bench
+from sgvloc.tools.bench import engine as bench
 
 
 def test_rerank_section_runs_all_methods_on_the_same_inputs():

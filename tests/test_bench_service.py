@@ -13,7 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sgvloc import bench_service as bs
+from sgvloc.tools.bench import http as bs
+from sgvloc.tools.service_process import ServiceProcess
 
 
 def _gone(pid: int) -> bool:
@@ -111,7 +112,7 @@ def test_service_is_stopped_when_the_body_fails(tmp_path: Path) -> None:
         "keypoints": rng.normal(size=(4, 3)).astype(np.float32),
         "local_features": rng.random((4, 33)).astype(np.float32),
     }
-    srv = bs.ServiceProcess(tmp_path / "data", tmp_path / "server.log")
+    srv = ServiceProcess(tmp_path / "data", tmp_path / "server.log")
     with pytest.raises(RuntimeError, match="client job _insert_features failed.*404"):
         with srv, bs.ClientProcess() as cp:
             # no such map: the client job's error comes back with the service's answer

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from sgvloc.core.errors import InputError
-from sgvloc.core.io import KittiSequence, relative_pose
 from sgvloc.core.preprocess import voxel_downsample
-from sgvloc.evaluation.metrics import rre, rte
-from sgvloc.synth import SynthConfig, build_town, generate, route_poses
+from sgvloc.core.sequence import KittiSequence, relative_pose
+from sgvloc.tools.evaluation.metrics import rre, rte
+from sgvloc.tools.synth import SynthConfig, build_town, generate, route_poses
 
 SMALL = dict(scans=6, azimuth_steps=512, beams=32)
 

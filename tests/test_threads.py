@@ -1,4 +1,4 @@
-"""Library thread limits of a service process (sgvloc.threads), in fresh interpreters."""
+"""Library thread limits of a service process (sgvloc.server.threads), in fresh interpreters."""
 
 from __future__ import annotations
 
@@ -7,12 +7,12 @@ import os
 import subprocess
 import sys
 
-from sgvloc.threads import ENV_VARS
+from sgvloc.server.threads import ENV_VARS
 
 PROBE = """
 import json, logging
 logging.basicConfig(level="WARNING")
-from sgvloc.threads import limit_library_threads
+from sgvloc.server.threads import limit_library_threads
 env = limit_library_threads(1)
 import numba, torch
 print(json.dumps({"env": env, "torch": torch.get_num_threads(),
@@ -44,6 +44,6 @@ def test_the_operators_setting_wins() -> None:
 
 
 def test_late_call_is_reported() -> None:
-    code = "import numpy\nfrom sgvloc.threads import limit_library_threads as f\nf(1)"
+    code = "import numpy\nfrom sgvloc.server.threads import limit_library_threads as f\nf(1)"
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert run.returncode == 0 and "may not apply" in run.stderr

@@ -1,4 +1,6 @@
-"""The ``sgvloc`` command line. One function per command; add commands to ``app``."""
+"""The ``sgvloc`` command line: options parsed here, the work done in :mod:`sgvloc.server`
+(``serve``) and :mod:`sgvloc.tools` (every other command). Modules are imported inside
+each command, so the client-only install can list the commands."""
 
 from __future__ import annotations
 
@@ -79,8 +81,9 @@ def serve(
     would hold its own copy of every map, and Prometheus metrics would split across
     processes. Scale out with more containers, each loading the maps.
     """
-    from .settings import Settings
-    from .threads import limit_library_threads
+    from .server.api.auth import KeysError
+    from .server.run import serve as run_service
+    from .server.settings import Settings
 
     overrides = {
         "host": host,
@@ -96,28 +99,11 @@ def serve(
     except ValueError as exc:  # pydantic's ValidationError
         raise typer.BadParameter(str(exc)) from None
     _configure_logging(settings.log_level)
-    # before numpy, Open3D, FAISS and torch are loaded (by the app's modules)
-    threads = limit_library_threads(settings.library_threads)
-    logging.getLogger(__name__).info("library threads per worker: %s", threads)
-
-    import uvicorn
-
-    from .api import create_app
-    from .api.auth import KeysError
-
     try:
-        application = create_app(settings)
+        run_service(settings)
     except KeysError as exc:
         typer.echo(f"sgvloc serve: {exc}", err=True)
         raise typer.Exit(2) from None
-    uvicorn.run(
-        application,
-        host=settings.host,
-        port=settings.port,
-        log_level=settings.log_level,
-        workers=None,  # one process: an app object cannot be forked into workers anyway
-        access_log=settings.log_level == "debug",
-    )
 
 
 @app.command("new-key")
@@ -133,7 +119,7 @@ def new_key_command(
     import json
     import secrets
 
-    from .api.auth import ROLES, hash_key
+    from .server.api.auth import ROLES, hash_key
 
     if role not in ROLES:
         raise typer.BadParameter(f"role must be one of {', '.join(ROLES)}", param_hint="--role")
@@ -147,7 +133,7 @@ def new_key_command(
     typer.echo(entry)
 
 
-# -- loadtest (sgvloc.loadtest) ----------------------------------------------------------
+# -- loadtest (sgvloc.tools.loadtest) -----------------------------------------------------
 
 
 @app.command("loadtest")
@@ -171,58 +157,23 @@ def loadtest_command(
     errors, p50/p99 latency and throughput. Exits 1 if any request failed (429/503 with
     Retry-After are counted apart, as deliberate refusals)."""
     import json
-    import os
-    import socket
-    import subprocess
-    import sys
-    import tempfile
-    import time
 
     import httpx
 
-    from .loadtest import run_loadtest
+    from .tools.loadtest import run_loadtest, run_loadtest_local
 
     _configure_logging("warning")
-    proc = None
-    tmp = None
-    if url is None:
-        with socket.socket() as sock:
-            sock.bind(("127.0.0.1", 0))
-            port = sock.getsockname()[1]
-        tmp = tempfile.TemporaryDirectory(prefix="sgvloc-loadtest-")
-        url = f"http://127.0.0.1:{port}"
-        cmd = [sys.executable, "-m", "sgvloc.cli", "serve", "--dev", "--host", "127.0.0.1"]
-        cmd += ["--port", str(port), "--data-dir", tmp.name, "--workers", str(workers)]
-        env = {**os.environ, "SGVLOC_LOG_LEVEL": "warning"}
-        proc = subprocess.Popen(cmd, env=env)
-        deadline = time.monotonic() + 120
-        while True:
-            try:
-                if httpx.get(f"{url}/readyz", timeout=2).status_code == 200:
-                    break
-            except httpx.TransportError:
-                pass
-            if proc.poll() is not None or time.monotonic() > deadline:
-                typer.echo("loadtest: the service did not start", err=True)
-                raise typer.Exit(2)
-            time.sleep(0.2)
+    options = dict(
+        clients=clients, duration_s=duration, insert_fraction=insert_fraction, api_key=api_key
+    )
     try:
-        result = run_loadtest(
-            url,
-            clients=clients,
-            duration_s=duration,
-            insert_fraction=insert_fraction,
-            api_key=api_key,
-        )
+        if url is None:
+            result = run_loadtest_local(workers=workers, **options)
+        else:
+            result = run_loadtest(url, **options)
     except (ValueError, RuntimeError, httpx.HTTPError) as exc:
         typer.echo(f"loadtest: {exc}", err=True)
         raise typer.Exit(2) from None
-    finally:
-        if proc is not None:
-            proc.terminate()
-            proc.wait(timeout=60)
-        if tmp is not None:
-            tmp.cleanup()
     typer.echo(result.summary())
     if json_out is not None:
         json_out.write_text(json.dumps(result.as_dict(), indent=2))
@@ -230,7 +181,7 @@ def loadtest_command(
         raise typer.Exit(1)
 
 
-# -- build-map (sgvloc.build_map) ---------------------------------------------------------
+# -- build-map (sgvloc.tools.build_map) ---------------------------------------------------
 
 
 @app.command("build-map")
@@ -290,8 +241,8 @@ def build_map_command(
     """
     import sgvloc_client
 
-    from .build_map import BuildMapResult, build_map
     from .core.errors import SgvlocError
+    from .tools.build_map import BuildMapResult, build_map
 
     # SGVLOC_URL in the environment is no conflict; --url on the command line is
     url_source = ctx.get_parameter_source("url")
@@ -332,7 +283,7 @@ def build_map_command(
     )
 
 
-# -- eval and synth (sgvloc.evaluation, sgvloc.synth) ---------------------------------------
+# -- eval and synth (sgvloc.tools.evaluation, sgvloc.tools.synth) -------------------------
 
 
 def _int_list(text: str) -> list[int]:
@@ -394,57 +345,35 @@ def eval_command(
     with their ROC AUC); writes OUT/eval.json (every figure and the exact configuration),
     OUT/ntopk.png (Recall@1 and re-ranking time against n_topk) and OUT/sgv_scores.png.
     """
-    from .core.config import LocalizerConfig
-    from .core.encoders import EncoderSpec
     from .core.errors import SgvlocError
-    from .core.rerank import METHODS
-    from .evaluation.report import (
-        diagnostics_table,
-        markdown_table,
-        plot_sgv_scores,
-        plot_sweep,
-        write_json,
-    )
-    from .evaluation.runner import EvalConfig, run_evaluation
+    from .tools.evaluation.command import evaluate
 
     _configure_logging("warning")
     try:
-        cfg = EvalConfig(
-            data=str(data),
+        evaluate(
+            data=data,
             db_until=db_until,
             min_gap=min_gap,
-            methods=[m.strip() for m in methods.split(",") if m.strip()] or list(METHODS),
-            topk=_int_list(topk),
-            sweep=_int_list(sweep),
-            sweep_rir=_int_list(sweep_rir) or None,
+            methods=methods,
+            topk=topk,
+            sweep=sweep,
+            sweep_rir=sweep_rir,
             refine=refine,
             max_queries=max_queries,
             query_stride=query_stride,
-            cache_dir=str(cache_dir) if cache_dir else None,
-            encoder=EncoderSpec.model_validate_json(encoder) if encoder else EncoderSpec(),
-            localizer=LocalizerConfig.model_validate_json(config.read_text())
-            if config
-            else LocalizerConfig(),
+            encoder=encoder,
+            config=config,
+            cache_dir=cache_dir,
+            out=out,
+            progress=progress,
+            echo=typer.echo,
         )
-        result = run_evaluation(cfg, progress=progress)
     except ValueError as exc:  # pydantic's ValidationError and InputError
         typer.echo(f"eval: {exc}", err=True)
         raise typer.Exit(2) from None
     except SgvlocError as exc:
         typer.echo(f"eval: {exc}", err=True)
         raise typer.Exit(1) from None
-    typer.echo(markdown_table(result))
-    typer.echo("")
-    typer.echo(diagnostics_table(result))
-    typer.echo("")
-    for note in result.notes:
-        typer.echo(f"- {note}")
-    written = [
-        write_json(result, out / "eval.json"),
-        plot_sweep(result, out / "ntopk.png"),
-        plot_sgv_scores(result, out / "sgv_scores.png"),
-    ]
-    typer.echo(f"wrote {', '.join(map(str, written))}")
 
 
 @app.command("synth")
@@ -458,7 +387,7 @@ def synth_command(
 ) -> None:
     """Generate a synthetic town with repeated blocks and a revisiting LiDAR drive."""
     from .core.errors import SgvlocError
-    from .synth import SynthConfig, generate
+    from .tools.synth import SynthConfig, generate
 
     _configure_logging("warning")
     try:
@@ -477,7 +406,7 @@ def synth_command(
     )
 
 
-# -- bench (sgvloc.bench) -------------------------------------------------------------------
+# -- bench and train (sgvloc.tools.bench, sgvloc.tools.train) -----------------------------
 
 
 @app.command("bench")
@@ -535,73 +464,20 @@ def bench_command(
     Medians after warm-up, every comparison in one process on the same inputs. The
     defaults take a few minutes on 2 cores; CUDA timings of SGV are added when a GPU is
     present. http and scaling start the service on 127.0.0.1 (--dev, temporary data)
-    and load it from a second process (see sgvloc.bench_service).
+    and load it from a second process (see sgvloc.tools.bench.http).
     """
-    import json
-
-    from . import bench, bench_service
+    from .tools.bench import check_sections, run_bench
 
     _configure_logging("warning")
-    sections = bench.SECTIONS + bench_service.SECTIONS
-    formatters = {**bench.FORMATTERS, **bench_service.FORMATTERS}
-    chosen = [x.strip() for x in only.split(",") if x.strip()]
-    unknown = sorted(set(chosen) - set(sections))
-    if unknown:
-        raise typer.BadParameter(f"unknown sections {unknown}; choose from {list(sections)}")
-    result: dict = {"machine": bench.machine_info(), "command": " ".join(__import__("sys").argv)}
-    for section in chosen:
-        typer.echo(f"## {section}")
-        if section == "rerank":
-            res = bench.bench_rerank(
-                _int_list(ks),
-                _int_list(ns),
-                repeats=repeats,
-                rir=rir,
-                rir_max_k=rir_max_k,
-                large_ns=_int_list(large_ns),
-                echo=typer.echo,
-            )
-            cuda = bench.bench_sgv_cuda(_int_list(ks), _int_list(ns), large_ns=_int_list(large_ns))
-            if "skipped" not in cuda:
-                result["cuda"] = cuda
-        elif section == "retrieval":
-            res = bench.bench_retrieval(
-                _int_list(sizes), dim=dim, large_dim=large_dim, hnsw_max=hnsw_max, echo=typer.echo
-            )
-        elif section == "encoding":
-            res = bench.bench_encoding(_int_list(scan_sizes), echo=typer.echo)
-        elif section == "http":
-            res = bench_service.bench_http(
-                keyframes=http_keyframes,
-                clients=_int_list(http_clients),
-                duration_s=http_duration,
-                batch=http_batch,
-                raw_scans=raw_scans,
-                raw_batch=raw_batch,
-                workers=service_workers,
-                echo=typer.echo,
-            )
-        else:
-            res = bench_service.bench_scaling(
-                sizes=_int_list(scale_sizes),
-                clients=_int_list(scale_clients),
-                duration_s=scale_duration,
-                batch=scale_batch,
-                keypoints=scale_keypoints,
-                reload=scale_reload,
-                workers=service_workers,
-                plot=plot or out.with_name(f"{out.stem}-scaling.png"),
-                echo=typer.echo,
-            )
-        result[section] = res
-        typer.echo(formatters[section](res))
-        for note in res.get("notes", []):
-            typer.echo(f"- {note}")
-        if section == "rerank" and "cuda" in result:
-            typer.echo(f"## SGV on CUDA ({result['cuda']['device']})")
-            typer.echo(bench.format_cuda(result["cuda"]))
-        out.write_text(json.dumps(result, indent=1))  # after every section: partial results
-    typer.echo(f"wrote {out}")
+    options = {k: v for k, v in locals().items() if k not in ("only", "out")}  # the options
+    for key in ("ks", "ns", "large_ns", "sizes", "scan_sizes", "http_clients",
+                "scale_sizes", "scale_clients"):  # fmt: skip
+        options[key] = _int_list(options[key])
+    try:
+        sections = check_sections([x.strip() for x in only.split(",") if x.strip()])
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--only") from None
+    run_bench(sections, options, out, typer.echo)
 
 
 @app.command("train")
@@ -625,7 +501,7 @@ def train_command(
 ) -> None:
     """Train the learned BEV encoder (a small CNN) on BEV image sequences with poses."""
     from .core.errors import SgvlocError
-    from .train import Sequence, TrainConfig, train
+    from .tools.train import Sequence, TrainConfig, train
 
     _configure_logging("info")
     try:
@@ -650,7 +526,7 @@ def export_weights_command(
     A map uses them with the encoder spec {"kind": "learned", "model_path": OUT}.
     """
     from .core.errors import SgvlocError
-    from .train import export_weights
+    from .tools.train import export_weights
 
     try:
         path = export_weights(checkpoint, out, note)

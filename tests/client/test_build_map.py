@@ -11,12 +11,12 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from sgvloc.build_map import build_map, parse_encoder, select_frames
 from sgvloc.cli import app
 from sgvloc.core.errors import ConflictError, InputError, NotFoundError
-from sgvloc.core.io import KittiSequence
 from sgvloc.core.retrieval import FaissIndex
-from sgvloc.store import INDEX_NAME
+from sgvloc.core.sequence import KittiSequence
+from sgvloc.server.store import INDEX_NAME
+from sgvloc.tools.build_map import build_map, parse_encoder, select_frames
 from sgvloc_client import Client
 
 

@@ -11,21 +11,18 @@ import pytest
 
 from sgvloc.core.errors import InputError, ScanFormatError
 from sgvloc.core.io import (
-    KittiSequence,
     Scan,
-    lzf_decompress,
     read_kitti_bin,
     read_npy,
     read_pcd,
     read_ply,
-    read_poses,
     read_scan,
-    relative_pose,
     scan_from_array,
     write_kitti_bin,
     write_pcd,
     write_ply,
 )
+from sgvloc.core.sequence import KittiSequence, read_poses, relative_pose
 
 
 def _xyzi(rng: np.random.Generator, n: int = 50) -> np.ndarray:
@@ -152,19 +149,43 @@ def test_pcd_binary_compressed_literal(tmp_path, rng):
     np.testing.assert_array_equal(s.intensity, a[:, 3])
 
 
-def test_lzf_back_references():
-    # literal "abc"; a reference of length 3 + 2 at distance 2 + 1 (overlapping copy); a long
-    # reference of length 7 + 3 + 2 at distance 7 + 1 (reads bytes it writes); a reference
-    # of length 1 + 2 at distance 9 + 1 (plain copy).
-    stream = bytes([2]) + b"abc" + bytes([3 << 5, 2]) + bytes([7 << 5, 3, 7]) + bytes([1 << 5, 9])
-    expected = b"abc" + b"abcab" + b"abcabcab" + b"abca" + b"cab"
-    assert lzf_decompress(stream, len(expected)) == expected
-    with pytest.raises(ValueError):
-        lzf_decompress(stream, len(expected) + 1)
-    with pytest.raises(ValueError):
-        lzf_decompress(bytes([1 << 5, 9]) + b"x", 3)  # reference before the start
-    with pytest.raises(ValueError):
-        lzf_decompress(bytes([5]) + b"ab", 6)  # literal run past the end
+def _pcd_lzf(path: Path, n: int, stream: bytes) -> None:
+    """A binary_compressed PCD of ``n`` float32 points x y z whose LZF data is ``stream``."""
+    header = (
+        "VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\n"
+        f"WIDTH {n}\nHEIGHT 1\nPOINTS {n}\nDATA binary_compressed\n"
+    )
+    path.write_bytes(header.encode() + struct.pack("<II", len(stream), n * 12) + stream)
+
+
+def test_pcd_lzf_back_references(tmp_path):
+    # literal: one float 1.0; then a long back reference (length 7 + 35 + 2 = 44 bytes at
+    # distance 3 + 1) that reads the bytes it writes: all 4 points x 3 fields are 1.0
+    stream = bytes([3]) + struct.pack("<f", 1.0) + bytes([7 << 5, 35, 3])
+    p = tmp_path / "ref.pcd"
+    _pcd_lzf(p, 4, stream)
+    np.testing.assert_array_equal(read_pcd(p).points, np.ones((4, 3), np.float32))
+    bad = tmp_path / "bad.pcd"
+    _pcd_lzf(bad, 4, bytes([1 << 5, 9]) + b"x" * 10)  # a reference before the start
+    with _raises_naming(bad, "corrupt binary_compressed"):
+        read_pcd(bad)
+
+
+def test_pcd_binary_compressed_written_by_pypcd4(tmp_path, rng):
+    """A file as the library writes it (with real compression), and our writer's option."""
+    from pypcd4 import Encoding, PointCloud
+
+    a = _xyzi(rng, 3000)
+    a[:1500] = a[0]
+    p = tmp_path / "lib.pcd"
+    PointCloud.from_xyzi_points(a).save(p, encoding=Encoding.BINARY_COMPRESSED)
+    assert b"DATA binary_compressed" in p.read_bytes()[:400]
+    s = read_pcd(p)
+    np.testing.assert_array_equal(s.points, a[:, :3])
+    np.testing.assert_array_equal(s.intensity, a[:, 3])
+    q = write_pcd(tmp_path / "ours.pcd", s, compressed=True)
+    assert b"DATA binary_compressed" in q.read_bytes()[:400]
+    np.testing.assert_array_equal(read_pcd(q).points, a[:, :3])
 
 
 def test_pcd_binary_compressed_open3d(tmp_path, rng):

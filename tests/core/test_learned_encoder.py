@@ -21,8 +21,8 @@ from sgvloc.core.encoders import EncoderSpec, LearnedEncoder, make_encoder
 from sgvloc.core.encoders.learned import shipped_weights_path
 from sgvloc.core.encoders.torchscript import file_sha256
 from sgvloc.core.errors import InputError
-from sgvloc.core.io import KittiSequence
 from sgvloc.core.preprocess import voxel_downsample
+from sgvloc.core.sequence import KittiSequence
 
 
 @pytest.fixture(scope="module")

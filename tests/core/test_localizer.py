@@ -6,9 +6,9 @@ import pytest
 from sgvloc.core.config import LocalizerConfig
 from sgvloc.core.encoders import EncoderSpec, PrecomputedEncoder, make_encoder
 from sgvloc.core.errors import ConflictError, EncoderMismatchError, InputError, NotFoundError
-from sgvloc.core.io import KittiSequence
 from sgvloc.core.localizer import Localizer
 from sgvloc.core.rerank import METHODS
+from sgvloc.core.sequence import KittiSequence
 
 
 def pose_errors(T_est, T_gt):

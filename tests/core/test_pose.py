@@ -6,8 +6,8 @@ import pytest
 from sgvloc.core.config import HandcraftedEncoderConfig, PoseConfig, PreprocessConfig
 from sgvloc.core.encoders import HandcraftedEncoder
 from sgvloc.core.errors import InputError
-from sgvloc.core.io import KittiSequence, relative_pose
 from sgvloc.core.pose import check_rigid, fgr_pose, is_rigid, ransac_pose, refine_icp
+from sgvloc.core.sequence import KittiSequence, relative_pose
 
 
 def rotation_error_deg(R_est: np.ndarray, R_gt: np.ndarray) -> float:

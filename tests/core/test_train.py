@@ -21,7 +21,7 @@ from sgvloc.core.encoders import EncoderSpec, make_encoder
 from sgvloc.core.encoders.learned import LearnedEncoder
 from sgvloc.core.errors import InputError
 from sgvloc.core.io import read_scan
-from sgvloc.train import (
+from sgvloc.tools.train import (
     Sequence,
     TrainConfig,
     augment_density,

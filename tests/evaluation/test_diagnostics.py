@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from sgvloc.core.errors import InputError
-from sgvloc.evaluation.diagnostics import (
+from sgvloc.tools.evaluation.diagnostics import (
     is_planar,
     pair_match_stats,
     roc_auc,

@@ -16,8 +16,8 @@ from typer.testing import CliRunner
 from sgvloc.cli import app
 from sgvloc.core.bev import load_bev_image, rasterize
 from sgvloc.core.encoders import BEVEncoder
-from sgvloc.evaluation.data import open_sequence
-from sgvloc.evaluation.diagnostics import pair_match_stats
+from sgvloc.tools.evaluation.data import open_sequence
+from sgvloc.tools.evaluation.diagnostics import pair_match_stats
 
 LAP = 30  # scans per lap: 0.1 s each, so a revisit comes 3 s later
 SCANS = 45

@@ -8,10 +8,10 @@ from typer.testing import CliRunner
 
 from sgvloc.cli import app
 from sgvloc.core.encoders import EncoderSpec, make_encoder
-from sgvloc.core.io import KittiSequence
 from sgvloc.core.rerank import METHODS
-from sgvloc.evaluation.cache import FeatureCache
-from sgvloc.evaluation.diagnostics import pair_match_stats
+from sgvloc.core.sequence import KittiSequence
+from sgvloc.tools.evaluation.cache import FeatureCache
+from sgvloc.tools.evaluation.diagnostics import pair_match_stats
 
 ARGS = ["--min-gap", "30", "--topk", "2,3", "--sweep", "1,2,3", "--sweep-rir", "2"]
 

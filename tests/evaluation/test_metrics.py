@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from sgvloc.core.errors import InputError
-from sgvloc.evaluation.metrics import (
+from sgvloc.tools.evaluation.metrics import (
     first_true_rank,
     mrr,
     recall_at,

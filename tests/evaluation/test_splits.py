@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from sgvloc.core.errors import InputError
-from sgvloc.evaluation.splits import make_split
+from sgvloc.tools.evaluation.splits import make_split
 
 
 def out_and_back(n: int = 40, dt: float = 1.0):

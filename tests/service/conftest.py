@@ -30,7 +30,7 @@ from svc_helpers import (
     post_msgpack,
 )
 
-from sgvloc.core.io import KittiSequence
+from sgvloc.core.sequence import KittiSequence
 
 STARTUP_TIMEOUT_S = 120.0
 

@@ -8,7 +8,7 @@ from typing import Any
 import httpx
 import numpy as np
 
-from sgvloc.core.io import KittiSequence
+from sgvloc.core.sequence import KittiSequence
 from sgvloc_client import wire
 
 #: limits of the test server (set through SGVLOC_* by conftest.py)

@@ -22,8 +22,8 @@ from conftest import Server
 from svc_helpers import PRECOMPUTED, error_of, post_msgpack, random_features
 
 import sgvloc_client
-from sgvloc.api.auth import ROUTE_ROLES, KeyRing, KeysError, hash_key, parse_keys
-from sgvloc.settings import Settings
+from sgvloc.server.api.auth import ROUTE_ROLES, KeyRing, KeysError, hash_key, parse_keys
+from sgvloc.server.settings import Settings
 
 ROLES = ("vehicle", "mapper", "viewer", "admin")
 KEYS = {role: f"test-{role}-key-0123456789abcdef" for role in ROLES}
@@ -258,7 +258,7 @@ def keys_file(tmp_path: Path) -> Path:
     ("setting", "path"), [("metrics_auth", "/metrics"), ("readyz_auth", "/readyz")]
 )
 def test_probe_auth_settings(tmp_path: Path, keys_file: Path, setting: str, path: str) -> None:
-    from sgvloc.api import create_app
+    from sgvloc.server.api import create_app
 
     for mode in ("open", "viewer"):
         app = create_app(Settings(data_dir=tmp_path, keys_file=keys_file, **{setting: mode}))

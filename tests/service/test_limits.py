@@ -25,9 +25,9 @@ from svc_helpers import (
     random_features,
 )
 
-from sgvloc.api import create_app
 from sgvloc.core.encoders import EncoderSpec
-from sgvloc.settings import Settings, usable_cpus
+from sgvloc.server.api import create_app
+from sgvloc.server.settings import Settings, usable_cpus
 from sgvloc_client import wire
 
 SPEC = EncoderSpec.model_validate(PRECOMPUTED)

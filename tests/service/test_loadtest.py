@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from sgvloc.loadtest import check_loopback, run_loadtest
+from sgvloc.tools.loadtest import check_loopback, run_loadtest
 
 
 def test_short_load_has_no_errors(server) -> None:

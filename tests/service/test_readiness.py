@@ -7,8 +7,8 @@ from pathlib import Path
 
 import httpx
 
-from sgvloc.api import create_app
-from sgvloc.settings import Settings
+from sgvloc.server.api import create_app
+from sgvloc.server.settings import Settings
 
 
 def test_not_ready_until_maps_are_loaded(tmp_path: Path) -> None:

@@ -15,8 +15,8 @@ from svc_helpers import random_features
 from sgvloc.core.encoders import EncoderSpec
 from sgvloc.core.errors import ConflictError, InputError, NotFoundError
 from sgvloc.core.retrieval import FaissIndex
-from sgvloc.maps import FeaturesIn, KeyframeIn, MapManager
-from sgvloc.store import MapStore
+from sgvloc.server.maps import FeaturesIn, KeyframeIn, MapManager
+from sgvloc.server.store import SqliteMapStore
 
 SPEC = EncoderSpec(kind="precomputed", name="egonn", global_dim=16, local_dim=8)
 
@@ -59,7 +59,7 @@ def test_restore_uses_agreeing_snapshot(tmp_path: Path, caplog) -> None:
     answer = _top_ids(m, "a", items[0].features)
     m.close()
 
-    with caplog.at_level(logging.INFO, logger="sgvloc.maps"):
+    with caplog.at_level(logging.INFO, logger="sgvloc.server.maps"):
         m2 = _manager(tmp_path)
     assert "map 'a': using index snapshot (5 ids)" in caplog.text
     h = m2.get("a")
@@ -94,7 +94,7 @@ def test_missing_stale_or_damaged_snapshot_is_rebuilt(tmp_path: Path, caplog) ->
     for case, damage in cases.items():
         damage()
         caplog.clear()
-        with caplog.at_level(logging.INFO, logger="sgvloc.maps"):
+        with caplog.at_level(logging.INFO, logger="sgvloc.server.maps"):
             m2 = _manager(tmp_path)
         assert expected[case] in caplog.text, case
         assert _top_ids(m2, "a", items[3].features) == answer
@@ -192,7 +192,7 @@ def test_store_round_trip(tmp_path: Path) -> None:
     assert row.keypoints.dtype == np.float32 and row.keypoints.shape == (64, 3)
     np.testing.assert_array_equal(row.keypoints, items[0].features.keypoints)
     m.close()
-    store = MapStore.open(tmp_path / "maps" / "a" / "map.sqlite")
+    store = SqliteMapStore.open(tmp_path / "maps" / "a" / "map.sqlite")
     assert store.ids() == [ids[0], ids[1], new_id] and store.version() == 3
     with sqlite3.connect(store.path) as conn:
         assert conn.execute("PRAGMA journal_mode").fetchone()[0] == "wal"

@@ -8,7 +8,7 @@ centre):
   descriptor map ``[D, 76, 76]`` (L2-normalised per cell) and a saliency map ``[76, 76]``;
 - global descriptor: GeM over the stride-8 features, a linear layer, L2-normalised.
 
-Used by :mod:`sgvloc.core.encoders.learned` (inference) and :mod:`sgvloc.train`.
+Used by :mod:`sgvloc.core.encoders.learned` (inference) and :mod:`sgvloc.tools.train`.
 """
 
 from __future__ import annotations

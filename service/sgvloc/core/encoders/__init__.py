@@ -6,7 +6,7 @@
 - :class:`BEVEncoder` (no weights): SIFT/ORB on the bird's-eye-view density image,
   polar/FFT global descriptor;
 - :class:`LearnedEncoder`: a small CNN on the same BEV image, trained in-project
-  (:mod:`sgvloc.train`), weights shipped in the package (torch imported when built);
+  (:mod:`sgvloc.tools.train`), weights shipped in the package (torch imported when built);
 - :class:`TorchScriptEncoder`: a learned model loaded from a TorchScript file (torch is
   imported only when one is built).
 

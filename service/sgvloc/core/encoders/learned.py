@@ -25,7 +25,7 @@ Per scan (deterministic):
 
 The weights file (``model_path``; the weights shipped in the package when unset) holds
 ``{"format": "sgvloc-bevnet", "arch": {...}, "state_dict": {...}, "meta": {...}}``
-(:func:`sgvloc.train.export_weights` writes one). Its SHA-256 is part of the identity, so
+(:func:`sgvloc.tools.train.export_weights` writes one). Its SHA-256 is part of the identity, so
 features of different weights never mix.
 """
 

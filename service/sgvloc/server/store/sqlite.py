@@ -1,4 +1,4 @@
-"""Per-map persistence in SQLite: the source of truth of every map.
+"""The embedded store backend: one SQLite database per map (the default of ``sgvloc serve``).
 
 Layout under the data directory::
 
@@ -19,27 +19,34 @@ client holding an old id can never address a different keyframe.
 
 from __future__ import annotations
 
-import io
 import json
 import logging
 import sqlite3
 import threading
 from collections.abc import Iterator
-from dataclasses import dataclass, field
-from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
-from .core.config import LocalizerConfig
-from .core.encoders import EncoderSpec
-from .core.errors import NotFoundError, SgvlocError
+from sgvloc.core.config import LocalizerConfig
+from sgvloc.core.encoders import EncoderSpec
+from sgvloc.core.errors import NotFoundError
+
+from .base import (
+    KeyframeRow,
+    MapRecord,
+    MapStore,
+    StoreBackend,
+    StoreClosedError,
+    StoreError,
+    array_to_blob,
+    blob_to_array,
+    utc_now,
+)
 
 log = logging.getLogger(__name__)
 
 DB_NAME = "map.sqlite"
-INDEX_NAME = "index.faiss"
 SCHEMA_VERSION = 1
 
 _SCHEMA = """
@@ -61,55 +68,7 @@ CREATE TABLE IF NOT EXISTS keyframes (
 """
 
 
-class StoreError(SgvlocError):
-    """A map database is missing, damaged or from an unknown schema."""
-
-
-def utc_now() -> str:
-    """The current time as ISO 8601 UTC with a ``Z`` suffix (millisecond precision)."""
-    return datetime.now(timezone.utc).isoformat(timespec="milliseconds").replace("+00:00", "Z")
-
-
-def array_to_blob(arr: np.ndarray) -> bytes:
-    """An array as ``.npy`` bytes (dtype and shape included, no pickle)."""
-    buf = io.BytesIO()
-    np.save(buf, np.ascontiguousarray(arr), allow_pickle=False)
-    return buf.getvalue()
-
-
-def blob_to_array(blob: bytes) -> np.ndarray:
-    """Inverse of :func:`array_to_blob`."""
-    return np.load(io.BytesIO(blob), allow_pickle=False)
-
-
-@dataclass(frozen=True)
-class MapRecord:
-    """A map's settings as stored: what it needs to be rebuilt in memory."""
-
-    name: str
-    encoder_spec: EncoderSpec
-    localizer_config: LocalizerConfig
-    encoder_fingerprint: str
-    keep_clouds: bool
-    created_at: str
-
-
-@dataclass
-class KeyframeRow:
-    """One keyframe as stored. ``id`` is 0 until the row is inserted."""
-
-    T_map_sensor: np.ndarray  # [4, 4] float64
-    global_descriptor: np.ndarray  # [G] float32
-    keypoints: np.ndarray  # [N, 3] float32
-    local_features: np.ndarray  # [N, D] float32
-    cloud: np.ndarray | None = None  # [M, 3] float32, for ICP refinement
-    metadata: dict[str, Any] = field(default_factory=dict)
-    key: str | None = None
-    id: int = 0
-    created_at: str = ""
-
-
-class MapStore:
+class SqliteMapStore(MapStore):
     """One map's SQLite database. Thread-safe: one connection behind a lock.
 
     Writers are expected to be serialised by the caller (the map manager holds a per-map
@@ -132,7 +91,7 @@ class MapStore:
         return conn
 
     @classmethod
-    def create(cls, path: Path, record: MapRecord) -> MapStore:
+    def create(cls, path: Path, record: MapRecord) -> SqliteMapStore:
         """Create a new database at ``path`` holding ``record`` and no keyframes."""
         if path.exists():
             raise StoreError(f"{path} exists already")
@@ -154,7 +113,7 @@ class MapStore:
         return cls(path, conn)
 
     @classmethod
-    def open(cls, path: Path) -> MapStore:
+    def open(cls, path: Path) -> SqliteMapStore:
         """Open an existing database; raises :class:`StoreError` if it is not one of ours."""
         if not path.is_file():
             raise StoreError(f"{path}: map database not found")
@@ -245,11 +204,13 @@ class MapStore:
         )
 
     def get(self, keyframe_id: int) -> KeyframeRow:
-        """One keyframe; raises :class:`NotFoundError`."""
-        with self._lock:
-            r = self._conn.execute(
-                f"SELECT {self._COLUMNS} FROM keyframes WHERE id = ?", (int(keyframe_id),)
-            ).fetchone()
+        try:
+            with self._lock:
+                r = self._conn.execute(
+                    f"SELECT {self._COLUMNS} FROM keyframes WHERE id = ?", (int(keyframe_id),)
+                ).fetchone()
+        except sqlite3.ProgrammingError:  # closed
+            raise StoreClosedError(f"{self.path}: the map store is closed") from None
         if r is None:
             raise NotFoundError(f"keyframe {keyframe_id} does not exist")
         return self._row(r)
@@ -338,3 +299,15 @@ class MapStore:
     def _bump_version(conn: sqlite3.Connection) -> int:
         conn.execute("UPDATE meta SET value = CAST(value AS INTEGER) + 1 WHERE key = 'version'")
         return int(conn.execute("SELECT value FROM meta WHERE key = 'version'").fetchone()[0])
+
+
+class SqliteBackend(StoreBackend):
+    """``<folder>/map.sqlite`` per map."""
+
+    errors = (sqlite3.Error,)
+
+    def create(self, folder: Path, record: MapRecord) -> SqliteMapStore:
+        return SqliteMapStore.create(folder / DB_NAME, record)
+
+    def open(self, folder: Path) -> SqliteMapStore:
+        return SqliteMapStore.open(folder / DB_NAME)

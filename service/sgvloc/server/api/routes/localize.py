@@ -6,8 +6,9 @@ import numpy as np
 from fastapi import APIRouter, Depends, Request, Response
 from scipy.spatial.transform import Rotation
 
-from ...core.localizer import LocalizationResult
-from ...core.rerank import Candidate
+from sgvloc.core.localizer import LocalizationResult
+from sgvloc.core.rerank import Candidate
+
 from ..auth import authorize
 from ..body import encode
 from ..deps import (

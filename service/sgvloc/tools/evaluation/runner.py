@@ -47,10 +47,11 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from ..core.config import LocalizerConfig
-from ..core.encoders import EncoderSpec
-from ..core.errors import InputError
-from ..core.rerank import METHODS
+from sgvloc.core.config import LocalizerConfig
+from sgvloc.core.encoders import EncoderSpec
+from sgvloc.core.errors import InputError
+from sgvloc.core.rerank import METHODS
+
 from .diagnostics import score_separation, summarise_pairs
 from .metrics import first_true_rank, mrr, recall_at, rre, rte, success
 from .splits import Split, make_split
@@ -159,10 +160,11 @@ def _progress(it, enabled: bool, **kw):
 
 def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
     """Evaluate every method of ``cfg`` at every k of its plan. See the module docstring."""
-    from ..core.encoders import make_encoder
-    from ..core.pose import ransac_pose, refine_icp
-    from ..core.rerank import Candidate, rerank
-    from ..core.retrieval import FaissIndex
+    from sgvloc.core.encoders import make_encoder
+    from sgvloc.core.pose import ransac_pose, refine_icp
+    from sgvloc.core.rerank import Candidate, rerank
+    from sgvloc.core.retrieval import FaissIndex
+
     from .cache import FeatureCache, default_cache_dir
     from .data import open_sequence
     from .diagnostics import MATCH_RADIUS_M, is_planar, pair_match_stats

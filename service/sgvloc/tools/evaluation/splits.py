@@ -19,7 +19,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from ..core.errors import InputError
+from sgvloc.core.errors import InputError
 
 
 @dataclass(frozen=True)

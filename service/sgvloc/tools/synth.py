@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from .core.errors import InputError
+from sgvloc.core.errors import InputError
 
 log = logging.getLogger(__name__)
 
@@ -365,7 +365,7 @@ def generate(
 
     Raises :class:`InputError` if ``out`` already holds a sequence and not ``overwrite``.
     """
-    from .core.io import write_kitti_bin
+    from sgvloc.core.io import write_kitti_bin
 
     cfg = cfg or SynthConfig()
     root = Path(out)

@@ -1,6 +1,7 @@
 """The map manager: every map of the data directory, in memory and on disk.
 
-Each map is a :class:`~sgvloc.store.MapStore` (SQLite, the source of truth) plus a
+Each map is a :class:`~sgvloc.server.store.MapStore` (the source of truth, from a
+:class:`~sgvloc.server.store.StoreBackend`; SQLite by default) plus a
 :class:`~sgvloc.core.localizer.Localizer` rebuilt from it at start-up. The manager is
 thread-safe:
 
@@ -23,7 +24,6 @@ from __future__ import annotations
 import logging
 import re
 import shutil
-import sqlite3
 import threading
 import time
 import uuid
@@ -35,20 +35,31 @@ from typing import Any
 
 import numpy as np
 
-from .core.config import LocalizerConfig
-from .core.encoders import Encoder, EncoderSpec, make_encoder
-from .core.errors import (
+from sgvloc.core.config import LocalizerConfig
+from sgvloc.core.encoders import Encoder, EncoderSpec, make_encoder
+from sgvloc.core.errors import (
     ConflictError,
     EncoderMismatchError,
     InputError,
     NotFoundError,
     SgvlocError,
 )
-from .core.features import Features
-from .core.localizer import Keyframe, LocalizationResult, Localizer
-from .core.pose import check_rigid
-from .core.retrieval import FaissIndex
-from .store import DB_NAME, INDEX_NAME, KeyframeRow, MapRecord, MapStore, StoreError, utc_now
+from sgvloc.core.features import Features
+from sgvloc.core.localizer import Keyframe, LocalizationResult, Localizer
+from sgvloc.core.pose import check_rigid
+from sgvloc.core.retrieval import FaissIndex
+
+from .store import (
+    INDEX_NAME,
+    KeyframeRow,
+    MapRecord,
+    MapStore,
+    SqliteBackend,
+    StoreBackend,
+    StoreClosedError,
+    StoreError,
+    utc_now,
+)
 
 log = logging.getLogger(__name__)
 
@@ -171,8 +182,10 @@ class MapManager:
         snapshot_every: int = 1000,
         snapshot_delay_s: float = 30.0,
         on_change: Callable[[str, int | None], None] | None = None,
+        backend: StoreBackend | None = None,
     ) -> None:
         self.maps_dir = Path(maps_dir)
+        self.backend = backend or SqliteBackend()
         self.snapshot_every = snapshot_every
         self.snapshot_delay_s = snapshot_delay_s
         self._on_change = on_change or (lambda name, n: None)
@@ -201,7 +214,7 @@ class MapManager:
             t0 = time.perf_counter()
             try:
                 handle = self._load(folder)
-            except (SgvlocError, sqlite3.Error, OSError, ValueError) as exc:
+            except (SgvlocError, *self.backend.errors, OSError, ValueError) as exc:
                 log.error("map %r could not be loaded: %s", name, exc)
                 self.failed[name] = str(exc)
                 continue
@@ -218,7 +231,7 @@ class MapManager:
         self.loaded.set()
 
     def _load(self, folder: Path) -> MapHandle:
-        store = MapStore.open(folder / DB_NAME)
+        store = self.backend.open(folder)
         try:
             record = store.record()
             if record.name != folder.name:
@@ -372,13 +385,13 @@ class MapManager:
             tmp = self.maps_dir / f"{_TMP_PREFIX}{name}-{uuid.uuid4().hex[:8]}"
             tmp.mkdir()
             try:
-                MapStore.create(tmp / DB_NAME, record).close()
+                self.backend.create(tmp, record).close()
                 tmp.rename(self.maps_dir / name)
             except BaseException:
                 shutil.rmtree(tmp, ignore_errors=True)
                 raise
             folder = self.maps_dir / name
-            store = MapStore.open(folder / DB_NAME)
+            store = self.backend.open(folder)
             localizer = Localizer(encoder, localizer_config, keep_clouds=record.keep_clouds)
             handle = MapHandle(name, folder, record, store, localizer)
             self._save_snapshot(handle)
@@ -552,7 +565,7 @@ class MapManager:
         handle = self.get(name)
         try:
             return handle.store.get(keyframe_id)
-        except sqlite3.ProgrammingError:  # the map was deleted meanwhile
+        except StoreClosedError:  # the map was deleted meanwhile
             raise NotFoundError(f"map {name!r} does not exist") from None
 
     def delete_keyframe(self, name: str, keyframe_id: int) -> int:

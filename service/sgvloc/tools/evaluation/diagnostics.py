@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from ..core.errors import InputError
+from sgvloc.core.errors import InputError
 
 #: a match is correct within this distance (m) after the ground-truth pose
 MATCH_RADIUS_M = 1.0

@@ -21,7 +21,8 @@ from fastapi import FastAPI
 from fastapi.routing import APIRoute
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from .. import __version__
+from sgvloc import __version__
+
 from ..maps import MapManager
 from ..metrics import Metrics
 from ..settings import Settings
@@ -117,7 +118,7 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
 def create_app(settings: Settings | None = None) -> FastAPI:
     """Build the service for ``settings`` (read from ``SGVLOC_*`` when not given).
 
-    Raises :class:`~sgvloc.api.auth.KeysError` when the keys file is unusable, or when no
+    Raises :class:`~sgvloc.server.api.auth.KeysError` when the keys file is unusable, or when no
     keys are configured outside development mode.
     """
     settings = settings or Settings()

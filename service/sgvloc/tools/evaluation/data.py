@@ -3,7 +3,7 @@
 Two folder layouts:
 
 - ``scans`` (KITTI odometry): ``velodyne/`` (or ``scans/``) scan files, ``poses.txt`` and
-  ``times.txt`` (:class:`sgvloc.core.io.KittiSequence`);
+  ``times.txt`` (:class:`sgvloc.core.sequence.KittiSequence`);
 - ``bev-images`` (kitti-bev, see the data README): ``imgs/NNNNNN.png`` (151 x 151 grey
   BEV density images) and ``pose.txt`` (row-major top 3x4 of ``T_world_lidar``). Scans
   were taken at 10 Hz, so scan ``i`` is at ``i * 0.1`` s unless a ``times.txt`` is there.
@@ -21,7 +21,7 @@ from typing import Literal
 
 import numpy as np
 
-from ..core.errors import InputError, ScanFormatError
+from sgvloc.core.errors import InputError, ScanFormatError
 
 #: kitti-bev scan rate (Hz): time of scan i = i / rate
 BEV_RATE_HZ = 10.0
@@ -44,7 +44,7 @@ def open_sequence(root: str | Path) -> EvalSequence:
 
     Raises :class:`InputError` if the folder is neither layout or lacks poses or times.
     """
-    from ..core.io import KittiSequence, read_poses, read_times
+    from sgvloc.core.sequence import KittiSequence, read_poses, read_times
 
     root = Path(root)
     if not root.is_dir():

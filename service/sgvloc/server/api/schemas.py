@@ -23,8 +23,9 @@ from pydantic import (
     model_validator,
 )
 
-from ..core.config import LocalizerConfig, RerankMethod, RetrievalConfig
-from ..core.encoders import EncoderSpec
+from sgvloc.core.config import LocalizerConfig, RerankMethod, RetrievalConfig
+from sgvloc.core.encoders import EncoderSpec
+
 from ..maps import FeaturesIn, KeyframeIn
 from ..settings import Settings
 

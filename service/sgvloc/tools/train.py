@@ -31,8 +31,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .core.bev import KITTI_BEV, level_cloud, load_bev_image, prepare_points, rasterize_cloud
-from .core.bevnet import (
+from sgvloc.core.bev import KITTI_BEV, level_cloud, load_bev_image, prepare_points, rasterize_cloud
+from sgvloc.core.bevnet import (
     CELLS,
     INPUT_SIZE,
     BEVNet,
@@ -42,7 +42,7 @@ from .core.bevnet import (
     occupied_cells,
     to_input,
 )
-from .core.errors import InputError
+from sgvloc.core.errors import InputError
 
 log = logging.getLogger(__name__)
 
@@ -68,7 +68,8 @@ class Sequence:
 
         Raises :class:`InputError` if the folder is neither layout.
         """
-        from .core.io import read_scan
+        from sgvloc.core.io import read_scan
+
         from .evaluation.data import open_sequence
 
         seq = open_sequence(path)
@@ -439,7 +440,7 @@ def export_weights(checkpoint: str | Path, out: str | Path, note: str = "") -> P
 
     Raises :class:`InputError` if the checkpoint is missing.
     """
-    from .core.encoders.learned import WEIGHTS_FORMAT
+    from sgvloc.core.encoders.learned import WEIGHTS_FORMAT
 
     checkpoint, out = Path(checkpoint), Path(out)
     if not checkpoint.is_file():

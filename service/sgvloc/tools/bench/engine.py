@@ -34,7 +34,6 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-SECTIONS = ("rerank", "retrieval", "encoding")
 
 Echo = Callable[[str], None]
 
@@ -146,8 +145,8 @@ def bench_rerank(
     """SGV (numba, torch) vs RANSAC-RIR and FGR-RIR on identical inputs; SGV at large n."""
     import torch
 
-    from .core.config import PoseConfig, SGVConfig
-    from .core.sgv import numba_available, warm_up
+    from sgvloc.core.config import PoseConfig, SGVConfig
+    from sgvloc.core.sgv import numba_available, warm_up
 
     backends = (["numba"] if numba_available() else []) + ["torch"]
     cfgs = {b: SGVConfig(device="cpu", backend=b) for b in backends}
@@ -221,8 +220,8 @@ def _rerank_case(
     :mod:`sgvloc.core.pose`) and score the inlier ratio. Matching is timed on its own
     (``nn``) and end to end with SGV (``sgv_total``).
     """
-    from .core import pose
-    from .core.sgv import nn_correspondences, sgv_rerank_scores, sgv_scores
+    from sgvloc.core import pose
+    from sgvloc.core.sgv import nn_correspondences, sgv_rerank_scores, sgv_scores
 
     rng = np.random.default_rng(1000 * n + k)
     qk, qf, kps, fts = rerank_inputs(rng, n, k)
@@ -281,8 +280,8 @@ def bench_sgv_cuda(
     """
     import torch
 
-    from .core.config import SGVConfig
-    from .core.sgv import sgv_rerank_scores, sgv_scores
+    from sgvloc.core.config import SGVConfig
+    from sgvloc.core.sgv import sgv_rerank_scores, sgv_scores
 
     if not torch.cuda.is_available():
         return {"skipped": "CUDA is not available"}
@@ -351,7 +350,7 @@ def format_cuda(res: dict[str, Any]) -> str:
 _PROBE = """
 import json, resource, sys, time
 import numpy as np
-from sgvloc.bench import rerank_inputs
+from sgvloc.tools.bench.engine import rerank_inputs
 from sgvloc.core.config import SGVConfig
 from sgvloc.core.sgv import sgv_scores, warm_up
 n, k, backend = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3]
@@ -478,8 +477,8 @@ def bench_retrieval(
     """Flat vs IVF (and HNSW up to ``hnsw_max``) search latency and recall@k per size."""
     import faiss
 
-    from .core.config import RetrievalConfig
-    from .core.retrieval import FaissIndex
+    from sgvloc.core.config import RetrievalConfig
+    from sgvloc.core.retrieval import FaissIndex
 
     rows = []
     for size in sizes:
@@ -586,7 +585,7 @@ def _p99(times: list[float]) -> float:
 
 
 def _default_scan() -> np.ndarray | None:
-    path = Path(__file__).resolve().parents[2] / "tests/fixtures/balm_mini/velodyne/000000.bin"
+    path = Path(__file__).resolve().parents[4] / "tests/fixtures/balm_mini/velodyne/000000.bin"
     if not path.exists():
         return None
     return np.fromfile(path, dtype=np.float32).reshape(-1, 4)[:, :3]
@@ -620,7 +619,7 @@ def bench_encoding(
 ) -> dict[str, Any]:
     """Handcrafted encoder time per stage for scans of ``sizes`` points, then the BEV
     image encoders (``image_encoders``) per stage on the same scans."""
-    from .core.encoders.handcrafted import (
+    from sgvloc.core.encoders.handcrafted import (
         KEYPOINT_NMS_VOXEL,
         HandcraftedEncoder,
         _l2_rows,
@@ -702,8 +701,8 @@ def _bench_image_encoder(kind: str, raw: np.ndarray, repeats: int) -> dict[str, 
     0.4 m voxels), raster (density image of the prepared cloud) and describe (the rest of
     ``encode_cloud``: for the learned encoder its levelling, then keypoints, local and
     global descriptors of the image)."""
-    from .core.bev import rasterize_cloud
-    from .core.encoders import EncoderSpec, make_encoder
+    from sgvloc.core.bev import rasterize_cloud
+    from sgvloc.core.encoders import EncoderSpec, make_encoder
 
     enc = make_encoder(EncoderSpec(kind=kind))
     stages: dict[str, list[float]] = {k: [] for k in ("prepare", "raster", "describe", "total")}

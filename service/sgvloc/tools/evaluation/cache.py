@@ -23,9 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.encoders import Encoder
-from ..core.errors import InputError
-from ..core.features import Features
+from sgvloc.core.encoders import Encoder
+from sgvloc.core.errors import InputError
+from sgvloc.core.features import Features
 
 log = logging.getLogger(__name__)
 
@@ -82,7 +82,7 @@ class FeatureCache:
 
     def _compute(self, path: Path) -> tuple[Features, np.ndarray]:
         if path.suffix.lower() == ".png":
-            from ..core.bev import load_bev_image
+            from sgvloc.core.bev import load_bev_image
 
             encode_image = getattr(self.encoder, "encode_image", None)
             if encode_image is None:
@@ -91,7 +91,7 @@ class FeatureCache:
                     f"({path.name}); use an encoder with encode_image, e.g. kind 'bev'"
                 )
             return encode_image(load_bev_image(path)), np.zeros((0, 3), np.float32)
-        from ..core.io import read_scan
+        from sgvloc.core.io import read_scan
 
         cloud = self.encoder.prepare(read_scan(path).points)  # [M, 3]
         return self.encoder.encode_cloud(cloud), cloud

@@ -12,7 +12,7 @@ Two targets, one loop (:func:`build_map`), each behind a small :class:`KeyframeS
   so this runs on any machine that can reach the service and needs neither torch nor
   FAISS locally (:class:`ClientSink`);
 - a data directory (a :class:`~pathlib.Path`): the keyframes go straight into the map
-  stores through :class:`sgvloc.maps.MapManager`, with the same validation, encoding and
+  stores through :class:`sgvloc.server.maps.MapManager`, with the same validation, encoding and
   all-or-nothing batches, and the FAISS snapshot is saved at the end, so a service started
   later on that directory loads the map without rebuilding its index
   (:class:`DataDirSink`). This needs the ``service`` extra (imported lazily). No service
@@ -34,14 +34,13 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 from tqdm import tqdm
 
+from sgvloc.core.errors import ConflictError, InputError, NotFoundError
+from sgvloc.core.sequence import KittiSequence
 from sgvloc_client import Client, Conflict, NotFound
 from sgvloc_client import KeyframeIn as ClientKeyframeIn
 
-from .core.errors import ConflictError, InputError, NotFoundError
-from .core.io import KittiSequence
-
 if TYPE_CHECKING:
-    from .maps import MapManager
+    from sgvloc.server.maps import MapManager
 
 log = logging.getLogger(__name__)
 
@@ -183,8 +182,8 @@ class DataDirSink:
 
     def __init__(self, data_dir: Path) -> None:
         try:  # the service extra: torch, Open3D, FAISS, pydantic-settings
-            from .maps import MapManager
-            from .settings import Settings
+            from sgvloc.server.maps import MapManager
+            from sgvloc.server.settings import Settings
         except ImportError as exc:
             raise InputError(
                 f"building into a data directory needs the service extra "
@@ -204,7 +203,7 @@ class DataDirSink:
     def ensure_map(self, name: str, create: bool, encoder: dict[str, Any] | None) -> None:
         from pydantic import ValidationError
 
-        from .core.encoders import EncoderSpec
+        from sgvloc.core.encoders import EncoderSpec
 
         manager = self.manager
         if name in manager.failed:
@@ -228,7 +227,7 @@ class DataDirSink:
         log.info("map %s exists with %d keyframes; resuming", name, handle.num_keyframes)
 
     def insert(self, name: str, batch: list[ScanKeyframe]) -> int:
-        from .maps import KeyframeIn
+        from sgvloc.server.maps import KeyframeIn
 
         items = [
             KeyframeIn(

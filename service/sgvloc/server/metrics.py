@@ -14,7 +14,7 @@ from prometheus_client import (
     generate_latest,
 )
 
-from .core.localizer import LocalizationResult
+from sgvloc.core.localizer import LocalizationResult
 
 _HTTP_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0, 60.0)
 _STAGE_BUCKETS = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0)

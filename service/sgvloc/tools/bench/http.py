@@ -47,18 +47,13 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import os
 import pickle
-import shutil
-import signal
-import socket
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 import traceback
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -67,12 +62,12 @@ import numpy as np
 
 from sgvloc_client import wire
 
+from ..service_process import temporary_service
+
 log = logging.getLogger(__name__)
 
-SECTIONS = ("http", "scaling")
-STARTUP_TIMEOUT_S = 300.0
 REQUEST_TIMEOUT_S = 120.0
-FIXTURE = Path(__file__).resolve().parents[2] / "tests/fixtures/balm_mini"
+FIXTURE = Path(__file__).resolve().parents[4] / "tests/fixtures/balm_mini"
 
 #: targets of the performance issue (2 cores, medians)
 TARGET_P50_MS = 150.0
@@ -86,156 +81,8 @@ def _quiet(_: str) -> None:
     pass
 
 
-# --------------------------------------------------------------------------------------
-# The service process
-# --------------------------------------------------------------------------------------
-
-
-def free_port() -> int:
-    """A TCP port of 127.0.0.1 that nobody listens on right now."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-class ServiceProcess:
-    """``python -m sgvloc.cli serve --dev`` on 127.0.0.1 as a subprocess (a context manager).
-
-    ``SGVLOC_*`` variables of the caller's environment are dropped, so the service runs
-    with its defaults plus ``env``. Output goes to ``log_path``. :meth:`stop` sends SIGTERM
-    (graceful: snapshots saved) and waits; SIGKILL if it does not exit in ``stop_timeout_s``.
-    """
-
-    def __init__(
-        self,
-        data_dir: Path,
-        log_path: Path,
-        *,
-        workers: int = 2,
-        env: dict[str, str] | None = None,
-        stop_timeout_s: float = 120.0,
-    ) -> None:
-        self.data_dir = Path(data_dir)
-        self.log_path = Path(log_path)
-        self.workers = workers
-        self.env = dict(env or {})
-        self.stop_timeout_s = stop_timeout_s
-        self.port = free_port()
-        self.proc: subprocess.Popen | None = None
-        self.pids: list[int] = []  # every process started (a restart starts a new one)
-
-    @property
-    def url(self) -> str:
-        return f"http://127.0.0.1:{self.port}"
-
-    @property
-    def pid(self) -> int | None:
-        return None if self.proc is None else self.proc.pid
-
-    def start(self, timeout_s: float = STARTUP_TIMEOUT_S) -> float:
-        """Start and wait until ``/readyz`` answers 200; returns the seconds that took."""
-        env = {k: v for k, v in os.environ.items() if not k.startswith("SGVLOC_")}
-        env.update({"SGVLOC_LOG_LEVEL": "warning", **self.env})
-        cmd = [sys.executable, "-m", "sgvloc.cli", "serve", "--dev", "--host", "127.0.0.1"]
-        cmd += ["--port", str(self.port), "--data-dir", str(self.data_dir)]
-        cmd += ["--workers", str(self.workers)]
-        t0 = time.monotonic()
-        with self.log_path.open("ab") as out:
-            self.proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, env=env)
-        self.pids.append(self.proc.pid)
-        try:
-            while True:
-                if self.proc.poll() is not None:
-                    raise RuntimeError(
-                        f"the service exited at start-up (code {self.proc.returncode}):\n"
-                        + self.log_tail()
-                    )
-                try:
-                    if httpx.get(f"{self.url}/readyz", timeout=2.0).status_code == 200:
-                        return time.monotonic() - t0
-                except httpx.TransportError:
-                    pass
-                if time.monotonic() - t0 > timeout_s:
-                    raise RuntimeError(
-                        f"the service was not ready within {timeout_s:.0f} s:\n" + self.log_tail()
-                    )
-                time.sleep(0.2)
-        except BaseException:
-            self.stop()
-            raise
-
-    def stop(self) -> int | None:
-        """SIGTERM, wait, SIGKILL past the timeout; returns the exit code (None if never run)."""
-        proc = self.proc
-        if proc is None:
-            return None
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGTERM)
-            try:
-                proc.wait(timeout=self.stop_timeout_s)
-            except subprocess.TimeoutExpired:
-                log.warning("the service did not stop within %.0f s: killed", self.stop_timeout_s)
-                proc.kill()
-                proc.wait(timeout=30)
-        return proc.returncode
-
-    def restart(self) -> float:
-        """Stop, then start again on the same data directory and port; seconds to ready."""
-        self.stop()
-        return self.start()
-
-    def memory_mib(self) -> dict[str, float]:
-        """Resident set size now and its high-water mark (``/proc``; Linux), MiB."""
-        out: dict[str, float] = {}
-        if self.proc is None:
-            return out
-        try:
-            for line in Path(f"/proc/{self.proc.pid}/status").read_text().splitlines():
-                key, _, value = line.partition(":")
-                if key in ("VmRSS", "VmHWM"):
-                    out["rss_mib" if key == "VmRSS" else "peak_rss_mib"] = (
-                        int(value.split()[0]) / 1024
-                    )
-        except OSError:
-            pass
-        return out
-
-    def map_disk_mib(self, name: str) -> float:
-        """Size of a map's folder (SQLite database, WAL, FAISS snapshot), MiB."""
-        folder = self.data_dir / "maps" / name
-        return sum(p.stat().st_size for p in folder.rglob("*") if p.is_file()) / 2**20
-
-    def log_tail(self, chars: int = 4000) -> str:
-        try:
-            return self.log_path.read_text(errors="replace")[-chars:]
-        except OSError:
-            return "(no log)"
-
-    def __enter__(self) -> ServiceProcess:
-        self.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
-
-
-@contextlib.contextmanager
-def _service(
-    work_dir: Path | None, prefix: str, workers: int, env: dict[str, str]
-) -> Iterator[ServiceProcess]:
-    """A started service on a fresh data directory, removed afterwards."""
-    root = Path(tempfile.mkdtemp(prefix=f"sgvloc-bench-{prefix}-", dir=work_dir))
-    srv = ServiceProcess(root / "data", root / "server.log", workers=workers, env=env)
-    try:
-        srv.start()
-        yield srv
-    finally:
-        srv.stop()
-        shutil.rmtree(root, ignore_errors=True)
-
-
 class ClientProcess:
-    """A second Python process (``python -m sgvloc.bench_service``) that runs the client
+    """A second Python process (``python -m sgvloc.tools.bench.http``) that runs the client
     jobs (:data:`CLIENT_JOBS`) one at a time; arguments and results travel as pickles
     over its stdin/stdout. A plain subprocess rather than ``multiprocessing``: spawn would
     re-import the caller's ``__main__``, which a script without a main guard cannot take.
@@ -243,7 +90,7 @@ class ClientProcess:
 
     def __init__(self) -> None:
         self._proc = subprocess.Popen(
-            [sys.executable, "-m", "sgvloc.bench_service"],
+            [sys.executable, "-m", "sgvloc.tools.bench.http"],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
         )
@@ -332,7 +179,7 @@ def source_scans(fixture: Path = FIXTURE) -> tuple[list[np.ndarray], list[np.nda
         db = [s for s, k in zip(scans, kinds, strict=True) if k == "database"]
         q = [s for s, k in zip(scans, kinds, strict=True) if k == "query"]
         return db, q, f"{fixture.name} ({len(db)} database scans, {len(q)} query scans, real)"
-    from .bench import _procedural_scan
+    from .engine import _procedural_scan
 
     rng = np.random.default_rng(7)
     db = [_procedural_scan(rng, 10_000) for _ in range(12)]
@@ -343,7 +190,7 @@ def source_scans(fixture: Path = FIXTURE) -> tuple[list[np.ndarray], list[np.nda
 def encode_bases(scans: list[np.ndarray], spec: Any) -> tuple[list[dict[str, np.ndarray]], dict]:
     """Encode ``scans`` with the encoder of ``spec`` (here, once): the features the copies
     are made from, and the claim (encoder name, fingerprint) they are sent with."""
-    from .core.encoders import make_encoder
+    from sgvloc.core.encoders import make_encoder
 
     enc = make_encoder(spec)
     bases = []
@@ -395,7 +242,7 @@ def query_bodies(
 ) -> list[bytes]:
     """``count`` localize bodies (MessagePack): the query scans in turn, densified to
     ``points`` points with 5 cm jitter, raw, SGV re-ranking of ``top_k``, no ICP."""
-    from .bench import densify
+    from .engine import densify
 
     rng = np.random.default_rng(seed)
     return [
@@ -673,7 +520,7 @@ def bench_http(
 ) -> dict[str, Any]:
     """Localize p50/p99/QPS at each client count on a ``keyframes`` map; bulk insert
     keyframes/s with precomputed features and with raw scans. See the module docstring."""
-    from .core.encoders import EncoderSpec
+    from sgvloc.core.encoders import EncoderSpec
 
     clients = _check_clients(clients or [1, 4, 16])
     if keyframes < 1 or batch < 1 or raw_batch < 1 or raw_scans < 0 or duration_s <= 0:
@@ -686,7 +533,7 @@ def bench_http(
     bodies = query_bodies(queries, points, max(6, len(queries)), top_k)
     env = {"SGVLOC_MAX_INFLIGHT_LOCALIZE": str(max(4 * workers, max(clients)))}
     result: dict[str, Any] = {"source": source, "keyframes": keyframes, "top_k": top_k}
-    with _service(work_dir, "http", workers, env) as srv, ClientProcess() as cp:
+    with temporary_service(work_dir, "http", workers, env) as srv, ClientProcess() as cp:
         result["server"] = {"workers": workers, "env": env, "pids": srv.pids}
         name = "bench-http"
         info = _create_map(
@@ -729,7 +576,7 @@ def bench_http(
         result["server"]["memory_after_localize"] = srv.memory_mib()
 
         if raw_scans:
-            from .bench import densify
+            from .engine import densify
 
             rng = np.random.default_rng(2)
             scans = [densify(db[i % len(db)], points, rng) for i in range(raw_scans)]
@@ -829,7 +676,7 @@ def bench_scaling(
     """Grow one map through ``sizes`` keyframes; after each step measure localize (each
     client count), the step's insert rate, server RSS and disk size. ``reload``: restart
     the service on the largest map and time until it is ready. ``plot``: write a PNG."""
-    from .core.encoders import EncoderSpec
+    from sgvloc.core.encoders import EncoderSpec
 
     sizes = sorted(set(sizes or [1000, 3000, 10_000, 30_000, 100_000]))
     clients = _check_clients(clients or [1, 4])
@@ -845,7 +692,7 @@ def bench_scaling(
     name = "bench-scaling"
     rows: list[dict[str, Any]] = []
     result: dict[str, Any] = {"source": source, "sizes": sizes, "top_k": top_k, "rows": rows}
-    with _service(work_dir, "scaling", workers, env) as srv, ClientProcess() as cp:
+    with temporary_service(work_dir, "scaling", workers, env) as srv, ClientProcess() as cp:
         info = _create_map(
             srv.url,
             {
@@ -1058,8 +905,8 @@ def format_targets(targets: list[dict[str, Any]]) -> str:
 
 
 def _table(header: list[str], rows: list[list[str]]) -> str:
-    """:func:`sgvloc.bench._table` (imported late: ``bench`` may import this module)."""
-    from .bench import _table as table
+    """:func:`.engine._table` (imported late: ``engine`` may import this module)."""
+    from .engine import _table as table
 
     return table(header, rows)
 

@@ -217,3 +217,12 @@ def run_loadtest(
     with httpx.Client(base_url=url, headers=headers, timeout=timeout_s) as c:
         c.delete(f"/v1/maps/{name}")
     return LoadResult(url, clients, elapsed, kinds, samples)
+
+
+def run_loadtest_local(*, workers: int = 2, **kwargs: Any) -> LoadResult:
+    """:func:`run_loadtest` against a service started for the run (``serve --dev`` on
+    127.0.0.1, a temporary data directory, ``workers`` threads), stopped afterwards."""
+    from .service_process import temporary_service
+
+    with temporary_service(None, "loadtest", workers, {}) as srv:
+        return run_loadtest(srv.url, **kwargs)

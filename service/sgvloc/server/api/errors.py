@@ -19,15 +19,14 @@ from fastapi.responses import Response
 from pydantic import ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from sgvloc_client.wire import WireError
-
-from ..core.errors import (
+from sgvloc.core.errors import (
     ConflictError,
     EncoderMismatchError,
     InputError,
     NotFoundError,
     SgvlocError,
 )
+from sgvloc_client.wire import WireError
 
 log = logging.getLogger(__name__)
 

@@ -19,7 +19,7 @@ from collections.abc import Iterable, Sequence
 
 import numpy as np
 
-from ..core.errors import InputError
+from sgvloc.core.errors import InputError
 
 #: SPEC section 4: success thresholds on the re-ranked top-1 pose
 MAX_RTE_M = 2.0

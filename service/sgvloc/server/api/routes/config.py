@@ -4,7 +4,8 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Depends, Request, Response
 
-from ... import __version__
+from sgvloc import __version__
+
 from ..auth import KeyRing, authorize
 from ..body import encode
 from ..deps import SettingsDep

@@ -1,0 +1,28 @@
+"""Map persistence: the interface the map manager uses (:mod:`.base`) and its backends
+(:mod:`.sqlite`, the embedded default)."""
+
+from .base import (
+    INDEX_NAME,
+    KeyframeRow,
+    MapRecord,
+    MapStore,
+    StoreBackend,
+    StoreClosedError,
+    StoreError,
+    utc_now,
+)
+from .sqlite import DB_NAME, SqliteBackend, SqliteMapStore
+
+__all__ = [
+    "DB_NAME",
+    "INDEX_NAME",
+    "KeyframeRow",
+    "MapRecord",
+    "MapStore",
+    "SqliteBackend",
+    "SqliteMapStore",
+    "StoreBackend",
+    "StoreClosedError",
+    "StoreError",
+    "utc_now",
+]

@@ -1,0 +1,149 @@
+"""What the map manager needs of a store: the records it keeps and the interface it calls.
+
+A backend (:class:`StoreBackend`) creates and opens one :class:`MapStore` per map; the
+map manager (:mod:`sgvloc.server.maps`) talks only to these two classes, so a second
+backend slots in beside :mod:`.sqlite` without touching it.
+"""
+
+from __future__ import annotations
+
+import io
+from abc import ABC, abstractmethod
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sgvloc.core.config import LocalizerConfig
+from sgvloc.core.encoders import EncoderSpec
+from sgvloc.core.errors import SgvlocError
+
+INDEX_NAME = "index.faiss"  # the FAISS snapshot in a map's folder (a start-up cache)
+
+
+class StoreError(SgvlocError):
+    """A map database is missing, damaged or from an unknown schema."""
+
+
+def utc_now() -> str:
+    """The current time as ISO 8601 UTC with a ``Z`` suffix (millisecond precision)."""
+    return datetime.now(timezone.utc).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+
+
+def array_to_blob(arr: np.ndarray) -> bytes:
+    """An array as ``.npy`` bytes (dtype and shape included, no pickle)."""
+    buf = io.BytesIO()
+    np.save(buf, np.ascontiguousarray(arr), allow_pickle=False)
+    return buf.getvalue()
+
+
+def blob_to_array(blob: bytes) -> np.ndarray:
+    """Inverse of :func:`array_to_blob`."""
+    return np.load(io.BytesIO(blob), allow_pickle=False)
+
+
+@dataclass(frozen=True)
+class MapRecord:
+    """A map's settings as stored: what it needs to be rebuilt in memory."""
+
+    name: str
+    encoder_spec: EncoderSpec
+    localizer_config: LocalizerConfig
+    encoder_fingerprint: str
+    keep_clouds: bool
+    created_at: str
+
+
+@dataclass
+class KeyframeRow:
+    """One keyframe as stored. ``id`` is 0 until the row is inserted."""
+
+    T_map_sensor: np.ndarray  # [4, 4] float64
+    global_descriptor: np.ndarray  # [G] float32
+    keypoints: np.ndarray  # [N, 3] float32
+    local_features: np.ndarray  # [N, D] float32
+    cloud: np.ndarray | None = None  # [M, 3] float32, for ICP refinement
+    metadata: dict[str, Any] = field(default_factory=dict)
+    key: str | None = None
+    id: int = 0
+    created_at: str = ""
+
+
+class StoreClosedError(StoreError):
+    """The store was closed meanwhile (its map is being deleted)."""
+
+
+class MapStore(ABC):
+    """One map's stored settings and keyframes: the source of truth of that map.
+
+    Implementations are thread-safe. Writers are serialised by the caller (the map
+    manager holds a per-map write lock). Every write is one transaction that bumps the
+    map's version and is durable once the call returns.
+    """
+
+    @abstractmethod
+    def close(self) -> None: ...
+
+    @abstractmethod
+    def record(self) -> MapRecord:
+        """The map's stored settings; raises :class:`StoreError` if they are damaged."""
+
+    @abstractmethod
+    def version(self) -> int:
+        """The map's version: bumped by every transaction that inserts or deletes."""
+
+    @abstractmethod
+    def count(self) -> int:
+        """The number of stored keyframes."""
+
+    @abstractmethod
+    def ids(self) -> list[int]:
+        """All keyframe ids, ascending."""
+
+    @abstractmethod
+    def find_keys(self, keys: list[str]) -> dict[str, int]:
+        """The ids of those ``keys`` that exist: ``{key: id}``."""
+
+    @abstractmethod
+    def get(self, keyframe_id: int) -> KeyframeRow:
+        """One keyframe; raises :class:`~sgvloc.core.errors.NotFoundError`, or
+        :class:`StoreClosedError` once the store is closed."""
+
+    @abstractmethod
+    def iter_keyframes(self, chunk: int = 256) -> Iterator[KeyframeRow]:
+        """Every keyframe in id order."""
+
+    @abstractmethod
+    def insert(self, rows: list[KeyframeRow]) -> tuple[list[int], int]:
+        """Insert keyframes in one transaction and bump the version.
+
+        Fills ``row.id`` and ``row.created_at``; returns ``(ids, new_version)``. Nothing
+        is stored if any row fails.
+        """
+
+    @abstractmethod
+    def delete(self, ids: list[int], *, set_version: int | None = None) -> int:
+        """Delete keyframes in one transaction; returns the new version.
+
+        The version is bumped, or set to ``set_version`` (to undo an insert whose
+        in-memory half failed). Unknown ids raise ``NotFoundError``, deleting nothing.
+        """
+
+
+class StoreBackend(ABC):
+    """Creates and opens the store of a map whose files live in ``folder``."""
+
+    #: exception types of the backend's driver that mean "this store failed" (logged and
+    #: reported per map, never fatal to the others)
+    errors: tuple[type[BaseException], ...] = ()
+
+    @abstractmethod
+    def create(self, folder: Path, record: MapRecord) -> MapStore:
+        """A new store in ``folder`` holding ``record`` and no keyframes."""
+
+    @abstractmethod
+    def open(self, folder: Path) -> MapStore:
+        """The existing store in ``folder``; raises :class:`StoreError`."""

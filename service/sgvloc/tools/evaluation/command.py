@@ -1,0 +1,77 @@
+"""``sgvloc eval``: build the configuration from the command's options, run, report."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+from sgvloc.core.config import LocalizerConfig
+from sgvloc.core.encoders import EncoderSpec
+from sgvloc.core.rerank import METHODS
+
+from .report import diagnostics_table, markdown_table, plot_sgv_scores, plot_sweep, write_json
+from .runner import EvalConfig, run_evaluation
+
+
+def int_list(text: str) -> list[int]:
+    """``"2,20"`` -> ``[2, 20]``; raises ValueError naming the text."""
+    try:
+        return [int(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise ValueError(f"expected comma-separated integers, got {text!r}") from None
+
+
+def evaluate(
+    *,
+    data: Path,
+    db_until: float | None,
+    min_gap: float | None,
+    methods: str,
+    topk: str,
+    sweep: str,
+    sweep_rir: str,
+    refine: str,
+    max_queries: int | None,
+    query_stride: int,
+    encoder: str | None,
+    config: Path | None,
+    cache_dir: Path | None,
+    out: Path,
+    progress: bool,
+    echo: Callable[[str], None],
+) -> None:
+    """Run the evaluation, print its tables and write OUT/eval.json and the plots.
+
+    Raises ValueError (bad options, pydantic's ValidationError) or
+    :class:`~sgvloc.core.errors.SgvlocError` (unreadable data).
+    """
+    cfg = EvalConfig(
+        data=str(data),
+        db_until=db_until,
+        min_gap=min_gap,
+        methods=[m.strip() for m in methods.split(",") if m.strip()] or list(METHODS),
+        topk=int_list(topk),
+        sweep=int_list(sweep),
+        sweep_rir=int_list(sweep_rir) or None,
+        refine=refine,
+        max_queries=max_queries,
+        query_stride=query_stride,
+        cache_dir=str(cache_dir) if cache_dir else None,
+        encoder=EncoderSpec.model_validate_json(encoder) if encoder else EncoderSpec(),
+        localizer=LocalizerConfig.model_validate_json(config.read_text())
+        if config
+        else LocalizerConfig(),
+    )
+    result = run_evaluation(cfg, progress=progress)
+    echo(markdown_table(result))
+    echo("")
+    echo(diagnostics_table(result))
+    echo("")
+    for note in result.notes:
+        echo(f"- {note}")
+    written = [
+        write_json(result, out / "eval.json"),
+        plot_sweep(result, out / "ntopk.png"),
+        plot_sgv_scores(result, out / "sgv_scores.png"),
+    ]
+    echo(f"wrote {', '.join(map(str, written))}")
