@@ -242,7 +242,7 @@ def build_map_command(
     import sgvloc_client
 
     from .core.errors import SgvlocError
-    from .tools.build_map import BuildMapResult, build_map
+    from .tools.build_map import build_map
 
     # SGVLOC_URL in the environment is no conflict; --url on the command line is
     url_source = ctx.get_parameter_source("url")
@@ -254,25 +254,14 @@ def build_map_command(
         )
     _configure_logging("warning")
 
-    def run(target: sgvloc_client.Client | Path) -> BuildMapResult:
-        return build_map(
-            source,
-            target,
-            map_name,
-            create=create,
-            encoder=encoder,
-            batch_size=batch_size,
-            every=every,
-            limit=limit,
-            progress=progress,
-        )
-
+    options = dict(create=create, encoder=encoder, batch_size=batch_size, every=every)
+    options.update(limit=limit, progress=progress)
     try:
         if data_dir is not None:
-            result = run(data_dir)
+            result = build_map(source, data_dir, map_name, **options)
         else:
             with sgvloc_client.Client(url, timeout=timeout, api_key=api_key) as client:
-                result = run(client)
+                result = build_map(source, client, map_name, **options)
     except (SgvlocError, sgvloc_client.SgvlocError) as exc:
         typer.echo(f"build-map: {exc}", err=True)
         raise typer.Exit(1) from None

@@ -1,5 +1,4 @@
-"""The localization engine, one module per stage; imports nothing of sgvloc above it
-(neither :mod:`sgvloc.server` nor :mod:`sgvloc.tools`) and never FastAPI.
+"""The localization engine, one module per stage; imports neither server, tools nor FastAPI.
 
 io -> preprocess -> encoders -> retrieval (FAISS) -> rerank (SpectralGV and baselines)
 -> pose (RANSAC/ICP), tied together by :class:`sgvloc.core.localizer.Localizer`.

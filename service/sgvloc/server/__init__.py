@@ -1,2 +1,1 @@
-"""What ``sgvloc serve`` runs: the FastAPI app (:mod:`.api`), the map manager, the stores,
-metrics, settings and thread limits. Imports :mod:`sgvloc.core`, never :mod:`sgvloc.tools`."""
+"""What ``sgvloc serve`` runs (app, map manager, stores, metrics); imports core, never tools."""
