@@ -229,7 +229,7 @@ def test_duplicate_map_name(client: httpx.Client, pre_map: str) -> None:
     assert pre_map in err["message"]
 
 
-@pytest.mark.parametrize("name", ["", "-lead", "has space", "a/b", "x" * 65, "..", "é"])
+@pytest.mark.parametrize("name", ["", "-lead", "has space", "a/b", "x" * 65, "..", "é", "pre\n"])
 def test_invalid_map_name(client: httpx.Client, name: str) -> None:
     r = client.post("/v1/maps", json={"name": name})
     _expect(r, 422, "invalid_input", "name")

@@ -63,7 +63,7 @@ from .store import (
 
 log = logging.getLogger(__name__)
 
-MAP_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+MAP_NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")  # whole name: fullmatch
 _TMP_PREFIX = ".tmp-"
 _TRASH_PREFIX = ".deleted-"
 
@@ -208,7 +208,7 @@ class MapManager:
                 shutil.rmtree(leftover, ignore_errors=True)
         for folder in sorted(p for p in self.maps_dir.iterdir() if p.is_dir()):
             name = folder.name
-            if not MAP_NAME_RE.match(name):
+            if not MAP_NAME_RE.fullmatch(name):
                 log.warning("ignoring folder %s: not a valid map name", folder)
                 continue
             t0 = time.perf_counter()
@@ -349,7 +349,7 @@ class MapManager:
         keep_clouds: bool = True,
     ) -> MapHandle:
         """Create an empty map. Raises InputError (bad name/spec) or ConflictError (exists)."""
-        if not MAP_NAME_RE.match(name):
+        if not MAP_NAME_RE.fullmatch(name):
             raise field_error(
                 InputError(
                     f"map name {name!r} is invalid: use 1-64 letters, digits, '_', '.' or '-', "
