@@ -3,6 +3,7 @@ map unchanged (keyframe count and version)."""
 
 from __future__ import annotations
 
+import json
 from collections.abc import Iterator
 
 import httpx
@@ -109,6 +110,31 @@ def test_non_finite_points_in_json(client: httpx.Client, balm_map: BalmMap) -> N
         "/v1/maps/balm/localize", content=body, headers={"Content-Type": "application/json"}
     )
     _expect(r, 422, "invalid_input", "points")
+
+
+@pytest.mark.usefixtures("unchanged")
+@pytest.mark.parametrize("where", ["points", "T_map_sensor", "global_descriptor"])
+def test_integers_beyond_float64_in_json(client: httpx.Client, pre_map: str, where: str) -> None:
+    """A JSON integer of 310 digits is a valid number that no float64 holds: 422, not 500."""
+    huge = "1" + "0" * 309
+    if where == "points":
+        path, body = "/v1/maps/balm/localize", f'{{"points": [[1.0, 2.0, {huge}]]}}'
+        field = "points"
+    else:
+        eye = [[1.0 if i == j else 0.0 for j in range(4)] for i in range(4)]
+        feats = {"global_descriptor": [1.0] * 16, "keypoints": [[0.0, 0.0, 0.0]],
+                 "local_features": [[1.0] * 8]}  # fmt: skip
+        kf = {"T_map_sensor": eye, "features": feats}
+        text = json.dumps({"keyframes": [kf]})
+        old = "[1.0, 0.0, 0.0, 0.0]" if where == "T_map_sensor" else "[1.0, 1.0"
+        text = text.replace(old, old.replace("1.0", huge, 1), 1)
+        path, body, field = f"/v1/maps/{pre_map}/keyframes", text, f"keyframes[0].{where}"
+        if where == "global_descriptor":
+            field = "keyframes[0].features.global_descriptor"
+    r = client.post(path, content=body, headers={"Content-Type": "application/json"})
+    assert r.status_code == 422, r.text
+    assert error_of(r)["code"] == "invalid_input"
+    assert error_of(r)["field"] == field, error_of(r)
 
 
 @pytest.mark.usefixtures("unchanged")

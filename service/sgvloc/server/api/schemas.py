@@ -53,6 +53,8 @@ def _to_ndarray(value: Any) -> np.ndarray:
             arr = np.asarray(value, dtype=np.float64)
         except (ValueError, TypeError):
             raise ValueError("must be a rectangular array of numbers") from None
+        except OverflowError:  # a JSON integer of more than 308 digits
+            raise ValueError("holds a number beyond the float64 range") from None
     if arr.dtype.kind not in "fiu":
         raise ValueError(f"must be numeric, got dtype {arr.dtype}")
     return arr
