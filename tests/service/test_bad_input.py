@@ -246,6 +246,7 @@ def test_unknown_keyframe(client: httpx.Client, pre_map: str) -> None:
     _expect(client.get(f"/v1/maps/{pre_map}/keyframes/999"), 404, "not_found")
     _expect(client.delete(f"/v1/maps/{pre_map}/keyframes/999"), 404, "not_found")
     _expect(client.get(f"/v1/maps/{pre_map}/keyframes/abc"), 422, "invalid_input")
+    _expect(client.get(f"/v1/maps/{pre_map}/keyframes/{2**63}"), 422, "invalid_input")
 
 
 @pytest.mark.usefixtures("unchanged")
@@ -268,6 +269,8 @@ def test_invalid_map_name(client: httpx.Client, name: str) -> None:
         {"name": "bad-enc", "encoder": {"kind": "precomputed", "name": "x"}},
         {"name": "bad-enc", "encoder": {"kind": "torchscript", "model_path": "/no/such.pt"}},
         {"name": "bad-enc", "encoder": {"kind": "nope"}},
+        {"name": "bad-enc", "encoder": {**PRECOMPUTED, "global_dim": 2**63}},
+        {"name": "bad-enc", "encoder": {**PRECOMPUTED, "local_dim": 10**9}},
         {"name": "bad-enc", "localizer": {"top_k": 0}},
         {"name": "bad-enc", "localizer": {"rerank": "magic"}},
         {"name": "bad-enc", "retrieval": {"index": "lsh"}},

@@ -28,6 +28,10 @@ from ..errors import InputError
 from ..features import EncoderIdentity, Features
 from ..preprocess import preprocess
 
+#: upper bounds of a precomputed map's feature sizes (the shipped encoders: 620 and 64)
+MAX_GLOBAL_DIM = 16384
+MAX_LOCAL_DIM = 1024
+
 
 class Encoder(ABC):
     """Turns one scan into :class:`Features` tagged with this encoder's identity.
@@ -125,8 +129,12 @@ class EncoderSpec(BaseModel):
         description="torchscript, learned: where the model runs ('auto' = CUDA if present)",
     )
     name: str | None = Field(None, description="precomputed: the client's network, e.g. 'egonn'")
-    global_dim: int | None = Field(None, ge=1, description="precomputed: descriptor length")
-    local_dim: int | None = Field(None, ge=1, description="precomputed: local feature dim")
+    global_dim: int | None = Field(
+        None, ge=1, le=MAX_GLOBAL_DIM, description="precomputed: descriptor length"
+    )
+    local_dim: int | None = Field(
+        None, ge=1, le=MAX_LOCAL_DIM, description="precomputed: local feature dim"
+    )
 
     @model_validator(mode="after")
     def _check_kind_fields(self) -> EncoderSpec:
