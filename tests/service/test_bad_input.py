@@ -406,7 +406,7 @@ def test_batch_too_large(client: httpx.Client, pre_map: str) -> None:
 
 
 @pytest.mark.usefixtures("unchanged")
-@pytest.mark.parametrize("top_k", [MAX_TOP_K + 1, 0, -3])
+@pytest.mark.parametrize("top_k", [MAX_TOP_K + 1, 0, -3, "5", True, 5.0])
 def test_top_k_out_of_range(client: httpx.Client, pre_map: str, top_k: int) -> None:
     feats = random_features(np.random.default_rng(4))
     r = post_msgpack(client, f"/v1/maps/{pre_map}/localize", {"features": feats, "top_k": top_k})

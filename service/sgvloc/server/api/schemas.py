@@ -17,6 +17,7 @@ from pydantic import (
     BeforeValidator,
     ConfigDict,
     Field,
+    StrictInt,
     ValidationInfo,
     WithJsonSchema,
     field_validator,
@@ -294,7 +295,9 @@ class LocalizeBody(_In):
 
     points: Array | None = Field(None, description="[P, 3|4] scan, sensor frame")
     features: FeaturesBody | None = None
-    top_k: int | None = Field(None, ge=1, description="candidates retrieved (map default)")
+    top_k: StrictInt | None = Field(
+        None, ge=1, description="candidates retrieved (map default); an integer, not '5' or true"
+    )
     rerank: RerankMethod | None = Field(None, description="re-ranking method (map default)")
     refine: Literal["none", "icp"] | None = Field(None, description="ICP after RANSAC")
 
