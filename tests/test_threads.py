@@ -47,3 +47,20 @@ def test_late_call_is_reported() -> None:
     code = "import numpy\nfrom sgvloc.server.threads import limit_library_threads as f\nf(1)"
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert run.returncode == 0 and "may not apply" in run.stderr
+
+
+def test_serve_caps_threads_before_the_libraries_load(tmp_path) -> None:
+    """``sgvloc serve`` up to the failing keys file: no library was loaded before the cap."""
+    keys = tmp_path / "keys.toml"
+    keys.write_text("not = [valid")
+    run = subprocess.run(
+        [sys.executable, "-m", "sgvloc.cli", "serve", "--keys-file", str(keys)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={k: v for k, v in os.environ.items() if k not in ENV_VARS},
+        cwd=tmp_path,
+    )
+    assert run.returncode == 2, run.stderr
+    assert "sgvloc serve:" in run.stderr
+    assert "may not apply" not in run.stderr, run.stderr

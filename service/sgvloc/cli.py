@@ -81,7 +81,8 @@ def serve(
     would hold its own copy of every map, and Prometheus metrics would split across
     processes. Scale out with more containers, each loading the maps.
     """
-    from .server.api.auth import KeysError
+    # nothing that loads numpy, FAISS, Open3D or torch before run_service caps their threads
+    from .server.run import StartupError
     from .server.run import serve as run_service
     from .server.settings import Settings
 
@@ -101,7 +102,7 @@ def serve(
     _configure_logging(settings.log_level)
     try:
         run_service(settings)
-    except KeysError as exc:
+    except StartupError as exc:
         typer.echo(f"sgvloc serve: {exc}", err=True)
         raise typer.Exit(2) from None
 

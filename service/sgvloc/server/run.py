@@ -10,12 +10,16 @@ from .threads import limit_library_threads
 log = logging.getLogger(__name__)
 
 
+class StartupError(Exception):
+    """The service cannot start (an unusable keys file, say); the message says why."""
+
+
 def serve(settings: Settings) -> None:
     """Run the service until it is stopped.
 
     Library threads are capped before numpy, Open3D, FAISS and torch are loaded (by the
-    app's modules). Raises :class:`~sgvloc.server.api.auth.KeysError` when the keys file
-    is unusable.
+    app's modules), so this module imports none of them at the top. Raises
+    :class:`StartupError` when the keys file is unusable.
     """
     threads = limit_library_threads(settings.library_threads)
     log.info("library threads per worker: %s", threads)
@@ -23,8 +27,12 @@ def serve(settings: Settings) -> None:
     import uvicorn
 
     from .api import create_app
+    from .api.auth import KeysError
 
-    application = create_app(settings)
+    try:
+        application = create_app(settings)
+    except KeysError as exc:
+        raise StartupError(str(exc)) from None
     uvicorn.run(
         application,
         host=settings.host,
