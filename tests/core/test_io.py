@@ -396,6 +396,10 @@ def test_pcd_width_height_points_mismatch(tmp_path):
     p.write_text("FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nWIDTH 2\nHEIGHT 2\nPOINTS 3\nDATA ascii\n")
     with _raises_naming(p, "WIDTH 2 x HEIGHT 2 != POINTS 3"):
         read_pcd(p)
+    q = tmp_path / "wtext.pcd"
+    q.write_text("FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nWIDTH abc\nDATA ascii\n1 2 3\n")
+    with _raises_naming(q, "not a valid PCD header", "'abc'"):
+        read_pcd(q)
 
 
 def test_ply_errors(tmp_path):

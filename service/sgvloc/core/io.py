@@ -223,11 +223,11 @@ def _pcd_header(raw: bytes, p: Path) -> tuple[Any, list[str], bytes]:
             raise ScanFormatError(f"{p}: field {name!r} has COUNT {count}, expected 1")
     lines.pop("VERSION", None)  # any version: the layout keys are what matters
     lines["DATA"] = [" ".join(lines["DATA"]).lower()]
-    if "POINTS" not in lines and "WIDTH" in lines:
-        lines["POINTS"] = [str(int(lines["WIDTH"][0]) * int(lines.get("HEIGHT", ["1"])[0]))]
     try:
+        if "POINTS" not in lines and "WIDTH" in lines:
+            lines["POINTS"] = [str(int(lines["WIDTH"][0]) * int(lines.get("HEIGHT", ["1"])[0]))]
         meta = MetaData.parse_header([f"{k} {' '.join(v)}" for k, v in lines.items()])
-    except (ValidationError, ValueError) as exc:
+    except (ValidationError, ValueError, IndexError) as exc:
         raise ScanFormatError(f"{p}: not a valid PCD header: {_first_error(exc)}") from None
     if meta.width * meta.height != meta.points:
         raise ScanFormatError(
