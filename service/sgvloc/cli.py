@@ -345,9 +345,9 @@ def eval_command(
             db_until=db_until,
             min_gap=min_gap,
             methods=methods,
-            topk=topk,
-            sweep=sweep,
-            sweep_rir=sweep_rir,
+            topk=_int_list(topk),
+            sweep=_int_list(sweep),
+            sweep_rir=_int_list(sweep_rir) or None,
             refine=refine,
             max_queries=max_queries,
             query_stride=query_stride,
@@ -401,6 +401,7 @@ def synth_command(
 
 @app.command("bench")
 def bench_command(
+    ctx: typer.Context,
     only: Annotated[
         str,
         typer.Option(help="comma-separated sections: rerank, retrieval, encoding, http, scaling"),
@@ -459,7 +460,7 @@ def bench_command(
     from .tools.bench import check_sections, run_bench
 
     _configure_logging("warning")
-    options = {k: v for k, v in locals().items() if k not in ("only", "out")}  # the options
+    options = {k: v for k, v in ctx.params.items() if k not in ("only", "out")}
     for key in ("ks", "ns", "large_ns", "sizes", "scan_sizes", "http_clients",
                 "scale_sizes", "scale_clients"):  # fmt: skip
         options[key] = _int_list(options[key])

@@ -13,23 +13,15 @@ from .report import diagnostics_table, markdown_table, plot_sgv_scores, plot_swe
 from .runner import EvalConfig, run_evaluation
 
 
-def int_list(text: str) -> list[int]:
-    """``"2,20"`` -> ``[2, 20]``; raises ValueError naming the text."""
-    try:
-        return [int(x) for x in text.split(",") if x.strip()]
-    except ValueError:
-        raise ValueError(f"expected comma-separated integers, got {text!r}") from None
-
-
 def evaluate(
     *,
     data: Path,
     db_until: float | None,
     min_gap: float | None,
     methods: str,
-    topk: str,
-    sweep: str,
-    sweep_rir: str,
+    topk: list[int],
+    sweep: list[int],
+    sweep_rir: list[int] | None,
     refine: str,
     max_queries: int | None,
     query_stride: int,
@@ -50,9 +42,9 @@ def evaluate(
         db_until=db_until,
         min_gap=min_gap,
         methods=[m.strip() for m in methods.split(",") if m.strip()] or list(METHODS),
-        topk=int_list(topk),
-        sweep=int_list(sweep),
-        sweep_rir=int_list(sweep_rir) or None,
+        topk=topk,
+        sweep=sweep,
+        sweep_rir=sweep_rir,
         refine=refine,
         max_queries=max_queries,
         query_stride=query_stride,
