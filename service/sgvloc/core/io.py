@@ -188,7 +188,7 @@ def _pcd_header(raw: bytes, p: Path) -> tuple[Any, list[str], bytes]:
     from pypcd4.pypcd4 import PCD_TYPE_TO_NUMPY_TYPE, MetaData
 
     lines: dict[str, list[str]] = {}
-    pos = 0
+    pos = lineno = 0
     while "DATA" not in lines:
         end = raw.find(b"\n", pos)
         if end < 0 or pos > _MAX_HEADER_BYTES:
@@ -197,7 +197,7 @@ def _pcd_header(raw: bytes, p: Path) -> tuple[Any, list[str], bytes]:
             text = raw[pos:end].decode("ascii").strip()
         except UnicodeDecodeError:
             raise ScanFormatError(f"{p}: not a valid PCD file: header is not ASCII") from None
-        lineno, pos = len(lines) + 1, end + 1
+        lineno, pos = lineno + 1, end + 1
         if not text or text.startswith("#"):
             continue
         key, *vals = text.split()
@@ -244,8 +244,9 @@ def _first_error(exc: Exception) -> str:
     return str(exc)
 
 
-def _check_pcd_size(p: Path, n: int, point_size: int, meta: Any, body: bytes) -> bytes:
+def _check_pcd_size(p: Path, meta: Any, point_size: int, body: bytes) -> bytes:
     """The data section as pypcd4 reads it; a wrong size is an error naming both counts."""
+    n = meta.points
     if meta.data == "ascii":
         rows = [b" ".join(ln.split()) for ln in body.splitlines() if ln.strip()]
         if len(rows) != n:
@@ -294,7 +295,7 @@ def read_pcd(path: PathLike) -> Scan:
     p, raw = _read_bytes(path)
     meta, fields, body = _pcd_header(raw, p)
     dtype = meta.build_dtype()
-    body = _check_pcd_size(p, meta.points, dtype.itemsize, meta, body)
+    body = _check_pcd_size(p, meta, dtype.itemsize, body)
     try:
         pc = PointCloud.from_fileobj(io.BytesIO(meta.compose_header().encode() + body))
     except (ValueError, RuntimeError, TypeError) as exc:
@@ -338,10 +339,11 @@ def read_ply(path: PathLike) -> Scan:
     try:
         ply = PlyData.read(io.BytesIO(raw))
     except PlyElementParseError as exc:
+        element = exc.element.name if exc.element is not None else "?"
         n = exc.element.count if exc.element is not None else "?"
         row = exc.row if exc.row is not None else 0
         header_end = raw.find(b"end_header")
-        if b"format ascii" in raw[:header_end] and exc.element.name == "vertex":
+        if b"format ascii" in raw[:header_end] and element == "vertex":
             lineno = raw[:header_end].count(b"\n") + 2 + row
             line = raw.split(b"\n")[lineno - 1] if lineno <= raw.count(b"\n") + 1 else b""
             expected = len(exc.element.properties)
@@ -350,7 +352,7 @@ def read_ply(path: PathLike) -> Scan:
             ) from None
         raise ScanFormatError(
             f"{p}: truncated or corrupt PLY: header says {n} vertices, reading stopped at "
-            f"row {row} of element {exc.element.name!r} ({exc.message})"
+            f"row {row} of element {element!r} ({exc.message})"
         ) from None
     except (PlyParseError, UnicodeDecodeError, ValueError) as exc:
         raise ScanFormatError(f"{p}: not a valid PLY file: {exc}") from None
@@ -371,9 +373,10 @@ def write_ply(path: PathLike, scan: Scan | np.ndarray, binary: bool = True) -> P
 
     s = _as_scan(scan)
     names = ["x", "y", "z"] + (["intensity"] if s.intensity is not None else [])
+    xyzi = s.xyzi()  # [P, 4]
     rec = np.zeros(len(s), dtype=[(nm, "<f4") for nm in names])
     for k, nm in enumerate(names):
-        rec[nm] = s.xyzi()[:, k]
+        rec[nm] = xyzi[:, k]
     PlyData([PlyElement.describe(rec, "vertex")], text=not binary, byte_order="<").write(str(path))
     return Path(path)
 
