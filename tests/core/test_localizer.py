@@ -45,7 +45,7 @@ def test_revisit_queries_localize_within_tolerance(campus):
         # frames compose: T_map_sensor = T_map_keyframe @ T_keyframe_sensor
         T_map_kf = loc.keyframe(res.keyframe_id).T_map_sensor
         assert np.allclose(res.T_map_sensor, T_map_kf @ res.T_keyframe_sensor)
-        assert set(res.timings_ms) == {"encode", "retrieve", "rerank", "pose", "total"}
+        assert set(res.timings_ms) == {"encode", "retrieve", "rerank", "pose", "verify", "total"}
         assert res.map_version == loc.version
 
 
@@ -81,7 +81,8 @@ def test_precomputed_features_give_the_same_answer(campus):
     a = loc.localize(features=feats, refine="none")
     b = loc.localize(scans[queries[1].index], refine="none")
     assert a.keyframe_id == b.keyframe_id
-    assert np.allclose(a.T_map_sensor, b.T_map_sensor)
+    assert np.allclose(a.T_map_sensor_estimate, b.T_map_sensor_estimate)
+    assert a.confidence == pytest.approx(b.confidence)
     # ICP needs the raw scan: with features only it is skipped, and says so
     c = loc.localize(features=feats, refine="icp")
     assert c.pose.icp["used"] is False
@@ -91,8 +92,9 @@ def test_features_from_another_encoder_are_refused(campus):
     loc, *_ = campus
     other = PrecomputedEncoder("egonn", 256, 128)
     rng = np.random.default_rng(0)
-    feats = other.from_arrays(rng.normal(size=256), rng.normal(size=(10, 3)),
-                              rng.normal(size=(10, 128)))
+    feats = other.from_arrays(
+        rng.normal(size=256), rng.normal(size=(10, 3)), rng.normal(size=(10, 128))
+    )
     version = loc.version
     with pytest.raises(EncoderMismatchError, match="egonn"):
         loc.add_keyframe(np.eye(4), features=feats)
@@ -115,8 +117,13 @@ def test_bad_calls(campus):
     with pytest.raises(NotFoundError):
         loc.remove_keyframe(999_999)
     with pytest.raises(ConflictError):
-        loc.add_keyframes([loc.make_keyframe(np.eye(4), scan=db[0].scan().points,
-                                             keyframe_id=loc.keyframe_ids()[0])])
+        loc.add_keyframes(
+            [
+                loc.make_keyframe(
+                    np.eye(4), scan=db[0].scan().points, keyframe_id=loc.keyframe_ids()[0]
+                )
+            ]
+        )
     assert (len(loc), loc.version) == (n, version)
 
 
@@ -126,8 +133,9 @@ def test_insert_remove_and_version():
     rng = np.random.default_rng(1)
 
     def feats():
-        return enc.from_arrays(rng.normal(size=8), rng.normal(size=(20, 3)),
-                               rng.normal(size=(20, 4)))
+        return enc.from_arrays(
+            rng.normal(size=8), rng.normal(size=(20, 3)), rng.normal(size=(20, 4))
+        )
 
     empty = loc.localize(features=feats())
     assert not empty.localized and "no keyframes" in empty.reason
@@ -144,3 +152,80 @@ def test_insert_remove_and_version():
     assert loc.version == 3 and loc.keyframe_ids() == [100]
     with pytest.raises(NotFoundError):
         loc.keyframe(a)
+
+
+@pytest.fixture(scope="module")
+def elsewhere(tmp_path_factory) -> np.ndarray:
+    """A scan of another place: a synthetic town's street, nowhere in the campus map."""
+    from sgvloc.tools.synth import SynthConfig, generate
+
+    out = tmp_path_factory.mktemp("town") / "seq"
+    generate(out, SynthConfig(scans=2, seed=5), progress=False)
+    return KittiSequence(out)[1].scan().points
+
+
+def test_a_scan_from_another_place_is_rejected_and_keeps_its_estimate(campus, elsewhere):
+    loc, *_ = campus
+    res = loc.localize(elsewhere)
+    assert not res.localized and res.verdict in ("low_confidence", "pose_check")
+    assert res.reason and res.T_map_sensor is None and res.T_keyframe_sensor is None
+    assert res.T_map_sensor_estimate is not None and res.keyframe_id is not None
+    assert res.confidence < res.min_confidence == loc.config.verdict.min_confidence
+    assert res.evidence is not None
+
+
+def test_min_confidence_per_request_changes_the_verdict_and_nothing_else(campus):
+    loc, _, queries, scans = campus
+    scan = scans[queries[0].index]
+    usual = loc.localize(scan)
+    strict = loc.localize(scan, min_confidence=1.0)
+    lax = loc.localize(scan, min_confidence=0.0)
+    assert usual.localized and lax.localized and usual.confidence < 1.0
+    assert not strict.localized and strict.verdict == "low_confidence"
+    assert "min_confidence 1" in strict.reason and strict.min_confidence == 1.0
+    for other in (strict, lax):
+        # (Open3D's ICP may differ in the last bits between runs)
+        assert other.confidence == pytest.approx(usual.confidence, rel=1e-9)
+        assert other.evidence.to_dict() == pytest.approx(usual.evidence.to_dict(), rel=1e-9)
+        assert other.keyframe_id == usual.keyframe_id
+        np.testing.assert_allclose(
+            other.T_map_sensor_estimate, usual.T_map_sensor_estimate, atol=1e-9
+        )
+        assert [c.keyframe_id for c in other.reranked] == [c.keyframe_id for c in usual.reranked]
+    with pytest.raises(InputError, match="min_confidence"):
+        loc.localize(scan, min_confidence=1.5)
+
+
+def test_a_prior_excludes_far_keyframes(campus):
+    from sgvloc.core.prior import Prior
+
+    loc, db, queries, scans = campus
+    q = queries[0]
+    free = loc.localize(scans[q.index])
+    true_kf = loc.keyframe(free.keyframe_id).T_map_sensor[:3, 3]
+    # a prior around the truth finds the same answer and says how many keyframes it saw
+    at = loc.localize(scans[q.index], prior=Prior(tuple(q.T_world_sensor[:2, 3]), 10.0))
+    inside = [
+        kf for kf in db if np.linalg.norm(kf.T_world_sensor[:2, 3] - q.T_world_sensor[:2, 3]) <= 10
+    ]
+    assert at.localized and at.keyframe_id == free.keyframe_id
+    assert at.prior == {"used": True, "keyframes_in_radius": len(inside)}
+    assert len(at.retrieved) == min(len(inside), loc.config.top_k)
+    # a prior 8 m away whose 4 m radius leaves the true match out: it is never returned
+    away = q.T_world_sensor[:2, 3] + np.array([8.0, 0.0])
+    res = loc.localize(scans[q.index], prior=Prior(tuple(away), 4.0))
+    ids = {c.keyframe_id for c in res.retrieved}
+    assert free.keyframe_id not in ids
+    for i in ids:
+        assert np.linalg.norm(loc.keyframe(i).T_map_sensor[:2, 3] - away) <= 4.0
+    if (
+        res.T_map_sensor_estimate is not None
+        and np.linalg.norm(res.T_map_sensor_estimate[:2, 3] - away) > 4.0
+    ):
+        assert not res.localized and res.verdict == "outside_prior"
+    assert np.linalg.norm(true_kf[:2] - away) > 4.0
+    # nothing inside the radius: a clear answer, not an error
+    empty = loc.localize(scans[q.index], prior=Prior((5000.0, 5000.0), 20.0))
+    assert not empty.localized and empty.verdict == "no_keyframe_in_prior"
+    assert "no keyframe within 20 m" in empty.reason
+    assert empty.prior == {"used": True, "keyframes_in_radius": 0} and not empty.retrieved

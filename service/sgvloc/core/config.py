@@ -81,12 +81,27 @@ class PoseConfig(_Section):
     icp_max_distance: float = Field(1.0, gt=0.0, description="ICP correspondence distance (m)")
     icp_iterations: int = Field(30, ge=1)
     min_icp_fitness: float = Field(
-        0.5, ge=0.0, le=1.0,
+        0.5,
+        ge=0.0,
+        le=1.0,
         description="after ICP: share of query points within icp_max_distance of the "
         "keyframe cloud needed to call the pose localized (replaces the RANSAC thresholds)",
     )
     min_inliers: int = Field(10, ge=3, description="fewer RANSAC inliers = not localized")
     min_fitness: float = Field(0.05, ge=0.0, le=1.0, description="lower fitness = not localized")
+
+
+class VerdictConfig(_Section):
+    """When an answer counts as localized (:mod:`sgvloc.core.confidence`)."""
+
+    min_confidence: float = Field(
+        0.6,  # the smallest tenth with <= 1% false accepts on held-out data (docs/VERDICT.md)
+        ge=0.0,
+        le=1.0,
+        description="accept an answer when its calibrated confidence (the probability that "
+        "its pose is within 2 m and 5 deg) is at least this; the pose step's minimums "
+        "(min_inliers, min_fitness, min_icp_fitness) must hold as well",
+    )
 
 
 RerankMethod = Literal["none", "average-qe", "alpha-qe", "ransac-rir", "fgr-rir", "sgv"]
@@ -102,6 +117,7 @@ class LocalizerConfig(_Section):
     retrieval: RetrievalConfig = RetrievalConfig()
     sgv: SGVConfig = SGVConfig()
     pose: PoseConfig = PoseConfig()
+    verdict: VerdictConfig = VerdictConfig()
     top_k: int = Field(20, ge=1, le=1000)
     rerank: RerankMethod = "sgv"
     qe_k: int = Field(3, ge=1, description="query expansion: neighbours averaged")

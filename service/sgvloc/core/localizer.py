@@ -13,17 +13,29 @@ import itertools
 import logging
 import time
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Any
 
 import numpy as np
 
 from ._rwlock import RWLock
+from .confidence import (
+    AGREEMENT_CANDIDATES,
+    Calibration,
+    Evidence,
+    SpectralCandidate,
+    decide,
+    gather_evidence,
+    shipped_calibration,
+    spectral_candidates,
+)
 from .config import LocalizerConfig
 from .encoders import Encoder
 from .errors import ConflictError, InputError, NotFoundError
 from .features import Features
 from .pose import PoseResult, check_rigid, ransac_pose, refine_icp
-from .rerank import Candidate, check_method, rerank
+from .prior import PositionGrid, Prior
+from .rerank import Candidate, RerankOutput, check_method, rerank
 from .retrieval import FaissIndex
 
 log = logging.getLogger(__name__)
@@ -44,24 +56,46 @@ class Keyframe:
 class LocalizationResult:
     """Everything one localization produced.
 
-    ``T_map_sensor`` is the query's pose in the map frame (4x4, row-major, float64),
-    ``T_keyframe_sensor`` the query relative to the matched keyframe. Both are ``None``
-    when ``localized`` is false; ``reason`` then says why. ``retrieved`` is the candidate
-    list in retrieval order, ``reranked`` after re-ranking (best first). ``timings_ms``
-    holds encode, retrieve, rerank, pose and total.
+    ``localized`` is the verdict: act on this answer. ``T_map_sensor`` is then the query's
+    pose in the map frame (4x4, row-major, float64) and ``T_keyframe_sensor`` the query
+    relative to the matched keyframe; both are ``None`` when ``localized`` is false.
+    ``T_map_sensor_estimate`` / ``T_keyframe_sensor_estimate`` hold the best estimate
+    whether or not it was accepted (``None`` only without any estimate).
+
+    ``confidence`` is the calibrated probability that the estimate is within 2 m and
+    5 degrees (:mod:`sgvloc.core.confidence`), ``evidence`` what it was computed from;
+    ``verdict`` a reason code (:data:`~sgvloc.core.confidence.VERDICT_CODES`) and
+    ``reason`` a sentence. ``prior``: how a prior restricted the search (None: no prior).
+    ``retrieved`` is the candidate list in retrieval order, ``reranked`` after re-ranking
+    (best first). ``timings_ms`` holds encode, retrieve, rerank, pose, verify and total.
     """
 
     localized: bool
     reason: str
     keyframe_id: int | None
-    T_map_sensor: np.ndarray | None
-    T_keyframe_sensor: np.ndarray | None
     pose: PoseResult | None
     retrieved: list[Candidate]
     reranked: list[Candidate]
     rerank_method: str
     timings_ms: dict[str, float]
     map_version: int
+    verdict: str = "localized"
+    confidence: float = 0.0
+    min_confidence: float = 0.0
+    evidence: Evidence | None = None
+    T_map_sensor_estimate: np.ndarray | None = None
+    T_keyframe_sensor_estimate: np.ndarray | None = None
+    prior: dict[str, Any] | None = None
+
+    @property
+    def T_map_sensor(self) -> np.ndarray | None:
+        """The query's pose in the map, if ``localized``."""
+        return self.T_map_sensor_estimate if self.localized else None
+
+    @property
+    def T_keyframe_sensor(self) -> np.ndarray | None:
+        """The query's pose relative to the matched keyframe, if ``localized``."""
+        return self.T_keyframe_sensor_estimate if self.localized else None
 
     @property
     def top1_changed(self) -> bool:
@@ -80,12 +114,16 @@ class Localizer:
         config: LocalizerConfig | None = None,
         *,
         keep_clouds: bool = True,
+        calibration: Calibration | None = None,
     ) -> None:
         self.encoder = encoder
         self.config = config or LocalizerConfig()
         self.keep_clouds = keep_clouds
+        #: the confidence model (default: the one shipped for the encoder's kind)
+        self.calibration = calibration or shipped_calibration(_encoder_kind(encoder))
         self.index = FaissIndex(encoder.global_dim, self.config.retrieval)
         self._keyframes: dict[int, Keyframe] = {}
+        self._grid = PositionGrid()  # keyframe positions, for prior-restricted retrieval
         self._next_id = itertools.count(1)
         self._lock = RWLock()
         self.version = 0  # changes on every insert and removal
@@ -151,6 +189,7 @@ class Localizer:
                 self.index.add(np.asarray(ids, dtype=np.int64), descs)
             for kf in keyframes:
                 self._keyframes[kf.id] = kf
+                self._grid.add(kf.id, kf.T_map_sensor[:3, 3])
             if keyframes:
                 self.version += 1
             return ids
@@ -164,6 +203,7 @@ class Localizer:
             self.keyframe(keyframe_id)
             self.index.remove(np.array([keyframe_id], dtype=np.int64))
             del self._keyframes[int(keyframe_id)]
+            self._grid.remove(keyframe_id)
             self.version += 1
 
     def restore(
@@ -185,10 +225,23 @@ class Localizer:
                 index.add(np.asarray(ids, dtype=np.int64), descs)
         elif index.dim != self.encoder.global_dim or index.ids().tolist() != sorted(ids):
             raise ConflictError("the index snapshot does not hold exactly these keyframes")
+        grid = PositionGrid()
+        for kf in keyframes:
+            grid.add(kf.id, kf.T_map_sensor[:3, 3])
         with self._lock.write():
             self.index = index
             self._keyframes = {kf.id: kf for kf in keyframes}
+            self._grid = grid
             self.version = int(version)
+
+    def update_settings(self, config: LocalizerConfig, calibration: Calibration) -> None:
+        """Swap in new settings and calibration between localizations (the retrieval
+        settings must stay as they are: the index was built with them)."""
+        if config.retrieval != self.config.retrieval:
+            raise InputError("retrieval settings cannot change on a built index")
+        with self._lock.write():
+            self.config = config
+            self.calibration = calibration
 
     def _fresh_id(self) -> int:
         while True:
@@ -206,8 +259,15 @@ class Localizer:
         top_k: int | None = None,
         rerank_method: str | None = None,
         refine: str | None = None,
+        prior: Prior | None = None,
+        min_confidence: float | None = None,
     ) -> LocalizationResult:
-        """Localize a raw scan (or precomputed features) in this map."""
+        """Localize a raw scan (or precomputed features) in this map.
+
+        ``prior``: search only the keyframes inside its radius and reject an estimate
+        outside its region; ``min_confidence``: this request's acceptance threshold
+        (default: the map's ``verdict.min_confidence``).
+        """
         cfg = self.config
         top_k = top_k or cfg.top_k
         method = check_method(rerank_method or cfg.rerank)
@@ -216,10 +276,20 @@ class Localizer:
             raise InputError(f"refine must be 'none' or 'icp', got {refine!r}")
         if top_k < 1:
             raise InputError(f"top_k must be at least 1, got {top_k}")
+        if min_confidence is None:
+            min_confidence = cfg.verdict.min_confidence
+        elif not 0.0 <= min_confidence <= 1.0:
+            raise InputError(f"min_confidence must be in [0, 1], got {min_confidence}")
         if (scan is None) == (features is None):
             raise InputError("give exactly one of scan or features")
         timings: dict[str, float] = {}
         t_start = time.perf_counter()
+        answer = partial(
+            LocalizationResult,
+            rerank_method=method,
+            timings_ms=timings,
+            min_confidence=min_confidence,
+        )
 
         # 1. encode the query (or check that its precomputed features fit this map)
         t = time.perf_counter()
@@ -234,25 +304,33 @@ class Localizer:
 
         with self._lock.read():
             version = self.version
-            # 2. retrieve the top-k keyframes by global descriptor
+            # 2. retrieve the top-k keyframes by global descriptor (inside the prior's radius)
             t = time.perf_counter()
-            hits = self.index.search(query.global_descriptor, top_k)[0]
+            among, prior_info = None, None
+            if prior is not None:
+                among = self._grid.within(prior)
+                prior_info = {"used": True, "keyframes_in_radius": int(len(among))}
+            hits = self.index.search(query.global_descriptor, top_k, among=among)[0]
             retrieved = [Candidate(h.id, h.similarity, r, h.similarity) for r, h in enumerate(hits)]
             timings["retrieve"] = _ms(t)
             if not retrieved:
                 timings["total"] = _ms(t_start)
-                return LocalizationResult(
+                code = "no_keyframes" if among is None else "no_keyframe_in_prior"
+                why = (
+                    "the map has no keyframes"
+                    if among is None
+                    else f"no keyframe within {prior.radius_m:g} m of the prior position"
+                )
+                return answer(
                     False,
-                    "the map has no keyframes",
-                    None,
-                    None,
+                    why,
                     None,
                     None,
                     [],
                     [],
-                    method,
-                    timings,
-                    version,
+                    map_version=version,
+                    verdict=code,
+                    prior=prior_info,
                 )
 
             # 3. re-rank the candidates
@@ -270,39 +348,68 @@ class Localizer:
                 best.features.local_features,
                 cfg.pose,
             )
-            if refine == "icp" and pose.num_correspondences >= cfg.pose.ransac_n:
+            has_estimate = pose.num_correspondences >= cfg.pose.ransac_n
+            if refine == "icp" and has_estimate:
                 pose = self._refine(pose, query_cloud, best)
             timings["pose"] = _ms(t)
 
-        timings["total"] = _ms(t_start)
-        if not pose.localized:
-            return LocalizationResult(
-                False,
-                pose.reason,
-                best.id,
-                None,
-                None,
-                pose,
-                retrieved,
-                out.candidates,
-                method,
-                timings,
-                version,
+            # 5. the evidence, its calibrated confidence and the verdict
+            t = time.perf_counter()
+            T_kf = pose.T_target_source if has_estimate else None
+            T_map = best.T_map_sensor @ T_kf if T_kf is not None else None
+            ranked = [c.keyframe_id for c in out.candidates]
+            evidence = gather_evidence(
+                ranked,
+                self._spectral(query, retrieved, out, ranked),
+                lambda i: self._keyframes[i].T_map_sensor,
+                similarity=float(query.global_descriptor @ best.features.global_descriptor),
+                pose=pose if has_estimate else None,
+                T_kf_query=T_kf,
+                planar=not query.keypoints[:, 2].any(),
             )
-        T_kf_sensor = pose.T_target_source
-        return LocalizationResult(
-            True,
-            pose.reason,
+            confidence = self.calibration.confidence(evidence) if has_estimate else 0.0
+            verdict = decide(confidence, min_confidence, pose, T_map, prior)
+            timings["verify"] = _ms(t)
+
+        timings["total"] = _ms(t_start)
+        return answer(
+            verdict.localized,
+            verdict.reason,
             best.id,
-            best.T_map_sensor @ T_kf_sensor,
-            T_kf_sensor,
             pose,
             retrieved,
             out.candidates,
-            method,
-            timings,
-            version,
+            map_version=version,
+            verdict=verdict.code,
+            confidence=confidence,
+            evidence=evidence,
+            T_map_sensor_estimate=T_map,
+            T_keyframe_sensor_estimate=T_kf,
+            prior=prior_info,
         )
+
+    def _spectral(
+        self, query: Features, retrieved: list[Candidate], out: RerankOutput, ranked: list[int]
+    ) -> dict[int, SpectralCandidate]:
+        """SpectralGV's view of the re-ranked candidates: from the re-ranking when it was
+        SGV (its scores are in retrieval order), else scored now in one batch."""
+        if out.sgv is not None:
+            res, scored = out.sgv, [c.keyframe_id for c in retrieved]
+        else:
+            from .sgv import sgv_rerank_scores
+
+            feats = [self._keyframes[i].features for i in ranked]
+            res = sgv_rerank_scores(
+                query.keypoints,
+                query.local_features,
+                [f.keypoints for f in feats],
+                [f.local_features for f in feats],
+                self.config.sgv,
+            )
+            scored = ranked
+        kps = [self._keyframes[i].features.keypoints for i in scored]
+        wanted = set(ranked[: 1 + AGREEMENT_CANDIDATES])
+        return spectral_candidates(scored, query.keypoints, kps, res, poses_for=wanted)
 
     def _features_of(self, keyframe_id: int) -> Features:
         return self._keyframes[keyframe_id].features
@@ -318,6 +425,11 @@ class Localizer:
             }
             return pose
         return refine_icp(pose, query_cloud, best.cloud, self.config.pose)
+
+
+def _encoder_kind(encoder: Encoder) -> str:
+    """The encoder's kind as EncoderSpec names it (its identity name up to a colon)."""
+    return encoder.identity.name.split(":", 1)[0]
 
 
 def _ms(t0: float) -> float:

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import get_args
+from typing import Any, get_args
 
 import numpy as np
 
@@ -56,6 +56,7 @@ class RerankOutput:
     candidates: list[Candidate]
     poses: dict[int, PoseResult] = field(default_factory=dict)  # RIR: per-candidate registration
     info: dict = field(default_factory=dict)
+    sgv: Any = None  # sgv: the SGVScores of the candidates in retrieval order
 
 
 FeaturesOf = Callable[[int], Features]
@@ -107,7 +108,7 @@ def _sgv(
         cfg.sgv,
     )
     scores = res.score  # cfg.sgv.normalise already chose v^T M v / n or v^T M v
-    return RerankOutput("sgv", _sorted(retrieved, scores), info={"n": res.n.tolist()})
+    return RerankOutput("sgv", _sorted(retrieved, scores), info={"n": res.n.tolist()}, sgv=res)
 
 
 def _query_expansion(

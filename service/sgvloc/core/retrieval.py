@@ -204,11 +204,21 @@ class FaissIndex:
 
     # -- search -------------------------------------------------------------------------
 
-    def search(self, queries: np.ndarray, k: int) -> list[list[SearchHit]]:
-        """Top-k by inner product for each query row; fewer hits if the index is smaller."""
+    def search(
+        self, queries: np.ndarray, k: int, among: np.ndarray | None = None
+    ) -> list[list[SearchHit]]:
+        """Top-k by inner product for each query row; fewer hits if the index is smaller.
+
+        ``among``: search only these ids (a prior region's keyframes), exactly: the flat
+        index filters with a FAISS ID selector; IVF and HNSW, whose approximate search
+        can miss members of a small selection, compare the query with the selected
+        vectors directly.
+        """
         if k <= 0:
             raise InputError(f"k must be positive, got {k}")
         q = self._prepare(queries)
+        if among is not None:
+            return self._search_among(q, k, np.unique(np.asarray(among, dtype=np.int64)))
         with self._lock.read():
             if self._index.ntotal == 0:
                 return [[] for _ in range(len(q))]
@@ -224,6 +234,26 @@ class FaissIndex:
             ]
             results.append(hits[:k])
         return results
+
+    def _search_among(self, q: np.ndarray, k: int, among: np.ndarray) -> list[list[SearchHit]]:
+        with self._lock.read():
+            among = among[np.isin(among, self._live_ids())]  # unknown ids select nothing
+            if len(among) == 0 or self._index.ntotal == 0:
+                return [[] for _ in range(len(q))]
+            if self.kind == "flat":
+                sel = faiss.IDSelectorBatch(among)
+                sims, ids = self._index.search(
+                    q, min(k, len(among)), params=faiss.SearchParameters(sel=sel)
+                )
+            else:
+                vecs = self._index.reconstruct_batch(among)  # [M, dim]
+                s = q @ vecs.T  # [Q, M]
+                order = np.argsort(-s, axis=1, kind="stable")[:, :k]
+                sims, ids = np.take_along_axis(s, order, axis=1), among[order]
+        return [
+            [SearchHit(int(i), float(v)) for v, i in zip(rs, ri, strict=True) if i >= 0]
+            for rs, ri in zip(sims, ids, strict=True)
+        ]
 
     # -- persistence --------------------------------------------------------------------
 

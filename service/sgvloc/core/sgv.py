@@ -47,7 +47,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Literal
 
 import numpy as np
@@ -164,6 +164,8 @@ class SGVScores:
       rows rebuilt at every iteration).
     - ``device``: where it ran, e.g. ``"cpu"``.
     - ``backend``: the kernel that ran: ``"numba"`` or ``"torch"``.
+    - ``matches`` ``[k, n_max]`` int64 or None: from :func:`sgv_rerank_scores`, the
+      candidate keypoint matched to each query keypoint (-1: none), aligned with ``v``.
     """
 
     score: np.ndarray
@@ -174,6 +176,7 @@ class SGVScores:
     path: Literal["dense", "chunked"]
     device: str
     backend: str = "torch"
+    matches: np.ndarray | None = None
 
     def order(self) -> np.ndarray:
         """Candidate indices by descending ``score``, ties in the given order."""
@@ -745,7 +748,8 @@ def sgv_rerank_scores(
         else:
             dst_np = np.zeros((k, n, 3), dtype=np.float32)
         src_np = np.broadcast_to(qk[None], (k, n, 3))  # [k, N, 3]
-        return sgv_scores(src_np, dst_np, valid.numpy(), cfg, dense_budget_bytes=dense_budget_bytes)
+        res = sgv_scores(src_np, dst_np, valid.numpy(), cfg, dense_budget_bytes=dense_budget_bytes)
+        return replace(res, matches=idx_np.astype(np.int64))
 
     # src = query keypoints (same for all k), dst = the matched candidate keypoints.
     kp_t = torch.as_tensor(kp_pad, device=device)  # [k, Nc_max, 3]
@@ -756,4 +760,5 @@ def sgv_rerank_scores(
     src = torch.as_tensor(qk, device=device)[None].expand(k, n, 3)  # [k, N, 3]
 
     # Score all candidates in one batch.
-    return sgv_scores(src, dst, valid, cfg, dense_budget_bytes=dense_budget_bytes)
+    res = sgv_scores(src, dst, valid, cfg, dense_budget_bytes=dense_budget_bytes)
+    return replace(res, matches=idx.cpu().numpy().astype(np.int64))
