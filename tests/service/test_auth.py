@@ -35,6 +35,7 @@ ALLOWED: dict[str, set[str]] = {
     "create_map": {"mapper", "admin"},
     "list_maps": {"mapper", "viewer", "admin"},
     "get_map": {"mapper", "viewer", "admin"},
+    "update_map": {"mapper", "admin"},
     "delete_map": {"admin"},
     "insert_keyframes": {"mapper", "admin"},
     "get_keyframe": {"mapper", "viewer", "admin"},
@@ -126,6 +127,8 @@ def _request(op: str, c: httpx.Client, admin: httpx.Client, ids: dict[str, int])
         return c.get("/v1/maps")
     if op == "get_map":
         return c.get("/v1/maps/auth-a")
+    if op == "update_map":
+        return c.patch("/v1/maps/auth-a", json={"localizer": {"top_k": 20}})
     if op == "delete_map":
         name = f"auth-del-{n}"
         assert (

@@ -31,6 +31,7 @@ def test_metrics_after_traffic(client: httpx.Client, balm_map: BalmMap) -> None:
     r = post_msgpack(client, "/v1/maps/balm/localize", {"points": points})
     assert r.status_code == 200
     localized = r.json()["localized"]
+    reason = r.json()["verdict"]
     client.get("/v1/maps/does-not-exist")
 
     r = client.get("/metrics")
@@ -52,7 +53,11 @@ def test_metrics_after_traffic(client: httpx.Client, balm_map: BalmMap) -> None:
     verdict = "localized" if localized else "not_localized"
     key = f'sgvloc_localize_total{{verdict="{verdict}"}}'
     assert _value(text, key) == _value(before, key) + 1
-    for stage in ("encode", "retrieve", "rerank", "pose"):
+    key = f'sgvloc_localize_reason_total{{reason="{reason}"}}'
+    assert _value(text, key) == _value(before, key) + 1
+    key = "sgvloc_localize_confidence_count"
+    assert _value(text, key) == _value(before, key) + 1
+    for stage in ("encode", "retrieve", "rerank", "pose", "verify"):
         key = f'sgvloc_stage_duration_seconds_count{{stage="{stage}"}}'
         assert _value(text, key) == _value(before, key) + 1
     assert _value(text, 'sgvloc_map_keyframes{map="balm"}') == len(balm_map.ids)

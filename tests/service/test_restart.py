@@ -24,6 +24,13 @@ def _assert_same_answer(a: dict, b: dict) -> None:
             assert b[key] is None
         else:
             np.testing.assert_allclose(b[key], a[key], atol=1e-9)
+    np.testing.assert_allclose(b["confidence"], a["confidence"], atol=1e-9)
+    assert b["evidence"].keys() == a["evidence"].keys()
+    for key, value in a["evidence"].items():
+        np.testing.assert_allclose(b["evidence"][key], value, atol=1e-9, err_msg=key)
+    assert (a["estimate"] is None) == (b["estimate"] is None)
+    for key in arrays if a["estimate"] is not None else ():
+        np.testing.assert_allclose(b["estimate"][key], a["estimate"][key], atol=1e-9)
     for key in ("retrieved", "reranked"):
         assert [(c["keyframe_id"], c["retrieval_rank"]) for c in b[key]] == [
             (c["keyframe_id"], c["retrieval_rank"]) for c in a[key]
@@ -36,7 +43,7 @@ def _assert_same_answer(a: dict, b: dict) -> None:
     if a["pose"] is not None:
         assert b["pose"]["inliers"] == a["pose"]["inliers"]
         np.testing.assert_allclose(b["pose"]["fitness"], a["pose"]["fitness"], atol=1e-9)
-    rest = {*arrays, "retrieved", "reranked", "pose"}
+    rest = {*arrays, "retrieved", "reranked", "pose", "confidence", "evidence", "estimate"}
     assert {k: v for k, v in b.items() if k not in rest} == {
         k: v for k, v in a.items() if k not in rest
     }

@@ -34,7 +34,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from pydantic import ValidationError
 
+from sgvloc.core.confidence import Calibration, shipped_calibration
 from sgvloc.core.config import LocalizerConfig
 from sgvloc.core.encoders import Encoder, EncoderSpec, make_encoder
 from sgvloc.core.errors import (
@@ -47,6 +49,7 @@ from sgvloc.core.errors import (
 from sgvloc.core.features import Features
 from sgvloc.core.localizer import Keyframe, LocalizationResult, Localizer
 from sgvloc.core.pose import check_rigid
+from sgvloc.core.prior import Prior
 from sgvloc.core.retrieval import FaissIndex
 
 from .store import (
@@ -131,6 +134,17 @@ def at_field(where: str) -> Iterator[None]:
         yield
     except SgvlocError as exc:
         raise field_error(exc, where) from None
+
+
+def _merge(base: dict[str, Any], patch: dict[str, Any]) -> dict[str, Any]:
+    """``base`` with ``patch`` applied: nested dicts merged key by key, the rest replaced."""
+    out = dict(base)
+    for key, value in patch.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _merge(out[key], value)
+        else:
+            out[key] = value
+    return out
 
 
 # -- one map -----------------------------------------------------------------------------
@@ -244,7 +258,12 @@ class MapManager:
                     f"{encoder.identity.fingerprint} (changed encoder code or model file); "
                     "its stored features cannot be mixed with new ones"
                 )
-            localizer = Localizer(encoder, record.localizer_config, keep_clouds=record.keep_clouds)
+            localizer = Localizer(
+                encoder,
+                record.localizer_config,
+                keep_clouds=record.keep_clouds,
+                calibration=record.calibration,
+            )
             keyframes = [
                 Keyframe(
                     row.id,
@@ -347,8 +366,13 @@ class MapManager:
         localizer_config: LocalizerConfig | None = None,
         *,
         keep_clouds: bool = True,
+        calibration: Calibration | None = None,
     ) -> MapHandle:
-        """Create an empty map. Raises InputError (bad name/spec) or ConflictError (exists)."""
+        """Create an empty map. Raises InputError (bad name/spec) or ConflictError (exists).
+
+        ``calibration``: the confidence model (default: the one shipped for the encoder's
+        kind), recorded with the map so that its answers do not change with an upgrade.
+        """
         if not MAP_NAME_RE.fullmatch(name):
             raise field_error(
                 InputError(
@@ -379,6 +403,7 @@ class MapManager:
                 encoder_fingerprint=encoder.identity.fingerprint,
                 keep_clouds=keep_clouds and encoder_spec.kind != "precomputed",
                 created_at=utc_now(),
+                calibration=calibration or shipped_calibration(encoder_spec.kind),
             )
             # build the folder aside, then move it into place in one rename
             self.maps_dir.mkdir(parents=True, exist_ok=True)
@@ -392,7 +417,12 @@ class MapManager:
                 raise
             folder = self.maps_dir / name
             store = self.backend.open(folder)
-            localizer = Localizer(encoder, localizer_config, keep_clouds=record.keep_clouds)
+            localizer = Localizer(
+                encoder,
+                localizer_config,
+                keep_clouds=record.keep_clouds,
+                calibration=record.calibration,
+            )
             handle = MapHandle(name, folder, record, store, localizer)
             self._save_snapshot(handle)
             with self._lock:
@@ -419,6 +449,53 @@ class MapManager:
         shutil.rmtree(trash, ignore_errors=True)
         self._on_change(name, None)
         log.info("deleted map %r", name)
+
+    def update_settings(
+        self,
+        name: str,
+        localizer: dict[str, Any] | None = None,
+        calibration: Calibration | None = None,
+    ) -> MapHandle:
+        """Change a map's localizer settings and/or calibration after creation.
+
+        ``localizer`` is merged into the current settings (nested objects key by key)
+        and validated whole; retrieval settings cannot change (the index was built with
+        them). Stored in one transaction, then swapped into the running map; the
+        keyframe version is unchanged.
+        """
+        handle = self.get(name)
+        with handle.write_lock:
+            if handle.closed:
+                raise NotFoundError(f"map {name!r} does not exist")
+            current = handle.record.localizer_config
+            config = current
+            if localizer:
+                merged = _merge(current.model_dump(), localizer)
+                try:
+                    config = LocalizerConfig.model_validate(merged)
+                except ValidationError as exc:
+                    err = exc.errors()[0]
+                    where = ".".join(str(x) for x in err["loc"])
+                    raise field_error(InputError(err["msg"]), f"localizer.{where}") from None
+                if config.retrieval != current.retrieval:
+                    raise field_error(
+                        InputError(
+                            "retrieval settings cannot change after creation (the index "
+                            "was built with them): create a new map"
+                        ),
+                        "localizer.retrieval",
+                    )
+            cal = calibration or handle.localizer.calibration
+            record = handle.store.update_settings(config, cal)
+            handle.localizer.update_settings(config, cal)
+            handle.record = record
+        log.info(
+            "map %r: settings changed (settings version %d, calibration %s)",
+            name,
+            record.settings_version,
+            cal.fingerprint,
+        )
+        return handle
 
     # -- keyframes ----------------------------------------------------------------------
 
@@ -593,12 +670,20 @@ class MapManager:
         top_k: int | None = None,
         rerank: str | None = None,
         refine: str | None = None,
+        prior: Prior | None = None,
+        min_confidence: float | None = None,
     ) -> LocalizationResult:
         """Localize a scan (or features) in map ``name``."""
         handle = self.get(name)
         if (points is None) == (features is None):
             raise InputError("give exactly one of points or features")
-        options = {"top_k": top_k, "rerank_method": rerank, "refine": refine}
+        options = {
+            "top_k": top_k,
+            "rerank_method": rerank,
+            "refine": refine,
+            "prior": prior,
+            "min_confidence": min_confidence,
+        }
         if points is not None:
             self._check_scan_allowed(handle)
             with at_field("points"):

@@ -14,11 +14,12 @@ from prometheus_client import (
     generate_latest,
 )
 
+from sgvloc.core.confidence import VERDICT_CODES
 from sgvloc.core.localizer import LocalizationResult
 
 _HTTP_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0, 60.0)
 _STAGE_BUCKETS = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0)
-STAGES = ("encode", "retrieve", "rerank", "pose")
+STAGES = ("encode", "retrieve", "rerank", "pose", "verify")
 
 
 class Metrics:
@@ -50,6 +51,18 @@ class Metrics:
         self.localize_total = Counter(
             "sgvloc_localize", "Localizations by verdict", ["verdict"], registry=r
         )
+        self.localize_reason = Counter(
+            "sgvloc_localize_reason",
+            "Localizations by verdict code (localized, low_confidence, outside_prior, ...)",
+            ["reason"],
+            registry=r,
+        )
+        self.confidence = Histogram(
+            "sgvloc_localize_confidence",
+            "Calibrated confidence of answers that had an estimate",
+            buckets=(0.05, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 0.95, 0.99),
+            registry=r,
+        )
         self.top1_changed = Counter(
             "sgvloc_rerank_top1_changed",
             "Localizations where re-ranking put another keyframe first",
@@ -60,6 +73,8 @@ class Metrics:
         )
         for verdict in ("localized", "not_localized"):  # present from the start, at 0
             self.localize_total.labels(verdict)
+        for code in VERDICT_CODES:
+            self.localize_reason.labels(code)
         for stage in STAGES:
             self.stage_duration.labels(stage)
 
@@ -70,6 +85,9 @@ class Metrics:
             if ms is not None:
                 self.stage_duration.labels(stage).observe(ms / 1e3)
         self.localize_total.labels("localized" if result.localized else "not_localized").inc()
+        self.localize_reason.labels(result.verdict).inc()
+        if result.T_map_sensor_estimate is not None:
+            self.confidence.observe(result.confidence)
         if result.top1_changed:
             self.top1_changed.inc()
 

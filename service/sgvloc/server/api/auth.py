@@ -50,6 +50,7 @@ ROUTE_ROLES: dict[str, frozenset[Role] | None | str] = {
     "create_map": frozenset({"mapper", "admin"}),
     "list_maps": frozenset({"mapper", "viewer", "admin"}),
     "get_map": frozenset({"mapper", "viewer", "admin"}),
+    "update_map": frozenset({"mapper", "admin"}),
     "delete_map": frozenset({"admin"}),
     # keyframes
     "insert_keyframes": frozenset({"mapper", "admin"}),

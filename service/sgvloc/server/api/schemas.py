@@ -24,10 +24,13 @@ from pydantic import (
     model_validator,
 )
 
+from sgvloc.core.confidence import Calibration
 from sgvloc.core.config import LocalizerConfig, RerankMethod, RetrievalConfig
 from sgvloc.core.encoders import EncoderSpec
+from sgvloc.core.errors import InputError
+from sgvloc.core.prior import DEFAULT_YAW_TOLERANCE_DEG, Prior
 
-from ..maps import FeaturesIn, KeyframeIn
+from ..maps import FeaturesIn, KeyframeIn, at_field, field_error
 from ..settings import Settings
 
 
@@ -114,6 +117,11 @@ class MapCreate(_In):
         description="store each keyframe's preprocessed cloud, used by ICP refinement and "
         "verification (refine=icp, the default); false saves memory and disk",
     )
+    calibration: dict[str, Any] | None = Field(
+        None,
+        description="confidence model as written by 'sgvloc calibrate' (default: the one "
+        "shipped for the encoder kind); recorded with the map",
+    )
 
     @model_validator(mode="after")
     def _one_retrieval(self) -> MapCreate:
@@ -130,6 +138,56 @@ class MapCreate(_In):
         if self.retrieval is not None:
             cfg = cfg.model_copy(update={"retrieval": self.retrieval})
         return cfg
+
+
+def parse_calibration(value: dict[str, Any] | str | None, where: str) -> Calibration | None:
+    """A calibration from a request body: an object written by ``sgvloc calibrate``, or
+    ``"shipped"`` (None here: the caller takes the shipped one)."""
+    if value is None or value == "shipped":
+        return None
+    if isinstance(value, str):
+        raise field_error(InputError("must be a calibration object or 'shipped'"), where)
+    with at_field(where):
+        return Calibration.from_dict(value)
+
+
+class MapPatch(_In):
+    """``PATCH /v1/maps/{map}``: change settings after creation (keyframes untouched)."""
+
+    localizer: dict[str, Any] | None = Field(
+        None,
+        description="merged into the map's localizer settings, e.g. "
+        '{"verdict": {"min_confidence": 0.7}, "top_k": 30}; retrieval cannot change',
+    )
+    calibration: Annotated[
+        Any,
+        WithJsonSchema({"anyOf": [{"type": "object"}, {"const": "shipped"}]}),
+    ] = Field(
+        None,
+        description="a calibration written by 'sgvloc calibrate', or 'shipped' for the one "
+        "this installation ships for the map's encoder kind",
+    )
+
+    @field_validator("calibration")
+    @classmethod
+    def _calibration(cls, v: Any) -> Any:
+        if v is not None and v != "shipped" and not isinstance(v, dict):
+            raise ValueError("must be a calibration object or 'shipped'")
+        return v
+
+    @model_validator(mode="after")
+    def _something(self) -> MapPatch:
+        if self.localizer is None and self.calibration is None:
+            raise ValueError("give localizer settings and/or a calibration to change")
+        return self
+
+
+class CalibrationInfo(BaseModel):
+    """The confidence model a map answers with."""
+
+    name: str
+    fingerprint: str
+    encoder_kind: str = Field(description="the encoder kind it was fitted for")
 
 
 class EncoderInfo(BaseModel):
@@ -155,6 +213,9 @@ class MapInfo(BaseModel):
     index_kind: str = Field(description="FAISS index in use now (ivf reads flat until trained)")
     keep_clouds: bool
     created_at: str = Field(description="ISO 8601 UTC")
+    calibration: CalibrationInfo
+    settings_version: int = Field(description="changes of the settings after creation (PATCH)")
+    settings_updated_at: str | None = Field(description="ISO 8601 UTC of the last change")
 
 
 class MapList(BaseModel):
@@ -290,6 +351,26 @@ class KeyframeDeleted(BaseModel):
 # -- localize -----------------------------------------------------------------------------
 
 
+#: a finite number: an integer or a float, not a string, a boolean, NaN or inf
+Finite = Annotated[float, Field(strict=True, allow_inf_nan=False)]
+
+
+class PriorBody(_In):
+    """A prior pose: position (map frame) within a radius, optionally a heading."""
+
+    position: list[Finite] = Field(
+        min_length=2, max_length=3, description="[x, y] or [x, y, z] in map coordinates (m)"
+    )
+    radius_m: Finite = Field(gt=0.0, le=1e6, description="search radius (m)")
+    yaw_deg: Finite | None = Field(None, description="heading of the sensor's x axis (deg)")
+    yaw_tolerance_deg: Finite = Field(
+        DEFAULT_YAW_TOLERANCE_DEG, gt=0.0, le=180.0, description="allowed heading error (deg)"
+    )
+
+    def to_prior(self) -> Prior:
+        return Prior(tuple(self.position), self.radius_m, self.yaw_deg, self.yaw_tolerance_deg)
+
+
 class LocalizeBody(_In):
     """``POST /v1/maps/{map}/localize``: a scan or features, and per-request options."""
 
@@ -300,6 +381,14 @@ class LocalizeBody(_In):
     )
     rerank: RerankMethod | None = Field(None, description="re-ranking method (map default)")
     refine: Literal["none", "icp"] | None = Field(None, description="ICP after RANSAC")
+    prior: PriorBody | None = Field(
+        None,
+        description="where the sensor is believed to be (e.g. GNSS): only keyframes inside "
+        "the radius are searched, an estimate outside the region is rejected",
+    )
+    min_confidence: Annotated[Finite, Field(ge=0.0, le=1.0)] | None = Field(
+        None, description="accept when confidence >= this (map default: verdict.min_confidence)"
+    )
 
     @field_validator("points")
     @classmethod
@@ -351,23 +440,62 @@ class TimingsOut(BaseModel):
     retrieve: float = 0.0
     rerank: float = 0.0
     pose: float = 0.0
+    verify: float = Field(0.0, description="evidence, confidence and verdict")
     total: float = 0.0
 
 
+class EstimateOut(BaseModel):
+    """The best pose estimate, whether or not it was accepted."""
+
+    T_map_sensor: Matrix4 = Field(description="query pose in the map frame")
+    T_keyframe_sensor: Matrix4 = Field(description="query pose in the keyframe frame")
+    translation: list[float] = Field(description="T_map_sensor translation [x, y, z]")
+    quaternion_xyzw: list[float] = Field(description="rotation, [x, y, z, w] (scalar last)")
+
+
+class PriorOut(BaseModel):
+    """How the request's prior restricted the search."""
+
+    used: bool
+    keyframes_in_radius: int
+
+
 class LocalizeOut(BaseModel):
-    """Where the scan is in the map, with the candidates and diagnostics behind it."""
+    """Where the scan is in the map, with the candidates and diagnostics behind it.
+
+    ``localized`` is the verdict to act on: ``T_map_sensor`` and friends are null unless
+    it is true. ``estimate`` holds the best estimate either way (null only without one),
+    ``confidence`` the calibrated probability that it is within 2 m and 5 deg."""
 
     map: str
     map_version: int = Field(description="the map version that answered")
     localized: bool
+    verdict: str = Field(
+        description="why: localized | low_confidence | pose_check | outside_prior | "
+        "no_estimate | no_keyframe_in_prior | no_keyframes"
+    )
     reason: str
+    confidence: float = Field(description="probability that the estimate is within 2 m, 5 deg")
+    min_confidence: float = Field(description="the acceptance threshold applied")
     keyframe_id: int | None = Field(description="the re-ranked top-1 the pose was taken from")
-    T_map_sensor: Matrix4 | None = Field(description="query pose in the map frame")
-    T_keyframe_sensor: Matrix4 | None = Field(description="query pose in the keyframe frame")
+    T_map_sensor: Matrix4 | None = Field(
+        description="query pose in the map frame (null unless localized)"
+    )
+    T_keyframe_sensor: Matrix4 | None = Field(
+        description="query pose in the keyframe frame (null unless localized)"
+    )
     translation: list[float] | None = Field(description="T_map_sensor translation [x, y, z]")
     quaternion_xyzw: list[float] | None = Field(
         description="T_map_sensor rotation, [x, y, z, w] (scalar last)"
     )
+    estimate: EstimateOut | None = Field(
+        description="the best estimate, also when it was rejected (null without one)"
+    )
+    evidence: dict[str, Any] | None = Field(
+        description="what the confidence was computed from (sgv, sgv_margin, similarity, "
+        "inliers, inlier_ratio, icp_fitness, icp_rmse, agreement, offset_m)"
+    )
+    prior: PriorOut | None = Field(description="null when the request had no prior")
     pose: PoseOut | None
     retrieved: list[CandidateOut] = Field(description="retrieval order")
     reranked: list[CandidateOut] = Field(description="after re-ranking, best first")

@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from sgvloc.core.confidence import Calibration
 from sgvloc.core.config import LocalizerConfig
 from sgvloc.core.encoders import EncoderSpec
 from sgvloc.core.errors import SgvlocError
@@ -47,7 +48,13 @@ def blob_to_array(blob: bytes) -> np.ndarray:
 
 @dataclass(frozen=True)
 class MapRecord:
-    """A map's settings as stored: what it needs to be rebuilt in memory."""
+    """A map's settings as stored: what it needs to be rebuilt in memory.
+
+    ``calibration``: the confidence model the map answers with (None in maps made before
+    maps recorded one: the shipped calibration of its encoder kind applies).
+    ``settings_version`` counts changes of the settings after creation (PATCH), made at
+    ``settings_updated_at``; they never change the keyframe ``version``.
+    """
 
     name: str
     encoder_spec: EncoderSpec
@@ -55,6 +62,9 @@ class MapRecord:
     encoder_fingerprint: str
     keep_clouds: bool
     created_at: str
+    calibration: Calibration | None = None
+    settings_version: int = 0
+    settings_updated_at: str | None = None
 
 
 @dataclass
@@ -90,6 +100,13 @@ class MapStore(ABC):
     @abstractmethod
     def record(self) -> MapRecord:
         """The map's stored settings; raises :class:`StoreError` if they are damaged."""
+
+    @abstractmethod
+    def update_settings(
+        self, localizer_config: LocalizerConfig, calibration: Calibration
+    ) -> MapRecord:
+        """Replace the localizer settings and calibration in one transaction; bumps
+        ``settings_version`` (not the keyframe version). Returns the new record."""
 
     @abstractmethod
     def version(self) -> int:

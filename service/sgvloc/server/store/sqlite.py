@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sgvloc.core.confidence import Calibration
 from sgvloc.core.config import LocalizerConfig
 from sgvloc.core.encoders import EncoderSpec
 from sgvloc.core.errors import NotFoundError
@@ -105,7 +106,10 @@ class SqliteMapStore(MapStore):
             "keep_clouds": json.dumps(record.keep_clouds),
             "created_at": record.created_at,
             "version": "0",
+            "settings_version": "0",
         }
+        if record.calibration is not None:
+            meta["calibration"] = json.dumps(record.calibration.to_dict())
         conn.executescript(_SCHEMA)
         conn.execute("BEGIN IMMEDIATE")
         conn.executemany("INSERT INTO meta (key, value) VALUES (?, ?)", meta.items())
@@ -149,9 +153,40 @@ class SqliteMapStore(MapStore):
                 encoder_fingerprint=m["encoder_fingerprint"],
                 keep_clouds=bool(json.loads(m["keep_clouds"])),
                 created_at=m["created_at"],
+                calibration=Calibration.from_dict(json.loads(m["calibration"]))
+                if "calibration" in m
+                else None,
+                settings_version=int(m.get("settings_version", "0")),
+                settings_updated_at=m.get("settings_updated_at"),
             )
         except (KeyError, ValueError) as exc:
             raise StoreError(f"{self.path}: damaged map settings: {exc}") from None
+
+    def update_settings(
+        self, localizer_config: LocalizerConfig, calibration: Calibration
+    ) -> MapRecord:
+        """Replace the localizer settings and calibration (one transaction)."""
+        values = {
+            "localizer_config": localizer_config.model_dump_json(),
+            "calibration": json.dumps(calibration.to_dict()),
+            "settings_updated_at": utc_now(),
+        }
+        with self._lock:
+            conn = self._conn
+            conn.execute("BEGIN IMMEDIATE")
+            try:
+                conn.executemany(
+                    "INSERT OR REPLACE INTO meta (key, value) VALUES (?, ?)", values.items()
+                )
+                conn.execute(
+                    "INSERT INTO meta (key, value) VALUES ('settings_version', '1') "
+                    "ON CONFLICT(key) DO UPDATE SET value = CAST(value AS INTEGER) + 1"
+                )
+                conn.execute("COMMIT")
+            except BaseException:
+                conn.execute("ROLLBACK")
+                raise
+        return self.record()
 
     def version(self) -> int:
         """The map's version: bumped by every transaction that inserts or deletes."""

@@ -23,9 +23,11 @@ from ..deps import (
 from ..openapi import body_doc, error_responses
 from ..schemas import (
     CandidateOut,
+    EstimateOut,
     LocalizeBody,
     LocalizeOut,
     PoseOut,
+    PriorOut,
     TimingsOut,
     limits,
 )
@@ -49,23 +51,42 @@ def _finite(x: float) -> float:
     return float(x) if np.isfinite(x) else -1.0
 
 
+def _estimate(result: LocalizationResult) -> EstimateOut | None:
+    T, T_kf = result.T_map_sensor_estimate, result.T_keyframe_sensor_estimate
+    if T is None or T_kf is None:
+        return None
+    return EstimateOut(
+        T_map_sensor=T.tolist(),
+        T_keyframe_sensor=T_kf.tolist(),
+        translation=T[:3, 3].tolist(),
+        # scipy's quaternions are scalar-last: [x, y, z, w]
+        quaternion_xyzw=Rotation.from_matrix(T[:3, :3]).as_quat().tolist(),
+    )
+
+
 def localize_out(name: str, result: LocalizationResult) -> LocalizeOut:
     """The response body of one localization."""
-    T = result.T_map_sensor
     pose = result.pose
+    estimate = _estimate(result)
+    accepted = estimate if result.localized else None
+    evidence = None if result.evidence is None else result.evidence.to_dict()
     return LocalizeOut(
         map=name,
         map_version=result.map_version,
         localized=result.localized,
+        verdict=result.verdict,
         reason=result.reason,
+        confidence=result.confidence,
+        min_confidence=result.min_confidence,
         keyframe_id=result.keyframe_id,
-        T_map_sensor=None if T is None else T.tolist(),
-        T_keyframe_sensor=(
-            None if result.T_keyframe_sensor is None else result.T_keyframe_sensor.tolist()
-        ),
-        translation=None if T is None else T[:3, 3].tolist(),
-        # scipy's quaternions are scalar-last: [x, y, z, w]
-        quaternion_xyzw=None if T is None else Rotation.from_matrix(T[:3, :3]).as_quat().tolist(),
+        T_map_sensor=accepted and accepted.T_map_sensor,
+        T_keyframe_sensor=accepted and accepted.T_keyframe_sensor,
+        translation=accepted and accepted.translation,
+        quaternion_xyzw=accepted and accepted.quaternion_xyzw,
+        estimate=estimate,
+        evidence=evidence
+        and {k: _finite(v) if isinstance(v, float) else v for k, v in evidence.items()},
+        prior=None if result.prior is None else PriorOut(**result.prior),
         pose=None
         if pose is None
         else PoseOut(
@@ -116,6 +137,8 @@ async def localize(
             top_k=req.top_k,
             rerank=req.rerank,
             refine=req.refine,
+            prior=None if req.prior is None else req.prior.to_prior(),
+            min_confidence=req.min_confidence,
         )
         metrics.observe_localization(result)
         return localize_out(map_name, result)

@@ -1,8 +1,10 @@
-"""Maps: create, list, describe, delete."""
+"""Maps: create, list, describe, change settings, delete."""
 
 from __future__ import annotations
 
 from fastapi import APIRouter, Depends, Request, Response
+
+from sgvloc.core.confidence import shipped_calibration
 
 from ...maps import MapHandle
 from ..auth import authorize, principal_of
@@ -10,7 +12,16 @@ from ..body import encode
 from ..deps import BodyDep, ManagerDep, MapName, SettingsDep, WorkerDep
 from ..errors import ApiError
 from ..openapi import body_doc, error_responses
-from ..schemas import EncoderInfo, MapCreate, MapInfo, MapList, limits
+from ..schemas import (
+    CalibrationInfo,
+    EncoderInfo,
+    MapCreate,
+    MapInfo,
+    MapList,
+    MapPatch,
+    limits,
+    parse_calibration,
+)
 
 router = APIRouter(prefix="/v1/maps", tags=["maps"], dependencies=[Depends(authorize)])
 
@@ -20,6 +31,7 @@ def map_info(handle: MapHandle) -> MapInfo:
     enc = handle.encoder
     spec = handle.record.encoder_spec
     cfg = handle.record.localizer_config
+    cal = handle.localizer.calibration
     return MapInfo(
         name=handle.name,
         version=handle.version,
@@ -37,6 +49,11 @@ def map_info(handle: MapHandle) -> MapInfo:
         index_kind=handle.localizer.index.kind,
         keep_clouds=handle.record.keep_clouds,
         created_at=handle.record.created_at,
+        calibration=CalibrationInfo(
+            name=cal.name, fingerprint=cal.fingerprint, encoder_kind=cal.encoder_kind
+        ),
+        settings_version=handle.record.settings_version,
+        settings_updated_at=handle.record.settings_updated_at,
     )
 
 
@@ -60,7 +77,11 @@ async def create_map(
         if not caller.may_use_map(req.name):
             raise ApiError(403, "forbidden", f"this key may not use map {req.name!r}", "name")
         handle = manager.create(
-            req.name, req.encoder, req.localizer_config(), keep_clouds=req.keep_clouds
+            req.name,
+            req.encoder,
+            req.localizer_config(),
+            keep_clouds=req.keep_clouds,
+            calibration=parse_calibration(req.calibration, "calibration"),
         )
         return map_info(handle)
 
@@ -81,6 +102,37 @@ async def list_maps(request: Request, manager: ManagerDep) -> Response:
 async def get_map(request: Request, map_name: MapName, manager: ManagerDep) -> Response:
     """Describe one map."""
     return encode(request, map_info(manager.get(map_name)))
+
+
+@router.patch(
+    "/{map}",
+    response_model=MapInfo,
+    operation_id="update_map",
+    openapi_extra=body_doc(MapPatch),
+    responses=error_responses(400, 404, 413, 415, 422),
+)
+async def update_map(
+    request: Request,
+    map_name: MapName,
+    body: BodyDep,
+    manager: ManagerDep,
+    settings: SettingsDep,
+    worker: WorkerDep,
+) -> Response:
+    """Change a map's localizer settings or calibration (its keyframes and version stay)."""
+
+    def work() -> MapInfo:
+        manager.get(map_name)
+        req = MapPatch.model_validate(body.decode(), context=limits(settings))
+        cal = req.calibration
+        calibration = (
+            shipped_calibration(manager.get(map_name).record.encoder_spec.kind)
+            if cal == "shipped"
+            else parse_calibration(cal, "calibration")
+        )
+        return map_info(manager.update_settings(map_name, req.localizer, calibration))
+
+    return encode(request, await worker.run(work))
 
 
 @router.delete(

@@ -1,0 +1,185 @@
+"""The verdict over HTTP: confidence, estimates of rejected answers, priors, and map
+settings changed after creation (PATCH) that survive a restart."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+from conftest import Server
+from svc_helpers import PRECOMPUTED, BalmMap, decode, error_of, post_msgpack, random_features
+
+from sgvloc.core.confidence import shipped_calibration
+
+
+def _localize(c: httpx.Client, name: str, body: dict) -> dict:
+    r = post_msgpack(c, f"/v1/maps/{name}/localize", body)
+    assert r.status_code == 200, r.text
+    return decode(r)
+
+
+def test_answers_carry_confidence_and_estimate(client: httpx.Client, balm_map: BalmMap) -> None:
+    q = balm_map.queries[0]
+    scan = balm_map.seq[q].scan().xyzi()
+    out = _localize(client, "balm", {"points": scan})
+    assert out["localized"] and out["verdict"] == "localized", out["reason"]
+    assert out["min_confidence"] <= out["confidence"] <= 1.0
+    assert out["estimate"]["T_map_sensor"] == out["T_map_sensor"]
+    assert out["estimate"]["translation"] == out["translation"]
+    assert {"sgv", "sgv_margin", "inliers", "icp_fitness", "agreement"} <= set(out["evidence"])
+    assert out["prior"] is None
+
+    # the same scan with a stricter threshold: rejected, and nothing else changes
+    strict = _localize(client, "balm", {"points": scan, "min_confidence": 1.0})
+    assert not strict["localized"] and strict["verdict"] == "low_confidence"
+    assert strict["T_map_sensor"] is None and strict["translation"] is None
+    np.testing.assert_allclose(
+        strict["estimate"]["T_map_sensor"], out["estimate"]["T_map_sensor"], atol=1e-9
+    )
+    assert strict["confidence"] == pytest.approx(out["confidence"], rel=1e-9)
+    assert strict["keyframe_id"] == out["keyframe_id"]
+
+
+def test_a_prior_restricts_the_search(client: httpx.Client, balm_map: BalmMap) -> None:
+    q = balm_map.queries[0]
+    frame = balm_map.seq[q]
+    xy = frame.T_world_sensor[:2, 3].tolist()
+    near = _localize(
+        client, "balm", {"points": frame.scan().xyzi(), "prior": {"position": xy, "radius_m": 15}}
+    )
+    assert near["localized"] and near["prior"]["used"]
+    assert 0 < near["prior"]["keyframes_in_radius"] <= len(balm_map.ids)
+    far = _localize(
+        client,
+        "balm",
+        {"points": frame.scan().xyzi(), "prior": {"position": [9e3, 9e3, 0], "radius_m": 20}},
+    )
+    assert not far["localized"] and far["verdict"] == "no_keyframe_in_prior"
+    assert far["prior"] == {"used": True, "keyframes_in_radius": 0}
+    assert far["estimate"] is None and far["keyframe_id"] is None
+
+
+@pytest.mark.parametrize(
+    "prior, field",
+    [
+        ({"position": [1.0], "radius_m": 5}, "prior.position"),
+        ({"position": [1, 2, 3, 4], "radius_m": 5}, "prior.position"),
+        ({"position": [1, "2"], "radius_m": 5}, "prior.position[1]"),
+        ({"position": [1, 2], "radius_m": 0}, "prior.radius_m"),
+        ({"position": [1, 2], "radius_m": True}, "prior.radius_m"),
+        ({"position": [1, 2]}, "prior.radius_m"),
+        ({"position": [1, 2], "radius_m": 5, "yaw_tolerance_deg": 200}, "prior.yaw_tolerance_deg"),
+        ({"position": [1, 2], "radius_m": 5, "extra": 1}, "prior.extra"),
+    ],
+)
+def test_bad_priors_are_422_naming_the_field(client: httpx.Client, prior: dict, field: str) -> None:
+    r = client.post("/v1/maps/balm/localize", json={"points": [[1, 2, 3]] * 10, "prior": prior})
+    assert r.status_code == 422, r.text
+    assert error_of(r)["field"] == field
+
+
+def test_non_finite_prior_and_min_confidence_over_msgpack(
+    client: httpx.Client, balm_map: BalmMap
+) -> None:
+    pts = np.ones((10, 3), np.float32)
+    r = post_msgpack(
+        client,
+        "/v1/maps/balm/localize",
+        {"points": pts, "prior": {"position": [float("nan"), 0.0], "radius_m": 5.0}},
+    )
+    assert r.status_code == 422 and error_of(r)["field"] == "prior.position[0]"
+    for bad in (float("inf"), 1.5, -0.1, "0.5", True):
+        r = post_msgpack(client, "/v1/maps/balm/localize", {"points": pts, "min_confidence": bad})
+        assert r.status_code == 422, (bad, r.text)
+        assert error_of(r)["field"] == "min_confidence"
+
+
+def _info(c: httpx.Client, name: str) -> dict:
+    r = c.get(f"/v1/maps/{name}")
+    assert r.status_code == 200, r.text
+    return r.json()
+
+
+def test_patch_changes_settings_and_survives_a_restart(tmp_path: Path) -> None:
+    srv = Server(data_dir=tmp_path / "data", log_path=tmp_path / "server.log")
+    srv.start()
+    try:
+        rng = np.random.default_rng(4)
+        with httpx.Client(base_url=srv.url, timeout=60) as c:
+            assert c.post("/v1/maps", json={"name": "p", "encoder": PRECOMPUTED}).status_code == 201
+            body = {"keyframes": [{"T_map_sensor": np.eye(4), "features": random_features(rng)}]}
+            assert post_msgpack(c, "/v1/maps/p/keyframes", body).status_code == 201
+            before = _info(c, "p")
+            assert before["settings_version"] == 0 and before["settings_updated_at"] is None
+            assert (
+                before["calibration"]["fingerprint"]
+                == shipped_calibration("precomputed").fingerprint
+            )
+
+            patch = {"localizer": {"verdict": {"min_confidence": 0.8}, "top_k": 7}}
+            r = c.patch("/v1/maps/p", json=patch)
+            assert r.status_code == 200, r.text
+            after = r.json()
+            assert after["localizer"]["verdict"]["min_confidence"] == 0.8
+            assert after["localizer"]["top_k"] == 7
+            # other settings are kept; the keyframe version does not move
+            assert after["localizer"]["sgv"] == before["localizer"]["sgv"]
+            assert (after["version"], after["keyframes"]) == (before["version"], 1)
+            assert after["settings_version"] == 1 and after["settings_updated_at"]
+            out = _localize(c, "p", {"features": random_features(rng)})
+            assert out["min_confidence"] == 0.8 and len(out["retrieved"]) == 1
+
+            # a calibration of one's own, then back to the shipped one
+            own = shipped_calibration("learned").to_dict()
+            own["name"] = "mine"
+            own["models"]["none"]["bias"] -= 1.0
+            r = c.patch("/v1/maps/p", json={"calibration": own})
+            assert r.status_code == 200, r.text
+            assert r.json()["calibration"]["name"] == "mine"
+            mine = r.json()["calibration"]["fingerprint"]
+        srv.restart()
+        with httpx.Client(base_url=srv.url, timeout=60) as c:
+            info = _info(c, "p")
+            assert info["localizer"]["verdict"]["min_confidence"] == 0.8
+            assert info["settings_version"] == 2 and info["calibration"]["fingerprint"] == mine
+            assert info["version"] == before["version"]
+            r = c.patch("/v1/maps/p", json={"calibration": "shipped"})
+            assert r.json()["calibration"]["name"] == shipped_calibration("precomputed").name
+    finally:
+        srv.stop()
+
+
+@pytest.mark.parametrize(
+    "body, status, field",
+    [
+        ({}, 422, None),
+        (
+            {"localizer": {"verdict": {"min_confidence": 2}}},
+            422,
+            "localizer.verdict.min_confidence",
+        ),
+        ({"localizer": {"retrieval": {"index": "hnsw"}}}, 422, "localizer.retrieval"),
+        ({"localizer": {"nonsense": 1}}, 422, "localizer.nonsense"),
+        ({"localizer": {"top_k": 0}}, 422, "localizer.top_k"),
+        ({"calibration": {"format": "x"}}, 422, "calibration"),
+        ({"calibration": "latest"}, 422, "calibration"),
+        ({"encoder": {"kind": "bev"}}, 422, "encoder"),
+    ],
+)
+def test_bad_patches(
+    client: httpx.Client, balm_map: BalmMap, body: dict, status: int, field: str | None
+) -> None:
+    before = _info(client, "balm")
+    r = client.patch("/v1/maps/balm", json=body)
+    assert r.status_code == status, r.text
+    if field is not None:
+        assert error_of(r)["field"] == field
+    after = _info(client, "balm")
+    assert after == before
+
+
+def test_patch_of_a_missing_map_is_404(client: httpx.Client) -> None:
+    r = client.patch("/v1/maps/nothing-here", json={"localizer": {"top_k": 3}})
+    assert r.status_code == 404
