@@ -35,6 +35,7 @@ from ._errors import (
 from ._models import (
     Candidate,
     EncoderInfo,
+    Estimate,
     InsertResult,
     Keyframe,
     KeyframeDeleted,
@@ -42,6 +43,7 @@ from ._models import (
     Localization,
     MapInfo,
     PoseInfo,
+    Prior,
 )
 from .scans import read_scan
 
@@ -55,6 +57,7 @@ __all__ = [
     "Conflict",
     "EncoderInfo",
     "EncoderMismatch",
+    "Estimate",
     "InsertResult",
     "Keyframe",
     "KeyframeDeleted",
@@ -65,6 +68,7 @@ __all__ = [
     "Overloaded",
     "PayloadTooLarge",
     "PoseInfo",
+    "Prior",
     "ScanFileError",
     "ServerError",
     "SgvlocError",

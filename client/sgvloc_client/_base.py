@@ -26,6 +26,7 @@ from ._models import (
     KeyframeIn,
     Localization,
     MapInfo,
+    Prior,
     features_body,
     points_array,
 )
@@ -221,12 +222,14 @@ class BaseClient:
         encoder: str | Mapping[str, Any] | None,
         retrieval: str | Mapping[str, Any] | None,
         localizer: Mapping[str, Any] | None,
+        calibration: Mapping[str, Any] | None = None,
     ) -> Call[MapInfo]:
         body: dict[str, Any] = {"name": name}
         for key, value in (
             ("encoder", _shorthand(encoder, "kind")),
             ("retrieval", _shorthand(retrieval, "index")),
             ("localizer", None if localizer is None else dict(localizer)),
+            ("calibration", None if calibration is None else dict(calibration)),
         ):
             if value is not None:
                 body[key] = value
@@ -243,6 +246,24 @@ class BaseClient:
 
     def _get_map(self, name: str) -> Call[MapInfo]:
         return self._call("GET", _map_path(name), _body_only(MapInfo.from_body), idempotent=True)
+
+    def _update_map(
+        self,
+        name: str,
+        localizer: Mapping[str, Any] | None,
+        calibration: str | Mapping[str, Any] | None,
+    ) -> Call[MapInfo]:
+        if localizer is None and calibration is None:
+            raise ValueError("give localizer settings and/or a calibration to change")
+        body: dict[str, Any] = {}
+        if localizer is not None:
+            body["localizer"] = dict(localizer)
+        if calibration is not None:
+            body["calibration"] = calibration if isinstance(calibration, str) else dict(calibration)
+        # Setting the same values again changes nothing more: safe to resend.
+        return self._call(
+            "PATCH", _map_path(name), _body_only(MapInfo.from_body), body, idempotent=True
+        )
 
     def _delete_map(self, name: str) -> Call[None]:
         return self._call("DELETE", _map_path(name), lambda _s, _b: None, idempotent=True)
@@ -290,6 +311,8 @@ class BaseClient:
         top_k: int | None,
         rerank: str | None,
         refine: str | None,
+        prior: Prior | Mapping[str, Any] | None = None,
+        min_confidence: float | None = None,
     ) -> Call[Localization]:
         if (points is None) == (features is None):
             raise ValueError("give exactly one of points or features")
@@ -298,7 +321,13 @@ class BaseClient:
             body["points"] = points_array(points)
         else:
             body["features"] = features_body(features)
-        for key, value in (("top_k", top_k), ("rerank", rerank), ("refine", refine)):
+        for key, value in (
+            ("top_k", top_k),
+            ("rerank", rerank),
+            ("refine", refine),
+            ("prior", None if prior is None else Prior.coerce(prior).to_body()),
+            ("min_confidence", min_confidence),
+        ):
             if value is not None:
                 body[key] = value
         # Localizing reads the map and changes nothing: safe to resend.

@@ -11,7 +11,15 @@ import httpx
 
 from ._base import DEFAULT_BASE_URL, BaseClient, Call, WireFormat
 from ._errors import TransportError
-from ._models import InsertResult, Keyframe, KeyframeDeleted, KeyframeIn, Localization, MapInfo
+from ._models import (
+    InsertResult,
+    Keyframe,
+    KeyframeDeleted,
+    KeyframeIn,
+    Localization,
+    MapInfo,
+    Prior,
+)
 
 T = TypeVar("T")
 
@@ -123,16 +131,19 @@ class Client(BaseClient):
         encoder: str | Mapping[str, Any] | None = None,
         retrieval: str | Mapping[str, Any] | None = None,
         localizer: Mapping[str, Any] | None = None,
+        calibration: Mapping[str, Any] | None = None,
     ) -> MapInfo:
         """Create an empty map.
 
-        ``encoder`` is an EncoderSpec (``{"kind": "handcrafted" | "torchscript" |
-        "precomputed", ...}``) or just its kind; default: the built-in handcrafted
+        ``encoder`` is an EncoderSpec (``{"kind": "learned" | "handcrafted" | "bev" |
+        "torchscript" | "precomputed", ...}``) or just its kind; default: the learned
         encoder. ``retrieval`` is ``{"index": "flat" | "ivf" | "hnsw", ...}`` or just the
         index name; ``localizer`` the map's default localize settings (``top_k``,
-        ``rerank``, ``sgv``, ``pose``). Raises :class:`Conflict` if the name is taken.
+        ``rerank``, ``sgv``, ``pose``, ``verdict``); ``calibration`` a confidence model
+        written by ``sgvloc calibrate`` (default: the one shipped for the encoder kind).
+        Raises :class:`Conflict` if the name is taken.
         """
-        return self._send(self._create_map(name, encoder, retrieval, localizer))
+        return self._send(self._create_map(name, encoder, retrieval, localizer, calibration))
 
     def list_maps(self) -> list[MapInfo]:
         """All maps."""
@@ -141,6 +152,21 @@ class Client(BaseClient):
     def get_map(self, name: str) -> MapInfo:
         """One map; raises :class:`NotFound` if there is none of that name."""
         return self._send(self._get_map(name))
+
+    def update_map(
+        self,
+        name: str,
+        localizer: Mapping[str, Any] | None = None,
+        calibration: str | Mapping[str, Any] | None = None,
+    ) -> MapInfo:
+        """Change a map's settings after creation; its keyframes and version stay.
+
+        ``localizer`` is merged into the current settings, e.g.
+        ``{"verdict": {"min_confidence": 0.7}, "top_k": 30}`` (retrieval cannot change);
+        ``calibration`` is a model written by ``sgvloc calibrate`` or ``"shipped"``.
+        Needs a mapper or admin key.
+        """
+        return self._send(self._update_map(name, localizer, calibration))
 
     def delete_map(self, name: str) -> None:
         """Delete a map and its keyframes; raises :class:`NotFound` if it does not exist."""
@@ -192,13 +218,19 @@ class Client(BaseClient):
         top_k: int | None = None,
         rerank: str | None = None,
         refine: str | None = None,
+        prior: Prior | Mapping[str, Any] | None = None,
+        min_confidence: float | None = None,
     ) -> Localization:
         """Localize a scan (``points`` ``[P, 3|4]`` in the sensor frame) or precomputed
         ``features`` in a map.
 
         ``top_k``, ``rerank`` (``"none" | "average-qe" | "alpha-qe" | "ransac-rir" |
-        "fgr-rir" | "sgv"``) and ``refine`` (``"none" | "icp"``) override the map's
-        defaults. A scan that cannot be localized returns ``localized=False`` with the
-        reason; it is not an error.
+        "fgr-rir" | "sgv"``), ``refine`` (``"none" | "icp"``) and ``min_confidence`` (the
+        acceptance threshold of the calibrated confidence) override the map's defaults.
+        ``prior`` (:class:`Prior` or a dict with its fields) restricts the search to the
+        keyframes near a believed position. A scan that cannot be localized returns
+        ``localized=False`` with the reason and its best ``estimate``; it is not an error.
         """
-        return self._send(self._localize(map, points, features, top_k, rerank, refine))
+        return self._send(
+            self._localize(map, points, features, top_k, rerank, refine, prior, min_confidence)
+        )

@@ -130,7 +130,13 @@ class EncoderInfo:
 
 @dataclass(frozen=True)
 class MapInfo:
-    """A map: name, version (changes on every insert/delete), size and settings."""
+    """A map: name, version (changes on every insert/delete), size and settings.
+
+    ``localizer`` holds its full localizer settings (``top_k``, ``rerank``, ``verdict``,
+    ...), ``calibration`` the confidence model it answers with (``name``,
+    ``fingerprint``, ``encoder_kind``); ``settings_version`` counts changes made with
+    :meth:`Client.update_map`.
+    """
 
     name: str
     version: int
@@ -139,6 +145,10 @@ class MapInfo:
     retrieval: dict[str, Any]
     index_kind: str
     created_at: Any
+    keep_clouds: bool = True
+    localizer: dict[str, Any] = field(default_factory=dict)
+    calibration: dict[str, Any] = field(default_factory=dict)
+    settings_version: int = 0
     raw: dict[str, Any] = field(repr=False, compare=False, default_factory=dict)
 
     @classmethod
@@ -151,6 +161,10 @@ class MapInfo:
             retrieval=dict(d.get("retrieval") or {}),
             index_kind=d.get("index_kind", ""),
             created_at=d.get("created_at"),
+            keep_clouds=bool(d.get("keep_clouds", True)),
+            localizer=dict(d.get("localizer") or {}),
+            calibration=dict(d.get("calibration") or {}),
+            settings_version=int(d.get("settings_version") or 0),
             raw=dict(d),
         )
 
@@ -256,14 +270,74 @@ class PoseInfo:
 
 
 @dataclass(frozen=True)
+class Prior:
+    """Where the sensor is believed to be (e.g. from GNSS), sent with a localize request.
+
+    ``position``: ``[x, y]`` or ``[x, y, z]`` in map coordinates; only keyframes within
+    ``radius_m`` of it are searched and an estimate outside that radius is rejected. With
+    ``yaw_deg`` (heading of the sensor's x axis in the map) an estimate whose heading is
+    more than ``yaw_tolerance_deg`` off is rejected too.
+    """
+
+    position: Any
+    radius_m: float
+    yaw_deg: float | None = None
+    yaw_tolerance_deg: float | None = None
+
+    def to_body(self) -> dict[str, Any]:
+        body: dict[str, Any] = {
+            "position": [float(x) for x in np.asarray(self.position, dtype=np.float64)],
+            "radius_m": float(self.radius_m),
+        }
+        if self.yaw_deg is not None:
+            body["yaw_deg"] = float(self.yaw_deg)
+        if self.yaw_tolerance_deg is not None:
+            body["yaw_tolerance_deg"] = float(self.yaw_tolerance_deg)
+        return body
+
+    @classmethod
+    def coerce(cls, value: Prior | Mapping[str, Any]) -> Prior:
+        """Accept a :class:`Prior` or a dict with the same fields."""
+        if isinstance(value, Prior):
+            return value
+        if not isinstance(value, Mapping):
+            raise TypeError(f"a prior must be a Prior or a dict, got {type(value).__name__}")
+        return cls(**value)
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """A pose estimate: ``T_map_sensor``, ``T_keyframe_sensor`` ``[4, 4]``, ``translation``
+    ``[3]`` and ``quaternion_xyzw`` ``[4]``."""
+
+    T_map_sensor: np.ndarray
+    T_keyframe_sensor: np.ndarray
+    translation: np.ndarray
+    quaternion_xyzw: np.ndarray
+
+    @classmethod
+    def from_body(cls, d: Mapping[str, Any]) -> Estimate:
+        return cls(
+            T_map_sensor=_pose(d["T_map_sensor"]),
+            T_keyframe_sensor=_pose(d["T_keyframe_sensor"]),
+            translation=_vector(d["translation"]),
+            quaternion_xyzw=_vector(d["quaternion_xyzw"]),
+        )
+
+
+@dataclass(frozen=True)
 class Localization:
     """The answer to a localize request.
 
-    ``localized`` is False (with ``reason``) when no trustworthy pose was found; the pose
-    fields are then None. ``T_map_sensor`` ``[4, 4]`` places the query scan in the map;
-    ``T_keyframe_sensor`` ``[4, 4]`` places it relative to the matched keyframe
-    ``keyframe_id``; ``translation`` ``[3]`` and ``quaternion_xyzw`` ``[4]`` repeat
-    ``T_map_sensor``. ``map_version`` says which state of the map answered.
+    ``localized`` is the verdict to act on. When it is False (``verdict`` gives the
+    reason code, ``reason`` a sentence) the pose fields are None, and ``estimate`` still
+    holds the best estimate (None only when there was none). ``T_map_sensor`` ``[4, 4]``
+    places the query scan in the map; ``T_keyframe_sensor`` ``[4, 4]`` places it
+    relative to the matched keyframe ``keyframe_id``; ``translation`` ``[3]`` and
+    ``quaternion_xyzw`` ``[4]`` repeat ``T_map_sensor``. ``confidence`` is the calibrated
+    probability that the estimate is within 2 m and 5 degrees, ``min_confidence`` the
+    threshold applied, ``evidence`` what the confidence came from. ``map_version`` says
+    which state of the map answered; ``prior`` how a prior restricted the search.
     """
 
     map: str
@@ -281,6 +355,12 @@ class Localization:
     top1_changed: bool
     rerank_method: str
     timings_ms: dict[str, float]
+    verdict: str = ""
+    confidence: float = 0.0
+    min_confidence: float = 0.0
+    estimate: Estimate | None = None
+    evidence: dict[str, Any] = field(default_factory=dict)
+    prior: dict[str, Any] | None = None
     raw: dict[str, Any] = field(repr=False, compare=False, default_factory=dict)
 
     @classmethod
@@ -302,5 +382,11 @@ class Localization:
             top1_changed=bool(d.get("top1_changed", False)),
             rerank_method=d.get("rerank_method", ""),
             timings_ms={k: float(v) for k, v in (d.get("timings_ms") or {}).items()},
+            verdict=d.get("verdict", ""),
+            confidence=float(d.get("confidence") or 0.0),
+            min_confidence=float(d.get("min_confidence") or 0.0),
+            estimate=None if d.get("estimate") is None else Estimate.from_body(d["estimate"]),
+            evidence=dict(d.get("evidence") or {}),
+            prior=None if d.get("prior") is None else dict(d["prior"]),
             raw=dict(d),
         )

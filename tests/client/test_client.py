@@ -22,6 +22,7 @@ from sgvloc_client import (
     Localization,
     MapInfo,
     NotFound,
+    Prior,
     read_scan,
     wire,
 )
@@ -197,6 +198,40 @@ def test_localize_returns_typed_pose(service_url: str, balm_mini_dir: Path) -> N
     assert loc.pose is not None and loc.pose.inliers > 0
     assert loc.retrieved and loc.reranked[0].keyframe_id == loc.keyframe_id
     assert loc.rerank_method == "sgv" and loc.timings_ms["total"] > 0
+    assert loc.verdict == "localized" and loc.min_confidence <= loc.confidence <= 1.0
+    np.testing.assert_array_equal(loc.estimate.T_map_sensor, loc.T_map_sensor)
+    assert loc.evidence["inliers"] == loc.pose.inliers and loc.prior is None
+
+
+def test_verdict_prior_and_settings(service_url: str, balm_mini_dir: Path) -> None:
+    poses = _poses(balm_mini_dir)
+    with Client(service_url) as c:
+        c.create_map("trust")
+        c.insert_keyframes(
+            "trust", [KeyframeIn(poses[i], points=_scan(balm_mini_dir, i)) for i in range(4)]
+        )
+        scan = _scan(balm_mini_dir, 1)
+        near = Prior(position=poses[1][:2, 3], radius_m=5.0, yaw_deg=None)
+        loc = c.localize("trust", points=scan, prior=near)
+        assert loc.localized and loc.prior["used"] and loc.prior["keyframes_in_radius"] >= 1
+        far = c.localize("trust", points=scan, prior={"position": [500.0, 0.0], "radius_m": 5})
+        assert not far.localized and far.verdict == "no_keyframe_in_prior"
+        assert far.estimate is None and far.T_map_sensor is None
+        strict = c.localize("trust", points=scan, min_confidence=1.0)
+        assert not strict.localized and strict.verdict == "low_confidence"
+        assert strict.T_map_sensor is None and strict.estimate is not None
+        np.testing.assert_allclose(strict.estimate.T_map_sensor, loc.T_map_sensor, atol=1e-6)
+
+        info = c.update_map("trust", localizer={"verdict": {"min_confidence": 0.99}})
+        assert info.localizer["verdict"]["min_confidence"] == 0.99
+        assert info.settings_version == 1 and info.calibration["fingerprint"]
+        assert c.localize("trust", points=scan).min_confidence == 0.99
+        with pytest.raises(BadRequest) as err:
+            c.update_map("trust", localizer={"retrieval": {"index": "hnsw"}})
+        assert err.value.field == "localizer.retrieval"
+        with pytest.raises(ValueError):
+            c.update_map("trust")
+        c.delete_map("trust")
 
 
 def test_json_wire_format(service_url: str, balm_mini_dir: Path) -> None:
