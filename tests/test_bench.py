@@ -77,3 +77,16 @@ def test_densify():
     scan = np.random.default_rng(0).normal(size=(100, 3)).astype(np.float32)
     out = bench.densify(scan, 250, np.random.default_rng(1))
     assert out.shape == (250, 3) and out.dtype == np.float32
+
+
+def test_prior_section_answers_the_same_queries_with_and_without():
+    res = bench.bench_prior([900], radius_m=10.0, noise_m=1.0, queries=6, dim=32)
+    (row,) = res["rows"]
+    assert row["size"] == 900 and row["queries"] == 6
+    # a 10 m radius on a 30 x 30 m lattice of 1 m holds at most pi * 10^2 keyframes
+    assert 0 < row["keyframes_in_radius_median"] <= np.pi * 100 + 40
+    assert row["same_top1"] == 6  # the query's own keyframe is inside the radius
+    for name in ("none", "prior"):
+        assert row[name]["localize_median_ms"] > 0 and row[name]["retrieve_median_ms"] > 0
+    json.dumps(res)
+    assert "same top-1" in bench.format_prior(res) and "6/6" in bench.format_prior(res)

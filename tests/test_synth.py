@@ -104,3 +104,25 @@ def test_route_revisits_from_the_opposite_direction():
     # opposite-direction revisits run in other lanes: 3.5 m or more apart sideways
     i, j = np.nonzero(opposite & (d < 20.0))
     assert np.median(d[i, j]) > 3.0
+
+
+def test_bev_images_of_a_scan_sequence(small, tmp_path):
+    from typer.testing import CliRunner
+
+    from sgvloc.cli import app
+    from sgvloc.core.bev import load_bev_image, rasterize
+    from sgvloc.tools.evaluation.data import open_sequence
+
+    out = tmp_path / "bev"
+    res = CliRunner().invoke(app, ["bev-images", str(small), str(out), "--no-progress"])
+    assert res.exit_code == 0, res.output
+    scans, images = KittiSequence(small), open_sequence(out)
+    assert images.kind == "bev-images" and len(images.paths) == len(scans)
+    np.testing.assert_allclose(images.poses, scans.poses, atol=1e-6)
+    np.testing.assert_allclose(images.times, scans.times, atol=1e-6)
+    # each image is the project's raster of its scan
+    np.testing.assert_array_equal(
+        load_bev_image(images.paths[2]), rasterize(scans[2].scan().points).image
+    )
+    again = CliRunner().invoke(app, ["bev-images", str(small), str(out)])
+    assert again.exit_code == 1 and "overwrite" in again.output

@@ -276,6 +276,19 @@ def build_map_command(
 # -- eval and synth (sgvloc.tools.evaluation, sgvloc.tools.synth) -------------------------
 
 
+def _frames(text: str | None) -> tuple[int, int | None] | None:
+    """``START:STOP`` (STOP optional) as a pair of frame indices."""
+    if text is None:
+        return None
+    start, sep, stop = text.partition(":")
+    try:
+        if not sep:
+            raise ValueError
+        return int(start or 0), int(stop) if stop.strip() else None
+    except ValueError:
+        raise typer.BadParameter(f"expected START:STOP frame indices, got {text!r}") from None
+
+
 def _int_list(text: str) -> list[int]:
     try:
         return [int(x) for x in text.split(",") if x.strip()]
@@ -315,7 +328,7 @@ def eval_command(
     ] = None,
     query_stride: Annotated[int, typer.Option(min=1, help="evaluate every n-th query")] = 1,
     encoder: Annotated[
-        str | None, typer.Option(help="encoder: a JSON EncoderSpec (default: learned)")
+        str | None, typer.Option(help="encoder: a kind or a JSON EncoderSpec (default: learned)")
     ] = None,
     config: Annotated[
         Path | None, typer.Option(help="JSON LocalizerConfig (retrieval, sgv, pose settings)")
@@ -323,17 +336,54 @@ def eval_command(
     cache_dir: Annotated[
         Path | None, typer.Option(help="feature cache (default ~/.cache/sgvloc/features)")
     ] = None,
+    frames: Annotated[
+        str | None,
+        typer.Option(help="use only frames START:STOP of the sequence (by index; STOP optional)"),
+    ] = None,
+    negatives: Annotated[
+        bool,
+        typer.Option(
+            help="keep the out-of-coverage queries (no database scan within 5 m) as "
+            "negatives for the verdict (recall never counts them)"
+        ),
+    ] = True,
+    foreign: Annotated[
+        list[Path] | None,
+        typer.Option(
+            help="a sequence of another place: each of its scans is queried against the "
+            "database and any accepted answer counts as a false accept (repeatable)"
+        ),
+    ] = None,
+    prior_noise: Annotated[
+        float | None,
+        typer.Option(
+            min=0.0,
+            help="simulate a GNSS prior: per query the true x/y plus Gaussian noise of "
+            "SIGMA m per axis; retrieval searches only inside --prior-radius",
+        ),
+    ] = None,
+    prior_radius: Annotated[
+        float, typer.Option(min=0.0, help="radius of the simulated prior (m)")
+    ] = 20.0,
+    calibration: Annotated[
+        Path | None,
+        typer.Option(help="calibration file from sgvloc calibrate (default: the shipped one)"),
+    ] = None,
     out: Annotated[
-        Path, typer.Option(help="folder for eval.json, ntopk.png and sgv_scores.png")
+        Path,
+        typer.Option(help="folder for eval.json, ntopk.png, sgv_scores.png and verdict.png"),
     ] = Path("eval-out"),
     progress: Annotated[bool, typer.Option(help="show progress bars")] = True,
 ) -> None:
     """Evaluate every re-ranking method x top-k on a sequence (SPEC section 4).
 
-    Prints a Markdown table, then the encoder's diagnostics (share of correct
-    nearest-neighbour local matches on true pairs; SGV scores of true vs false candidates
-    with their ROC AUC); writes OUT/eval.json (every figure and the exact configuration),
-    OUT/ntopk.png (Recall@1 and re-ranking time against n_topk) and OUT/sgv_scores.png.
+    Prints a Markdown table (recall over the in-coverage queries, the recall ceiling of
+    the top-k, pose success), a verdict table over every query, in and out of coverage
+    (acceptance, false accepts, the confidence's expected calibration error), then the
+    encoder's diagnostics; writes OUT/eval.json (every figure, per query its confidence
+    and evidence, the exact configuration), OUT/ntopk.png, OUT/sgv_scores.png and
+    OUT/verdict.png (precision and recall of the verdict over confidence thresholds, and
+    a reliability diagram).
     """
     from .core.errors import SgvlocError
     from .tools.evaluation.command import evaluate
@@ -354,6 +404,12 @@ def eval_command(
             encoder=encoder,
             config=config,
             cache_dir=cache_dir,
+            frames=_frames(frames),
+            negatives=negatives,
+            foreign=foreign or [],
+            prior_noise=prior_noise,
+            prior_radius=prior_radius,
+            calibration=calibration,
             out=out,
             progress=progress,
             echo=typer.echo,
@@ -364,6 +420,95 @@ def eval_command(
     except SgvlocError as exc:
         typer.echo(f"eval: {exc}", err=True)
         raise typer.Exit(1) from None
+
+
+@app.command("calibrate")
+def calibrate_command(
+    out: Annotated[Path, typer.Option(help="calibration file to write (JSON)")],
+    data: Annotated[
+        list[Path] | None,
+        typer.Option(help="sequence with ground truth (repeat for several); as for eval"),
+    ] = None,
+    from_: Annotated[
+        list[Path] | None,
+        typer.Option(
+            "--from",
+            help="an eval.json of sgvloc eval run with --methods sgv at the map's top_k "
+            "(repeat for several; each with its own split)",
+        ),
+    ] = None,
+    db_until: Annotated[
+        float | None, typer.Option(help="time split: database = scans of the first SECONDS")
+    ] = None,
+    min_gap: Annotated[
+        float | None,
+        typer.Option(help="loop split: database = scans >= SECONDS older than the query"),
+    ] = None,
+    refine: Annotated[
+        str, typer.Option(help="comma-separated: icp, none (3-D sequences run each)")
+    ] = "icp,none",
+    name: Annotated[str, typer.Option(help="name recorded in the calibration")] = "calibration",
+    max_queries: Annotated[
+        int | None, typer.Option(min=1, help="at most N queries per sequence")
+    ] = None,
+    query_stride: Annotated[int, typer.Option(min=1, help="every n-th query")] = 1,
+    encoder: Annotated[
+        str | None, typer.Option(help="encoder: a kind or a JSON EncoderSpec (default: learned)")
+    ] = None,
+    config: Annotated[
+        Path | None, typer.Option(help="JSON LocalizerConfig (top_k, sgv, pose settings)")
+    ] = None,
+    cache_dir: Annotated[
+        Path | None, typer.Option(help="feature cache (default ~/.cache/sgvloc/features)")
+    ] = None,
+    progress: Annotated[bool, typer.Option(help="show progress bars")] = True,
+) -> None:
+    """Fit the confidence model on sequences with ground truth.
+
+    Takes the answers of `sgvloc eval` reports (--from) and/or runs each --data sequence
+    the same way (SGV at the map's top_k, out-of-coverage queries kept); every answer's
+    evidence and whether its pose is within 2 m and 5 deg train one logistic model per
+    profile (with ICP, without). Give the file to a map (`calibration` in POST /v1/maps
+    or PATCH /v1/maps/{map}) or to `sgvloc eval --calibration`. Calibrate on data you do
+    not report on.
+    """
+    from .core.config import LocalizerConfig
+    from .core.encoders import EncoderSpec
+    from .core.errors import SgvlocError
+    from .tools.build_map import parse_encoder
+    from .tools.calibrate import calibrate
+
+    _configure_logging("warning")
+    try:
+        modes = [m.strip() for m in refine.split(",") if m.strip()]
+        if not modes or set(modes) - {"icp", "none"}:
+            raise typer.BadParameter(f"expected icp and/or none, got {refine!r}")
+        cal = calibrate(
+            data or [],
+            reports=from_ or [],
+            db_until=db_until,
+            min_gap=min_gap,
+            refine=modes,
+            encoder=EncoderSpec.model_validate(parse_encoder(encoder) or {}),
+            localizer=LocalizerConfig.model_validate_json(config.read_text())
+            if config
+            else LocalizerConfig(),
+            max_queries=max_queries,
+            query_stride=query_stride,
+            cache_dir=cache_dir,
+            name=name,
+            progress=progress,
+            echo=typer.echo,
+        )
+    except ValueError as exc:
+        typer.echo(f"calibrate: {exc}", err=True)
+        raise typer.Exit(2) from None
+    except SgvlocError as exc:
+        typer.echo(f"calibrate: {exc}", err=True)
+        raise typer.Exit(1) from None
+    out.parent.mkdir(parents=True, exist_ok=True)
+    cal.save(out)
+    typer.echo(f"wrote {out} (calibration {cal.name}, fingerprint {cal.fingerprint})")
 
 
 @app.command("synth")
@@ -399,13 +544,34 @@ def synth_command(
 # -- bench and train (sgvloc.tools.bench, sgvloc.tools.train) -----------------------------
 
 
+@app.command("bev-images")
+def bev_images_command(
+    src: Annotated[Path, typer.Argument(help="KITTI-layout scan sequence (velodyne/, poses.txt)")],
+    out: Annotated[Path, typer.Argument(help="output folder (kitti-bev layout)")],
+    overwrite: Annotated[bool, typer.Option(help="replace existing images")] = False,
+    progress: Annotated[bool, typer.Option(help="show a progress bar")] = True,
+) -> None:
+    """Write a scan sequence as kitti-bev images (imgs/*.png, pose.txt, times.txt)."""
+    from .core.errors import SgvlocError
+    from .tools.bev_images import export_bev_images
+
+    try:
+        n = export_bev_images(src, out, overwrite=overwrite, progress=progress)
+    except SgvlocError as exc:
+        typer.echo(f"bev-images: {exc}", err=True)
+        raise typer.Exit(1) from None
+    typer.echo(f"wrote {n} images to {out}")
+
+
 @app.command("bench")
 def bench_command(
     ctx: typer.Context,
     only: Annotated[
         str,
-        typer.Option(help="comma-separated sections: rerank, retrieval, encoding, http, scaling"),
-    ] = "rerank,retrieval,encoding,http,scaling",
+        typer.Option(
+            help="comma-separated sections: rerank, retrieval, encoding, http, scaling, prior"
+        ),
+    ] = "rerank,retrieval,encoding,http,scaling,prior",
     out: Annotated[Path, typer.Option(help="JSON file with every figure")] = Path("bench.json"),
     ks: Annotated[str, typer.Option(help="rerank: candidates per query")] = "2,5,10,20,50",
     ns: Annotated[str, typer.Option(help="rerank: keypoints (correspondences)")] = "128,256,1000",
@@ -448,9 +614,14 @@ def bench_command(
     service_workers: Annotated[
         int, typer.Option(min=1, help="http, scaling: --workers of the started service")
     ] = 2,
+    prior_sizes: Annotated[str, typer.Option(help="prior: map sizes (keyframes)")] = "10000,100000",
+    prior_radius: Annotated[float, typer.Option(min=0.1, help="prior: radius (m)")] = 20.0,
+    prior_noise: Annotated[
+        float, typer.Option(min=0.0, help="prior: position noise per axis (m)")
+    ] = 5.0,
 ) -> None:
-    """Measure re-ranking, retrieval, encoding and the service end to end (http, scaling);
-    print tables and write --out (JSON).
+    """Measure re-ranking, retrieval, encoding, the service end to end (http, scaling) and
+    localize with a prior (prior); print tables and write --out (JSON).
 
     Medians after warm-up, every comparison in one process on the same inputs. The
     defaults take a few minutes on 2 cores; CUDA timings of SGV are added when a GPU is
@@ -462,7 +633,7 @@ def bench_command(
     _configure_logging("warning")
     options = {k: v for k, v in ctx.params.items() if k not in ("only", "out")}
     for key in ("ks", "ns", "large_ns", "sizes", "scan_sizes", "http_clients",
-                "scale_sizes", "scale_clients"):  # fmt: skip
+                "scale_sizes", "scale_clients", "prior_sizes"):  # fmt: skip
         options[key] = _int_list(options[key])
     try:
         sections = check_sections([x.strip() for x in only.split(",") if x.strip()])

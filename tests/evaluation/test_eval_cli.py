@@ -121,3 +121,61 @@ def test_eval_refuses_bad_arguments(balm_mini_dir, tmp_path):
     assert res.exit_code == 2 and "magic" in res.output
     res = CliRunner().invoke(app, [*base, "--min-gap", "30", "--db-until", "40"])
     assert res.exit_code == 2 and "exactly one" in res.output
+
+
+def test_eval_keeps_out_of_coverage_queries_for_the_verdict(first_run):
+    res, report, _, out = first_run
+    png = (out / "verdict.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
+    # the 7 scans without a database scan within 5 m are negatives, not recall queries
+    assert report["split"]["negative_queries"] == 7
+    assert "Verdict over all 10 queries (3 in coverage, 7 out of coverage)" in res.output
+    for r in report["rows"]:
+        recs = report["per_query"][f"{r['method']}@{r['k']}"]
+        assert len(recs) == 10 and sum(q["in_coverage"] for q in recs) == 3
+        assert r["queries"] == 3 and r["out_of_coverage"] == 7 and r["all_queries"] == 10
+        for q in recs:
+            assert 0.0 <= q["confidence"] <= 1.0 and q["verdict"]
+            assert q["accepted"] == (q["verdict"] == "localized")
+            assert q["correct"] == (q["rte"] <= 2.0 and q["rre"] <= 5.0)
+            if not q["in_coverage"]:
+                assert q["rank@5m"] is None and q["rank@20m"] is None
+        fa = [q for q in recs if q["accepted"] and not q["correct"]]
+        assert r["false_accepts"] == len(fa)
+        assert r["false_accept_pct"] == pytest.approx(100.0 * len(fa) / 10)
+        correct = [q for q in recs if q["correct"]]
+        if correct:
+            share = sum(q["accepted"] for q in correct) / len(correct)
+            assert r["accepted_of_correct_pct"] == pytest.approx(100.0 * share)
+        assert 0.0 <= r["ece"] <= 1.0
+
+
+def test_eval_with_a_prior_and_scans_of_another_place(balm_mini_dir, tmp_path):
+    from sgvloc.tools.synth import SynthConfig, generate
+
+    town = tmp_path / "town"
+    generate(town, SynthConfig(scans=3, seed=2))
+    out = tmp_path / "out"
+    args = ["eval", "--data", str(balm_mini_dir), "--min-gap", "30", "--topk", "3"]
+    args += ["--sweep", "3", "--methods", "none,sgv", "--no-progress", "--no-negatives"]
+    args += ["--prior-noise", "1.0", "--prior-radius", "8", "--foreign", str(town)]
+    args += ["--cache-dir", str(tmp_path / "cache"), "--out", str(out)]
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 0, res.output
+    report = json.loads((out / "eval.json").read_text())
+    assert report["split"]["negative_queries"] == 0
+    assert report["split"]["foreign_queries"] == {str(town): 3}
+    assert any("prior" in n and "radius 8 m" in n for n in report["notes"])
+    poses = np.loadtxt(balm_mini_dir / "poses.txt").reshape(-1, 3, 4)[:, :, 3]
+    for r in report["rows"]:
+        recs = report["per_query"][f"{r['method']}@{r['k']}"]
+        assert len(recs) == 3 + 3 and r["out_of_coverage"] == 3
+        for q in recs:
+            if "foreign" in q:
+                # a scan of another world is never correct
+                assert not q["correct"] and not q["in_coverage"]
+                continue
+            # every candidate lies within the prior radius of the noisy position, so
+            # within radius + a few sigma of the truth
+            d = np.linalg.norm(poses[q["ranked"], :2] - poses[q["query"], :2], axis=1)
+            assert (d <= 8.0 + 6.0).all()

@@ -1,4 +1,4 @@
-"""``sgvloc bench``: the engine's stages (:mod:`.engine`: rerank, retrieval, encoding) and
+"""``sgvloc bench``: the engine's stages (:mod:`.engine`: rerank, retrieval, encoding, prior) and
 the service end to end (:mod:`.http`: http, scaling), one JSON file of every figure."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-SECTIONS = ("rerank", "retrieval", "encoding", "http", "scaling")
+SECTIONS = ("rerank", "retrieval", "encoding", "http", "scaling", "prior")
 
 
 def check_sections(sections: list[str]) -> list[str]:
@@ -41,6 +41,9 @@ def run_bench(
             o["sizes"], dim=o["dim"], large_dim=o["large_dim"], hnsw_max=o["hnsw_max"], echo=echo
         ),
         "encoding": lambda: engine.bench_encoding(o["scan_sizes"], echo=echo),
+        "prior": lambda: engine.bench_prior(
+            o["prior_sizes"], radius_m=o["prior_radius"], noise_m=o["prior_noise"], echo=echo
+        ),
         "http": lambda: http.bench_http(
             keyframes=o["http_keyframes"], clients=o["http_clients"],
             duration_s=o["http_duration"], batch=o["http_batch"], raw_scans=o["raw_scans"],

@@ -736,6 +736,129 @@ def _bench_image_encoder(kind: str, raw: np.ndarray, repeats: int) -> dict[str, 
 # --------------------------------------------------------------------------------------
 
 
+def bench_prior(
+    sizes: list[int],
+    *,
+    radius_m: float = 20.0,
+    noise_m: float = 5.0,
+    queries: int = 50,
+    dim: int = 620,
+    echo: Callable[[str], None] = _quiet,
+) -> dict[str, Any]:
+    """Localize with and without a prior on maps of ``sizes`` keyframes (in process).
+
+    Keyframes lie on a 1 m lattice over a square (a dense map of a large area), each with
+    a random global descriptor of ``dim`` and 64 keypoints with 16-D features (small, so
+    that 100k keyframes fit in memory; the re-ranking and pose cost per query do not
+    depend on the map size). A query is a keyframe's features with noise; its prior is the
+    keyframe's position plus Gaussian noise of ``noise_m`` per axis with ``radius_m``.
+    Localize runs SGV re-ranking at top-20, RANSAC pose, no ICP, one thread; both runs
+    answer the same queries, alternating, so that load on the machine hits both alike.
+    """
+    from sgvloc.core.config import LocalizerConfig
+    from sgvloc.core.encoders import PrecomputedEncoder
+    from sgvloc.core.localizer import Localizer
+    from sgvloc.core.prior import Prior
+
+    rows = []
+    for size in sizes:
+        rng = np.random.default_rng(size)
+        enc = PrecomputedEncoder("bench", dim, 16)
+        loc = Localizer(enc, LocalizerConfig(top_k=20))
+        side = int(np.ceil(np.sqrt(size)))
+        t0 = time.perf_counter()
+        feats = []
+        for start in range(0, size, 5000):
+            batch = []
+            for i in range(start, min(size, start + 5000)):
+                T = np.eye(4)
+                T[:2, 3] = i % side, i // side
+                f = enc.from_arrays(
+                    rng.normal(size=dim),
+                    rng.uniform(-20, 20, size=(64, 3)),
+                    rng.normal(size=(64, 16)),
+                )
+                batch.append(loc.make_keyframe(T, features=f))
+                if i % max(1, size // queries) == 0 and len(feats) < queries:
+                    feats.append((T, f))
+            loc.add_keyframes(batch)
+        build_s = time.perf_counter() - t0
+        times: dict[str, list[float]] = {"none": [], "prior": []}
+        stage: dict[str, list[float]] = {"none": [], "prior": []}
+        same, inside = 0, []
+        for T, f in feats:
+            q = enc.from_arrays(
+                f.global_descriptor + rng.normal(scale=0.02, size=dim),
+                f.keypoints + rng.normal(scale=0.05, size=f.keypoints.shape),
+                f.local_features + rng.normal(scale=0.05, size=f.local_features.shape),
+            )
+            prior = Prior(tuple(T[:2, 3] + rng.normal(0.0, noise_m, size=2)), radius_m)
+            answers = {}
+            for name, kw in (("none", {}), ("prior", {"prior": prior})):
+                t = time.perf_counter()
+                answers[name] = loc.localize(features=q, refine="none", **kw)
+                times[name].append((time.perf_counter() - t) * 1e3)
+                stage[name].append(answers[name].timings_ms["retrieve"])
+            same += answers["none"].keyframe_id == answers["prior"].keyframe_id
+            inside.append(answers["prior"].prior["keyframes_in_radius"])
+        row = {
+            "size": size,
+            "build_s": round(build_s, 1),
+            "queries": len(feats),
+            "keyframes_in_radius_median": float(np.median(inside)),
+            "same_top1": same,
+        }
+        for name in ("none", "prior"):
+            row[name] = {
+                "localize_median_ms": float(np.median(times[name])),
+                "retrieve_median_ms": float(np.median(stage[name])),
+            }
+        row["speedup"] = row["none"]["localize_median_ms"] / row["prior"]["localize_median_ms"]
+        rows.append(row)
+        echo(f"prior: {size} keyframes done")
+        del loc
+    return {
+        "rows": rows,
+        "radius_m": radius_m,
+        "noise_m": noise_m,
+        "notes": [
+            f"prior radius {radius_m:g} m, position noise {noise_m:g} m per axis; keyframes "
+            "on a 1 m lattice; SGV top-20, RANSAC, no ICP; medians over the queries",
+            "same top-1: queries whose answer is the same keyframe with and without the prior",
+        ],
+    }
+
+
+def format_prior(res: dict[str, Any]) -> str:
+    """Markdown table of the prior section."""
+    rows = [
+        [
+            str(r["size"]),
+            f"{r['keyframes_in_radius_median']:.0f}",
+            f"{r['none']['retrieve_median_ms']:.2f}",
+            f"{r['prior']['retrieve_median_ms']:.2f}",
+            f"{r['none']['localize_median_ms']:.2f}",
+            f"{r['prior']['localize_median_ms']:.2f}",
+            f"{r['speedup']:.2f}x",
+            f"{r['same_top1']}/{r['queries']}",
+        ]
+        for r in res["rows"]
+    ]
+    return _table(
+        [
+            "keyframes",
+            "in radius",
+            "retrieve ms",
+            "retrieve ms (prior)",
+            "localize ms",
+            "localize ms (prior)",
+            "speed-up",
+            "same top-1",
+        ],
+        rows,
+    )
+
+
 def _table(header: list[str], rows: list[list[str]]) -> str:
     widths = [
         max(len(h), *(len(r[i]) for r in rows)) if rows else len(h) for i, h in enumerate(header)
@@ -900,6 +1023,7 @@ def format_encoding(res: dict[str, Any]) -> str:
 
 
 FORMATTERS = {
+    "prior": format_prior,
     "rerank": format_rerank,
     "cuda": format_cuda,
     "retrieval": format_retrieval,

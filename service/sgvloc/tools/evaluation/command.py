@@ -9,7 +9,16 @@ from sgvloc.core.config import LocalizerConfig
 from sgvloc.core.encoders import EncoderSpec
 from sgvloc.core.rerank import METHODS
 
-from .report import diagnostics_table, markdown_table, plot_sgv_scores, plot_sweep, write_json
+from ..build_map import parse_encoder
+from .report import (
+    diagnostics_table,
+    markdown_table,
+    plot_sgv_scores,
+    plot_sweep,
+    plot_verdict,
+    verdict_table,
+    write_json,
+)
 from .runner import EvalConfig, run_evaluation
 
 
@@ -28,6 +37,12 @@ def evaluate(
     encoder: str | None,
     config: Path | None,
     cache_dir: Path | None,
+    frames: tuple[int, int | None] | None,
+    negatives: bool,
+    foreign: list[Path],
+    prior_noise: float | None,
+    prior_radius: float,
+    calibration: Path | None,
     out: Path,
     progress: bool,
     echo: Callable[[str], None],
@@ -49,13 +64,21 @@ def evaluate(
         max_queries=max_queries,
         query_stride=query_stride,
         cache_dir=str(cache_dir) if cache_dir else None,
-        encoder=EncoderSpec.model_validate_json(encoder) if encoder else EncoderSpec(),
+        frames=frames,
+        negatives=negatives,
+        foreign=[str(f) for f in foreign],
+        prior_noise=prior_noise,
+        prior_radius=prior_radius,
+        calibration=str(calibration) if calibration else None,
+        encoder=EncoderSpec.model_validate(parse_encoder(encoder) or {}),
         localizer=LocalizerConfig.model_validate_json(config.read_text())
         if config
         else LocalizerConfig(),
     )
     result = run_evaluation(cfg, progress=progress)
     echo(markdown_table(result))
+    echo("")
+    echo(verdict_table(result))
     echo("")
     echo(diagnostics_table(result))
     echo("")
@@ -65,5 +88,6 @@ def evaluate(
         write_json(result, out / "eval.json"),
         plot_sweep(result, out / "ntopk.png"),
         plot_sgv_scores(result, out / "sgv_scores.png"),
+        plot_verdict(result, out / "verdict.png"),
     ]
     echo(f"wrote {', '.join(map(str, written))}")

@@ -38,6 +38,18 @@ class EvalSequence:
     times: np.ndarray
     times_source: str
 
+    def frames(self, start: int, stop: int | None) -> EvalSequence:
+        """The sub-sequence of frames ``[start, stop)`` (``stop`` None: to the end)."""
+        n = len(self.paths)
+        stop = n if stop is None else stop
+        if not 0 <= start < min(stop, n):
+            raise InputError(f"{self.root}: frames {start}:{stop} select nothing of its {n}")
+        sel = slice(start, stop)
+        return EvalSequence(
+            self.root, self.kind, self.paths[sel], self.poses[sel], self.times[sel],
+            self.times_source,
+        )  # fmt: skip
+
 
 def open_sequence(root: str | Path) -> EvalSequence:
     """Open an evaluation sequence of either layout (see the module docstring).

@@ -79,16 +79,23 @@ def _check_pose(T: np.ndarray, name: str) -> np.ndarray:
     return a
 
 
-def rte(T_est: np.ndarray, T_gt: np.ndarray) -> np.ndarray | float:
-    """Relative translation error ``||t_est - t_gt||`` in metres for ``[..., 4, 4]`` poses."""
+def rte(T_est: np.ndarray, T_gt: np.ndarray, planar: bool = False) -> np.ndarray | float:
+    """Relative translation error ``||t_est - t_gt||`` in metres for ``[..., 4, 4]`` poses
+    (``planar``: in x/y only, for pipelines that estimate x, y and yaw)."""
     e, g = _check_pose(T_est, "T_est"), _check_pose(T_gt, "T_gt")
-    out = np.linalg.norm(e[..., :3, 3] - g[..., :3, 3], axis=-1)
+    d = 2 if planar else 3
+    out = np.linalg.norm(e[..., :d, 3] - g[..., :d, 3], axis=-1)
     return float(out) if out.ndim == 0 else out
 
 
-def rre(T_est: np.ndarray, T_gt: np.ndarray) -> np.ndarray | float:
-    """Relative rotation error in degrees for ``[..., 4, 4]`` poses (SPEC section 4)."""
+def rre(T_est: np.ndarray, T_gt: np.ndarray, planar: bool = False) -> np.ndarray | float:
+    """Relative rotation error in degrees for ``[..., 4, 4]`` poses (SPEC section 4);
+    ``planar``: the heading (yaw) difference only."""
     e, g = _check_pose(T_est, "T_est"), _check_pose(T_gt, "T_gt")
+    if planar:
+        yaw = np.arctan2(e[..., 1, 0], e[..., 0, 0]) - np.arctan2(g[..., 1, 0], g[..., 0, 0])
+        out = np.abs(np.degrees((yaw + np.pi) % (2 * np.pi) - np.pi))
+        return float(out) if out.ndim == 0 else out
     # trace(R_est^T R_gt) = sum_ij R_est[i, j] * R_gt[i, j]
     tr = np.einsum("...ij,...ij->...", e[..., :3, :3], g[..., :3, :3])
     out = np.degrees(np.arccos(np.clip((tr - 1.0) / 2.0, -1.0, 1.0)))
@@ -114,3 +121,48 @@ def success_rate(rte_m: Sequence[float], rre_deg: Sequence[float]) -> float:
     """Pose success in percent over all queries (NaN for no queries)."""
     ok = success(rte_m, rre_deg)
     return float("nan") if ok.size == 0 else 100.0 * float(ok.mean())
+
+
+def expected_calibration_error(
+    confidence: Sequence[float] | np.ndarray, correct: Sequence[bool] | np.ndarray, bins: int = 10
+) -> float:
+    """Expected calibration error: over ``bins`` equal-width confidence bins, the mean of
+    ``|accuracy - mean confidence|`` weighted by the share of answers in the bin."""
+    c = np.asarray(confidence, dtype=np.float64)
+    y = np.asarray(correct, dtype=np.float64)
+    if c.shape != y.shape or c.ndim != 1:
+        raise InputError("confidence and correct must be 1-D of equal length")
+    if c.size == 0:
+        return float("nan")
+    which = np.minimum((c * bins).astype(np.int64), bins - 1)  # [Q] bin of each answer
+    err = 0.0
+    for b in range(bins):
+        m = which == b
+        if m.any():
+            err += m.mean() * abs(y[m].mean() - c[m].mean())
+    return float(err)
+
+
+def verdict_curve(
+    confidence: Sequence[float] | np.ndarray,
+    correct: Sequence[bool] | np.ndarray,
+    thresholds: Sequence[float] | np.ndarray,
+) -> dict[str, list[float]]:
+    """Per confidence threshold t (answers accepted when confidence >= t): precision
+    (correct among accepted), recall (accepted among correct) and the false-accept rate
+    (accepted but wrong, over all answers), in percent; NaN where undefined."""
+    c = np.asarray(confidence, dtype=np.float64)
+    y = np.asarray(correct, dtype=bool)
+    out: dict[str, list[float]] = {
+        "threshold": [],
+        "precision": [],
+        "recall": [],
+        "false_accept": [],
+    }
+    for t in thresholds:
+        acc = c >= t
+        out["threshold"].append(float(t))
+        out["precision"].append(100.0 * float(y[acc].mean()) if acc.any() else float("nan"))
+        out["recall"].append(100.0 * float(acc[y].mean()) if y.any() else float("nan"))
+        out["false_accept"].append(100.0 * float((acc & ~y).mean()) if c.size else float("nan"))
+    return out

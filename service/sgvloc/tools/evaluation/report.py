@@ -28,7 +28,7 @@ def markdown_table(result: EvalResult) -> str:
         if s["mode"] == "time"
         else f"--min-gap {s['min_gap_s']:g}"
     )
-    head = ["method", "top-k"]
+    head = ["method", "top-k", f"ceiling {thr[0]:g}m"]
     for t in thr:
         head += [f"R@1 {t:g}m", f"R@5 {t:g}m", f"MRR {t:g}m"]
     head += ["S %", f"S % top-1 < {thr[0]:g}m", "RTE m", "RRE deg", "rerank ms"]
@@ -41,7 +41,7 @@ def markdown_table(result: EvalResult) -> str:
         "|" + "|".join("---" if i < 2 else "---:" for i in range(len(head))) + "|",
     ]
     for r in result.rows:
-        cells = [r["method"], str(r["k"])]
+        cells = [r["method"], str(r["k"]), _fmt(r.get(f"ceiling_{thr[0]:g}m"))]
         for t in thr:
             cells += [_fmt(r[f"R@1_{t:g}m"]), _fmt(r[f"R@5_{t:g}m"]), _fmt(r[f"MRR_{t:g}m"])]
         cells += [
@@ -50,6 +50,37 @@ def markdown_table(result: EvalResult) -> str:
             _fmt(r.get("mean_rte_m"), 2),
             _fmt(r.get("mean_rre_deg"), 2),
             _fmt(r["rerank_median_ms"], 1),
+        ]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def verdict_table(result: EvalResult) -> str:
+    """What the verdict did: acceptance, false accepts (in and out of coverage) and the
+    calibration error of the confidence, per (method, top-k)."""
+    rows = [r for r in result.rows if "false_accepts" in r]
+    if not rows:
+        return ""
+    r0 = rows[0]
+    lines = [
+        f"Verdict over all {r0['all_queries']} queries ({r0['all_queries'] - r0['out_of_coverage']}"
+        f" in coverage, {r0['out_of_coverage']} out of coverage); correct = RTE <= 2 m and "
+        "RRE <= 5 deg:",
+        "",
+        "| method | top-k | accepted % (in coverage) | accepted % of correct | false accepts "
+        "| of them out of coverage | false accepts % | ECE |",
+        "|---|---|---:|---:|---:|---:|---:|---:|",
+    ]
+    for r in rows:
+        cells = [
+            r["method"],
+            str(r["k"]),
+            _fmt(r["accepted_in_coverage_pct"]),
+            _fmt(r["accepted_of_correct_pct"]),
+            str(r["false_accepts"]),
+            str(r["false_accepts_out_of_coverage"]),
+            _fmt(r["false_accept_pct"], 2),
+            _fmt(r["ece"], 3),
         ]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
@@ -115,11 +146,16 @@ def _nan_to_none(x: Any) -> Any:
     return x
 
 
+def report_dict(result: EvalResult) -> dict[str, Any]:
+    """The report as written to eval.json: plain JSON types, NaN as None."""
+    return json.loads(json.dumps(_nan_to_none(result.to_dict()), default=str))
+
+
 def write_json(result: EvalResult, path: str | os.PathLike) -> Path:
     """Every figure and the exact configuration as JSON (NaN written as null), atomically."""
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
-    text = json.dumps(_nan_to_none(result.to_dict()), indent=1, default=str)
+    text = json.dumps(report_dict(result), indent=1)
     fd, tmp = tempfile.mkstemp(dir=p.parent, suffix=".tmp")
     with os.fdopen(fd, "w") as fh:
         fh.write(text)
@@ -204,6 +240,72 @@ def plot_sgv_scores(result: EvalResult, path: str | os.PathLike) -> Path:
         ax.legend(fontsize=8)
     name = Path(result.config["data"]).name
     fig.suptitle(f"{name}: true = within {sc.get('threshold_m', 0):g} m of the query", fontsize=9)
+    fig.tight_layout()
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(p, dpi=110)
+    plt.close(fig)
+    return p
+
+
+def plot_verdict(result: EvalResult, path: str | os.PathLike) -> Path:
+    """PNG per method at the largest table top-k: precision and recall of the verdict and
+    the false-accept rate over confidence thresholds, and a reliability diagram."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from .metrics import verdict_curve
+
+    k = max(result.config["topk"])
+    thresholds = np.linspace(0.0, 1.0, 101)
+    fig, (ax_c, ax_r) = plt.subplots(1, 2, figsize=(11, 4.2))
+    for key, recs in result.per_query.items():
+        method, kk = key.rsplit("@", 1)
+        if int(kk) != k or not recs or "confidence" not in recs[0]:
+            continue
+        conf = np.array([r["confidence"] for r in recs], dtype=np.float64)
+        ok = np.array([r["correct"] for r in recs], dtype=bool)
+        c = verdict_curve(conf, ok, thresholds)
+        (line,) = ax_c.plot(c["threshold"], c["precision"], "-", label=f"{method} precision")
+        ax_c.plot(
+            c["threshold"], c["recall"], "--", color=line.get_color(), label=f"{method} recall"
+        )
+        ax_c.plot(
+            c["threshold"],
+            c["false_accept"],
+            ":",
+            color=line.get_color(),
+            label=f"{method} false accepts",
+        )
+        which = np.minimum((conf * 10).astype(int), 9)
+        xs = [conf[which == b].mean() for b in range(10) if (which == b).any()]
+        ys = [ok[which == b].mean() for b in range(10) if (which == b).any()]
+        ax_r.plot(xs, ys, "o-", color=line.get_color(), label=method)
+    mc = result.config.get("localizer", {}).get("verdict", {}).get("min_confidence")
+    if mc is not None:
+        ax_c.axvline(mc, color="grey", lw=0.8)
+    ax_c.set(
+        xlabel="min_confidence", ylabel="%", title=f"Verdict at top-{k} (precision, recall, FA)"
+    )
+    ax_r.plot([0, 1], [0, 1], color="grey", lw=0.8)
+    ax_r.set(
+        xlabel="confidence (bin mean)",
+        ylabel="share correct",
+        xlim=(0, 1),
+        ylim=(0, 1),
+        title="Reliability",
+    )
+    for ax in (ax_c, ax_r):
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=7)
+    name = Path(result.config["data"]).name
+    out = next((r["out_of_coverage"] for r in result.rows if "out_of_coverage" in r), 0)
+    fig.suptitle(
+        f"{name}: {result.split['queries']} in coverage, {out} out of coverage", fontsize=9
+    )
     fig.tight_layout()
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)

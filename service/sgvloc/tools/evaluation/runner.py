@@ -53,7 +53,7 @@ from sgvloc.core.errors import InputError
 from sgvloc.core.rerank import METHODS
 
 from .diagnostics import score_separation, summarise_pairs
-from .metrics import first_true_rank, mrr, recall_at, rre, rte, success
+from .metrics import expected_calibration_error, first_true_rank, mrr, recall_at, rre, rte, success
 from .splits import Split, make_split
 
 log = logging.getLogger(__name__)
@@ -69,6 +69,9 @@ class EvalConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     data: str
+    frames: tuple[int, int | None] | None = Field(
+        None, description="use only frames [start, stop) of the sequence (by index)"
+    )
     db_until: float | None = Field(None, description="time split: database = first SECONDS")
     min_gap: float | None = Field(None, description="loop split: database = scans >= SECONDS older")
     methods: list[str] = Field(default_factory=lambda: list(METHODS))
@@ -80,6 +83,22 @@ class EvalConfig(BaseModel):
     query_stride: int = Field(1, ge=1)
     max_queries: int | None = Field(None, ge=1)
     cache_dir: str | None = None
+    negatives: bool = Field(
+        True, description="keep out-of-coverage queries as negatives for the verdict"
+    )
+    foreign: list[str] = Field(
+        default_factory=list,
+        description="sequences of other places, every scan queried against the database "
+        "(all out of coverage: any accepted answer is a false accept)",
+    )
+    prior_noise: float | None = Field(
+        None, ge=0.0, description="simulate a GNSS prior: ground truth + noise (m per axis)"
+    )
+    prior_radius: float = Field(20.0, gt=0.0, description="radius of the simulated prior (m)")
+    prior_seed: int = 0
+    calibration: str | None = Field(
+        None, description="calibration file (default: the one shipped for the encoder kind)"
+    )
     encoder: EncoderSpec = EncoderSpec()
     localizer: LocalizerConfig = LocalizerConfig()
 
@@ -160,10 +179,19 @@ def _progress(it, enabled: bool, **kw):
 
 def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
     """Evaluate every method of ``cfg`` at every k of its plan. See the module docstring."""
+    from sgvloc.core.confidence import (
+        Calibration,
+        decide,
+        gather_evidence,
+        shipped_calibration,
+        spectral_candidates,
+    )
     from sgvloc.core.encoders import make_encoder
     from sgvloc.core.pose import ransac_pose, refine_icp
+    from sgvloc.core.prior import Prior
     from sgvloc.core.rerank import Candidate, rerank
     from sgvloc.core.retrieval import FaissIndex
+    from sgvloc.core.sgv import sgv_rerank_scores
 
     from .cache import FeatureCache, default_cache_dir
     from .data import open_sequence
@@ -171,6 +199,8 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
 
     t_run = time.perf_counter()
     seq = open_sequence(cfg.data)
+    if cfg.frames is not None:
+        seq = seq.frames(*cfg.frames)
     poses = seq.poses  # [F, 4, 4] T_world_sensor
     split = make_split(
         seq.times,
@@ -180,53 +210,137 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
         threshold=cfg.thresholds[0],
         query_stride=cfg.query_stride,
         max_queries=cfg.max_queries,
+        negatives=cfg.negatives,
     )
-    if len(split.queries) == 0:
+    if len(split.queries) == 0 and len(split.negatives) == 0 and not cfg.foreign:
         raise InputError(f"{cfg.data}: no query has a database scan within {split.threshold} m")
     log.info("split %s", split.summary())
+    foreign = [open_sequence(f) for f in cfg.foreign]
 
     # 1. features of every scan the run needs (cached on disk)
     encoder = make_encoder(cfg.encoder)
     refine = cfg.refine
-    if seq.kind == "bev-images":
-        if not callable(getattr(encoder, "encode_image", None)):
-            raise InputError(
-                f"{cfg.data} holds BEV images (imgs/*.png) and encoder kind "
-                f"{cfg.encoder.kind!r} cannot encode images; use an image encoder, "
-                """e.g. --encoder '{"kind":"bev"}'"""
-            )
-        refine = "none"  # no 3-D cloud for ICP
+    for s in [seq, *foreign]:
+        if s.kind == "bev-images":
+            if not callable(getattr(encoder, "encode_image", None)):
+                raise InputError(
+                    f"{s.root} holds BEV images (imgs/*.png) and encoder kind "
+                    f"{cfg.encoder.kind!r} cannot encode images; use an image encoder, "
+                    """e.g. --encoder '{"kind":"bev"}'"""
+                )
+            refine = "none"  # no 3-D cloud for ICP
+    calibration = (
+        Calibration.load(cfg.calibration)
+        if cfg.calibration
+        else shipped_calibration(cfg.encoder.kind)
+    )
     cache = FeatureCache(cfg.cache_dir or default_cache_dir(), encoder)
-    needed = sorted(set(split.database.tolist()) | set(split.queries.tolist()))
+    evaluated = np.union1d(split.queries, split.negatives)
+    needed = sorted(set(split.database.tolist()) | set(evaluated.tolist()))
+    # every query of the run: (source, index) with source 0 = this sequence, 1.. = foreign
+    qkeys = [(0, int(q)) for q in evaluated] + [
+        (s + 1, i) for s, f in enumerate(foreign) for i in range(len(f.paths))
+    ]
+    sources = [seq, *foreign]
     t0 = time.perf_counter()
     feats = {
         i: cache.get(seq.paths[i])
         for i in _progress(needed, progress, desc="features", unit="scan")
     }
+    qfeats = {key: feats[key[1]] for key in qkeys if key[0] == 0}
+    for key in _progress([k for k in qkeys if k[0]], progress, desc="foreign", unit="scan"):
+        qfeats[key] = cache.get(sources[key[0]].paths[key[1]])
     t_features = time.perf_counter() - t0
     planar = is_planar(*(f.keypoints for f in feats.values()))
+    # BEV images: the pose is x, y and yaw, so errors are measured in the plane
+    in_plane = seq.kind == "bev-images"
 
     plan = cfg.plan()
     kmax = max(max(ks) for ks in plan.values())
     table_ks = set(cfg.topk)
     loc_cfg = cfg.localizer
-    pose_cache: dict[tuple[int, int], tuple[np.ndarray, bool, bool]] = {}
+    min_confidence = loc_cfg.verdict.min_confidence
+    pose_cache: dict[tuple[tuple[int, int], int], tuple[Any, np.ndarray | None]] = {}
 
-    def pose_for(q: int, kf: int) -> tuple[np.ndarray, bool, bool]:
-        """(T_world_query estimate, localized, had an estimate) against keyframe kf."""
-        if (q, kf) not in pose_cache:
-            fq, fk = feats[q], feats[kf]
+    def pose_for(qk: tuple[int, int], kf: int) -> tuple[Any, np.ndarray | None]:
+        """(PoseResult, T_kf_query or None without an estimate) against keyframe kf."""
+        if (qk, kf) not in pose_cache:
+            fq, fk = qfeats[qk], feats[kf]
             pose = ransac_pose(
                 fq.keypoints, fq.local_features, fk.keypoints, fk.local_features, loc_cfg.pose
             )
             has_estimate = pose.num_correspondences >= loc_cfg.pose.ransac_n
             if refine == "icp" and has_estimate:
                 pose = refine_icp(
-                    pose, cache.cloud(seq.paths[q]), cache.cloud(seq.paths[kf]), loc_cfg.pose
+                    pose,
+                    cache.cloud(sources[qk[0]].paths[qk[1]]),
+                    cache.cloud(seq.paths[kf]),
+                    loc_cfg.pose,
                 )
-            T_kf_q = pose.T_target_source if has_estimate else np.eye(4)
-            pose_cache[(q, kf)] = (poses[kf] @ T_kf_q, pose.localized, has_estimate)
-        return pose_cache[(q, kf)]
+            pose_cache[(qk, kf)] = (pose, pose.T_target_source if has_estimate else None)
+        return pose_cache[(qk, kf)]
+
+    def spectral_for(qk: tuple[int, int], ids: list[int], known: dict[int, Any]) -> None:
+        """Add the SpectralGV view of the ids not yet in ``known`` (one batch)."""
+        missing = [i for i in ids if i not in known]
+        if missing:
+            fq = qfeats[qk]
+            kps = [feats[i].keypoints for i in missing]
+            res = sgv_rerank_scores(
+                fq.keypoints,
+                fq.local_features,
+                kps,
+                [feats[i].local_features for i in missing],
+                loc_cfg.sgv,
+            )
+            known.update(spectral_candidates(missing, fq.keypoints, kps, res))
+
+    def verdict_record(
+        qk: tuple[int, int], ids: list[int], gt: np.ndarray, same_world: bool, spectral, prior
+    ) -> dict[str, Any]:
+        """Pose, evidence, confidence and verdict of one answer (re-ranked ``ids``)."""
+        if not ids:
+            return {
+                "rte": float("nan"),
+                "rre": float("nan"),
+                "localized": False,
+                "has_estimate": False,
+                "confidence": 0.0,
+                "verdict": "no_keyframe_in_prior" if prior is not None else "no_keyframes",
+                "accepted": False,
+                "correct": False,
+            }
+        pose, T_kf_q = pose_for(qk, ids[0])
+        spectral_for(qk, ids, spectral)
+        fq = qfeats[qk]
+        ev = gather_evidence(
+            ids,
+            spectral,
+            lambda i: poses[i],
+            similarity=float(fq.global_descriptor @ feats[ids[0]].global_descriptor),
+            pose=pose if T_kf_q is not None else None,
+            T_kf_query=T_kf_q,
+            planar=not fq.keypoints[:, 2].any(),
+        )
+        confidence = calibration.confidence(ev) if T_kf_q is not None else 0.0
+        T_est = poses[ids[0]] @ (T_kf_q if T_kf_q is not None else np.eye(4))
+        verdict = decide(
+            confidence, min_confidence, pose, T_est if T_kf_q is not None else None, prior
+        )
+        e_t, e_r = rte(T_est, gt, in_plane), rre(T_est, gt, in_plane)
+        return {
+            "rte": e_t if same_world else float("nan"),
+            "rre": e_r if same_world else float("nan"),
+            "localized": pose.localized,
+            "has_estimate": T_kf_q is not None,
+            "confidence": confidence,
+            "evidence": ev.to_dict(),
+            "verdict": verdict.code,
+            "accepted": verdict.localized,
+            "correct": bool(same_world and success([e_t], [e_r])[0]),
+        }
+
+    rng_prior = np.random.default_rng(cfg.prior_seed)
 
     # 2. queries in time order against the database each may see
     index = FaissIndex(encoder.global_dim, loc_cfg.retrieval)
@@ -237,23 +351,34 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
     k_scores = max(cfg.topk)  # SGV score statistics over this many retrieved candidates
     match_pairs: list[dict[str, Any]] = []
     score_recs: list[dict[str, Any]] = []
+    in_coverage = set(split.queries.tolist())
     t_queries = time.perf_counter()
-    for q in _progress(split.queries.tolist(), progress, desc="queries", unit="query"):
-        visible = split.database_for(q)
+    for qk in _progress(qkeys, progress, desc="queries", unit="query"):
+        src, q = qk
+        visible = split.database_for(q) if src == 0 else split.database
         new = [i for i in visible.tolist() if i not in in_index]
         if new:
             index.add(
                 np.asarray(new, np.int64), np.stack([feats[i].global_descriptor for i in new])
             )
             in_index.update(new)
-        hits = index.search(feats[q].global_descriptor, min(kmax, len(index)))[0]
+        gt = sources[src].poses[q]
+        covered = src == 0 and q in in_coverage
+        prior = among = None
+        if cfg.prior_noise is not None:
+            noisy = gt[:2, 3] + rng_prior.normal(0.0, cfg.prior_noise, size=2)
+            prior = Prior(tuple(noisy), cfg.prior_radius)
+            among = visible[prior.distance(poses[visible, :3, 3]) <= cfg.prior_radius]
+        fq = qfeats[qk]
+        hits = index.search(fq.global_descriptor, min(kmax, len(index)), among=among)[0]
         retrieved = [Candidate(h.id, h.similarity, r, h.similarity) for r, h in enumerate(hits)]
-        gt = poses[q]
+        spectral: dict[int, Any] = {}
+        spectral_for(qk, [c.keyframe_id for c in retrieved], spectral)
         sgv_out = None
         for method, ks in plan.items():
             for k in ks:
                 t = time.perf_counter()
-                out = rerank(method, feats[q], retrieved[:k], feats.__getitem__, index, loc_cfg)
+                out = rerank(method, fq, retrieved[:k], feats.__getitem__, index, loc_cfg)
                 ms = (time.perf_counter() - t) * 1e3
                 if method == "sgv" and k == k_scores:
                     sgv_out = out
@@ -263,24 +388,25 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
                     "ms": ms,
                     "ranked": ids,
                     "top1_changed": bool(ids and retrieved and ids[0] != retrieved[0].keyframe_id),
+                    "in_coverage": covered,
                 }
+                if src:
+                    rec["foreign"] = cfg.foreign[src - 1]
                 for thr in cfg.thresholds:
-                    rec[f"rank@{thr:g}m"] = first_true_rank(poses[ids, :3, 3], gt[:3, 3], thr)
-                if k in table_ks and ids:
-                    T_est, localized, has_est = pose_for(q, ids[0])
-                    rec.update(
-                        rte=rte(T_est, gt),
-                        rre=rre(T_est, gt),
-                        localized=localized,
-                        has_estimate=has_est,
+                    rec[f"rank@{thr:g}m"] = (
+                        first_true_rank(poses[ids, :3, 3], gt[:3, 3], thr) if covered else None
                     )
+                if k in table_ks:
+                    rec.update(verdict_record(qk, ids, gt, src == 0, spectral, prior))
                 recs[(method, k)].append(rec)
+        if not covered:
+            continue
 
         # encoder diagnostics: matches on the true pair, SGV scores of true/false candidates
         d = np.linalg.norm(poses[visible, :3, 3] - gt[:3, 3], axis=1)
         db = int(visible[int(np.argmin(d))])
         T_db_q = np.linalg.inv(poses[db]) @ gt
-        fq, fd = feats[q], feats[db]
+        fd = feats[db]
         stats = pair_match_stats(
             fq.keypoints,
             fq.local_features,
@@ -292,9 +418,7 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
         )
         match_pairs.append({"query": q, "db": db, "distance_m": float(d.min()), **stats})
         if sgv_out is None:
-            sgv_out = rerank(
-                "sgv", feats[q], retrieved[:k_scores], feats.__getitem__, index, loc_cfg
-            )
+            sgv_out = rerank("sgv", fq, retrieved[:k_scores], feats.__getitem__, index, loc_cfg)
         ids = [c.keyframe_id for c in sgv_out.candidates]
         dist = np.linalg.norm(poses[ids, :3, 3] - gt[:3, 3], axis=1) if ids else np.zeros(0)
         score_recs.append(
@@ -311,7 +435,7 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
     rows, sweep, per_query = [], {m: [] for m in plan}, {}
     for (method, k), rs in recs.items():
         agg = _aggregate(method, k, rs, cfg.thresholds, with_pose=k in table_ks)
-        keep = [key for key in agg if key.startswith("R@1") or key.endswith("_ms")]
+        keep = [key for key in agg if key.startswith(("R@1", "ceiling")) or key.endswith("_ms")]
         sweep[method].append({"k": k, **{key: agg[key] for key in keep}})
         if k in table_ks:
             rows.append(agg)
@@ -321,13 +445,23 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
     for m in sweep:
         sweep[m].sort(key=lambda e: e["k"])
 
+    n_out = len(split.negatives) + sum(len(f.paths) for f in foreign)
     notes = [
         f"retrieval: top-{kmax} once per query; each (method, k) re-ranks the first k hits",
         "pose: RANSAC on local features against the re-ranked top-1"
         + (", refined by ICP on the preprocessed clouds" if refine == "icp" else "")
         + "; the same estimator for every method",
-        "RTE/RRE: means over all queries; a query that is not localized keeps its estimate; "
-        "with no estimate at all (too few correspondences) the matched keyframe's pose is used",
+        "recall, S and RTE/RRE: over the in-coverage queries (a database scan within "
+        f"{split.threshold:g} m); RTE/RRE are means, a query that is not localized keeps its "
+        "estimate; with no estimate at all (too few correspondences) the matched keyframe's "
+        "pose is used",
+        f"verdict: accepted = the calibrated confidence ({calibration.name}, "
+        f"{calibration.fingerprint}) >= min_confidence {min_confidence:g} and the pose "
+        "step's minimums hold"
+        + (", and the estimate lies inside the prior's radius" if prior is not None else "")
+        + "; correct = RTE <= 2 m and RRE <= 5 deg; false accepts = accepted but not correct, "
+        f"over all {len(qkeys)} queries, {n_out} of them out of coverage"
+        + (f" ({sum(len(f.paths) for f in foreign)} from other places)" if foreign else ""),
         f"n_topk sweep: {', '.join(m for m in plan if m in FULL_SWEEP_METHODS)} at k = "
         f"{', '.join(map(str, cfg.sweep))}; "
         + (
@@ -338,7 +472,13 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
         ),
         "R@5 with top-k < 5 counts the k candidates there are; k is capped by the database "
         "size visible to a query",
-        f"queries dropped (no database scan within {split.threshold:g} m): {len(split.dropped)}",
+        f"out-of-coverage queries (no database scan within {split.threshold:g} m): "
+        f"{len(split.dropped)}"
+        + (
+            f", {len(split.negatives)} of them kept as negatives for the verdict"
+            if cfg.negatives
+            else ", dropped (--no-negatives)"
+        ),
         f"local matches: per query, its true pair (the visible database scan nearest in "
         f"position); each query keypoint's nearest neighbour (L2) in feature space among the "
         f"pair's keypoints is correct within {MATCH_RADIUS_M:g} m after the ground-truth pose"
@@ -353,15 +493,22 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
         f"query, true = within {cfg.thresholds[0]:g} m; AUC pooled over all queries and as "
         "the mean of per-query AUCs",
     ]
+    if cfg.prior_noise is not None:
+        notes.append(
+            f"prior: per query, the ground-truth x/y plus Gaussian noise of {cfg.prior_noise:g} m "
+            f"per axis (seed {cfg.prior_seed}), radius {cfg.prior_radius:g} m: retrieval "
+            "searches only the database scans inside it"
+        )
     if seq.kind == "bev-images":
         notes.insert(
             0,
             f"data: BEV images (imgs/*.png), times from {seq.times_source}; features from "
             "the encoder's encode_image; poses estimated from planar keypoints (x, y, yaw), "
-            "RTE/RRE against the full ground-truth pose",
+            "RTE/RRE and the verdict's correctness in the plane (x/y distance, yaw "
+            "difference): height, roll and pitch are not observable in the images",
         )
-        if cfg.refine != "none":
-            notes.insert(1, "refine: forced to 'none' (BEV images have no 3-D cloud for ICP)")
+    if refine != cfg.refine:
+        notes.insert(1, "refine: forced to 'none' (BEV images have no 3-D cloud for ICP)")
     import torch
 
     timings = {
@@ -377,10 +524,15 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
     config["refine_effective"] = refine
     config["encoder_identity"] = encoder.identity.to_dict()
     config["encoder_fingerprint"] = encoder.identity.fingerprint
+    config["calibration"] = {"name": calibration.name, "fingerprint": calibration.fingerprint}
     config["plan"] = plan
     split_info = split.summary()
     split_info["query_indices"] = split.queries.tolist()
     split_info["dropped_indices"] = split.dropped.tolist()
+    split_info["negative_indices"] = split.negatives.tolist()
+    split_info["foreign_queries"] = {
+        f: len(s.paths) for f, s in zip(cfg.foreign, foreign, strict=True)
+    }
     matches = summarise_pairs(match_pairs, planar, MATCH_RADIUS_M)
     matches["per_pair"] = match_pairs
     scores = score_separation(score_recs)
@@ -395,33 +547,57 @@ def _mean(xs: list[float]) -> float:
 def _aggregate(
     method: str, k: int, recs: list[dict[str, Any]], thresholds: list[float], with_pose: bool
 ) -> dict[str, Any]:
-    """Figures of one (method, k) over its queries."""
-    out: dict[str, Any] = {"method": method, "k": k, "queries": len(recs)}
+    """Figures of one (method, k): recall and pose over the in-coverage queries, the
+    verdict over all of them."""
+    cov = [r for r in recs if r["in_coverage"]]
+    out: dict[str, Any] = {"method": method, "k": k, "queries": len(cov)}
     for thr in thresholds:
-        ranks = [r[f"rank@{thr:g}m"] for r in recs]
+        ranks = [r[f"rank@{thr:g}m"] for r in cov]
         out[f"R@1_{thr:g}m"] = recall_at(ranks, 1)
         out[f"R@5_{thr:g}m"] = recall_at(ranks, 5)
         out[f"MRR_{thr:g}m"] = mrr(ranks)
+    # the recall ceiling: a true match among the k candidates re-ranking starts from
+    out[f"ceiling_{thresholds[0]:g}m"] = recall_at([r[f"rank@{thresholds[0]:g}m"] for r in cov], k)
     ms = [r["ms"] for r in recs]
     out["rerank_median_ms"] = statistics.median(ms) if ms else float("nan")
     out["rerank_mean_ms"] = _mean(ms)
-    out["top1_changed_pct"] = 100.0 * _mean([float(r["top1_changed"]) for r in recs])
-    if with_pose:
-        t = [r.get("rte", float("nan")) for r in recs]
-        a = [r.get("rre", float("nan")) for r in recs]
-        ok = success(t, a)
-        out["success_pct"] = 100.0 * float(ok.mean()) if recs else float("nan")
-        # pose success where the re-ranked top-1 is a true match (the pose step alone)
-        true1 = np.array([r[f"rank@{thresholds[0]:g}m"] == 1 for r in recs], dtype=bool)
-        out["success_true_top1_pct"] = (
-            100.0 * float(ok[true1].mean()) if true1.any() else float("nan")
-        )
-        out["mean_rte_m"] = _mean(t)
-        out["mean_rre_deg"] = _mean(a)
-        out["median_rte_m"] = float(np.median(t)) if t else float("nan")
-        out["localized_pct"] = 100.0 * _mean([float(r.get("localized", False)) for r in recs])
-        out["no_estimate"] = sum(1 for r in recs if not r.get("has_estimate", True))
+    out["top1_changed_pct"] = 100.0 * _mean([float(r["top1_changed"]) for r in cov])
+    if not with_pose:
+        return out
+    t = [r.get("rte", float("nan")) for r in cov]
+    a = [r.get("rre", float("nan")) for r in cov]
+    ok = success(t, a)
+    out["success_pct"] = 100.0 * float(ok.mean()) if cov else float("nan")
+    # pose success where the re-ranked top-1 is a true match (the pose step alone)
+    true1 = np.array([r[f"rank@{thresholds[0]:g}m"] == 1 for r in cov], dtype=bool)
+    out["success_true_top1_pct"] = 100.0 * float(ok[true1].mean()) if true1.any() else float("nan")
+    out["mean_rte_m"] = _mean(t)
+    out["mean_rre_deg"] = _mean(a)
+    out["median_rte_m"] = float(np.nanmedian(t)) if t else float("nan")
+    out["localized_pct"] = 100.0 * _mean([float(r.get("localized", False)) for r in cov])
+    out["no_estimate"] = sum(1 for r in cov if not r.get("has_estimate", True))
+    out.update(verdict_figures(recs))
     return out
+
+
+def verdict_figures(recs: list[dict[str, Any]]) -> dict[str, Any]:
+    """What the verdict did over every query (in and out of coverage)."""
+    n = len(recs)
+    acc = np.array([r["accepted"] for r in recs], dtype=bool)
+    cor = np.array([r["correct"] for r in recs], dtype=bool)
+    cov = np.array([r["in_coverage"] for r in recs], dtype=bool)
+    conf = np.array([r["confidence"] for r in recs], dtype=np.float64)
+    fa = acc & ~cor
+    return {
+        "all_queries": n,
+        "out_of_coverage": int((~cov).sum()),
+        "accepted_in_coverage_pct": 100.0 * float(acc[cov].mean()) if cov.any() else float("nan"),
+        "accepted_of_correct_pct": 100.0 * float(acc[cor].mean()) if cor.any() else float("nan"),
+        "false_accepts": int(fa.sum()),
+        "false_accepts_out_of_coverage": int((fa & ~cov).sum()),
+        "false_accept_pct": 100.0 * float(fa.mean()) if n else float("nan"),
+        "ece": expected_calibration_error(conf, cor) if n else float("nan"),
+    }
 
 
 __all__ = ["EvalConfig", "EvalResult", "Split", "run_evaluation", "FULL_SWEEP_METHODS"]

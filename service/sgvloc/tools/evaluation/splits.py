@@ -9,12 +9,14 @@ Two modes:
   Every scan with such an older scan is a query candidate.
 
 A query without any database scan within ``threshold`` metres (the smallest revisit
-threshold, 5 m by default) has nothing to find; it is dropped and counted.
+threshold, 5 m by default) has nothing to find: it is out of coverage. It is dropped from
+recall, and with ``negatives=True`` kept as a negative for the verdict (an answer for it
+that is accepted and wrong is a false accept).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Literal
 
 import numpy as np
@@ -28,8 +30,10 @@ class Split:
 
     - ``times``: ``[F]`` seconds since the first scan; ``positions``: ``[F, 3]`` metres;
     - ``queries``: kept queries in time order; ``dropped``: query candidates without a
-      database scan within ``threshold`` metres (not evaluated, only counted);
-    - ``database``: every scan that is in the database of at least one kept query.
+      database scan within ``threshold`` metres (out of coverage; no recall);
+    - ``negatives``: the out-of-coverage queries evaluated as negatives for the verdict
+      (empty unless asked for);
+    - ``database``: every scan that is in the database of at least one evaluated query.
     """
 
     mode: Literal["time", "loop"]
@@ -41,6 +45,7 @@ class Split:
     threshold: float
     db_until: float | None = None
     min_gap: float | None = None
+    negatives: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
 
     def database_for(self, query: int) -> np.ndarray:
         """Database scan indices (sorted) visible to ``query``."""
@@ -57,6 +62,7 @@ class Split:
             "database_scans": int(len(self.database)),
             "queries": int(len(self.queries)),
             "dropped_queries": int(len(self.dropped)),
+            "negative_queries": int(len(self.negatives)),
         }
 
 
@@ -76,13 +82,15 @@ def make_split(
     threshold: float = 5.0,
     query_stride: int = 1,
     max_queries: int | None = None,
+    negatives: bool = False,
 ) -> Split:
     """Split a sequence by time (``db_until``) or loop-closure gap (``min_gap``).
 
     Exactly one of ``db_until`` / ``min_gap`` must be given. ``times`` are seconds (any
     origin: they are taken relative to the first scan), ``positions`` ``[F, 3]`` the
     ground-truth sensor positions. Kept queries can be thinned to every ``query_stride``-th
-    and capped at ``max_queries`` (evenly spaced) for quick runs.
+    and capped at ``max_queries`` (evenly spaced) for quick runs; with ``negatives`` the
+    out-of-coverage queries are kept as negatives, thinned the same way.
     """
     t = np.asarray(times, dtype=np.float64)
     pos = np.asarray(positions, dtype=np.float64)
@@ -116,14 +124,21 @@ def make_split(
         db = proto.database_for(q)
         d = np.linalg.norm(pos[db] - pos[q], axis=1) if len(db) else np.zeros(0)
         (kept if (d <= threshold).any() else dropped).append(int(q))
-    queries = np.asarray(kept, dtype=np.int64)[::query_stride]
-    if max_queries is not None and len(queries) > max_queries:
-        pick = np.linspace(0, len(queries) - 1, max_queries).round().astype(np.int64)
-        queries = queries[np.unique(pick)]
+
+    def thin(idx: list[int]) -> np.ndarray:
+        out = np.asarray(idx, dtype=np.int64)[::query_stride]
+        if max_queries is not None and len(out) > max_queries:
+            pick = np.linspace(0, len(out) - 1, max_queries).round().astype(np.int64)
+            out = out[np.unique(pick)]
+        return out
+
+    queries = thin(kept)
+    negative = thin(dropped) if negatives else np.zeros(0, dtype=np.int64)
     if mode == "time":
         database = np.flatnonzero(t <= db_until)
     else:
-        last = t[queries].max() - min_gap if len(queries) else -np.inf
+        evaluated = np.concatenate([queries, negative])
+        last = t[evaluated].max() - min_gap if len(evaluated) else -np.inf
         database = np.flatnonzero(t <= last)
     return Split(
         mode,
@@ -135,4 +150,5 @@ def make_split(
         threshold,
         db_until,
         min_gap,
+        negative,
     )
