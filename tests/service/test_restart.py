@@ -25,9 +25,13 @@ def _assert_same_answer(a: dict, b: dict) -> None:
         else:
             np.testing.assert_allclose(b[key], a[key], atol=1e-9)
     np.testing.assert_allclose(b["confidence"], a["confidence"], atol=1e-9)
-    assert b["evidence"].keys() == a["evidence"].keys()
-    for key, value in a["evidence"].items():
-        np.testing.assert_allclose(b["evidence"][key], value, atol=1e-9, err_msg=key)
+    assert (a["evidence"] is None) == (b["evidence"] is None)
+    assert (b["evidence"] or {}).keys() == (a["evidence"] or {}).keys()
+    for key, value in (a["evidence"] or {}).items():
+        if value is None or isinstance(value, bool):
+            assert b["evidence"][key] == value, key
+        else:
+            np.testing.assert_allclose(b["evidence"][key], value, atol=1e-9, err_msg=key)
     assert (a["estimate"] is None) == (b["estimate"] is None)
     for key in arrays if a["estimate"] is not None else ():
         np.testing.assert_allclose(b["estimate"][key], a["estimate"][key], atol=1e-9)

@@ -95,7 +95,7 @@ class VerdictConfig(_Section):
     """When an answer counts as localized (:mod:`sgvloc.core.confidence`)."""
 
     min_confidence: float = Field(
-        0.6,  # the smallest tenth with <= 1% false accepts on held-out data (docs/VERDICT.md)
+        0.8,  # the smallest tenth with <= 1% false accepts on held-out data (docs/VERDICT.md)
         ge=0.0,
         le=1.0,
         description="accept an answer when its calibrated confidence (the probability that "

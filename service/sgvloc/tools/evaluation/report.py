@@ -33,9 +33,10 @@ def markdown_table(result: EvalResult) -> str:
         head += [f"R@1 {t:g}m", f"R@5 {t:g}m", f"MRR {t:g}m"]
     head += ["S %", f"S % top-1 < {thr[0]:g}m", "RTE m", "RRE deg", "rerank ms"]
     lines = [
-        f"{result.config['data']} ({split}): {s['queries']} queries, "
-        f"{s['dropped_queries']} dropped (no database scan within {s['drop_threshold_m']:g} m), "
-        f"{s['database_scans']} database scans",
+        f"{result.config['data']} ({split}): {s['queries']} queries in coverage, "
+        f"{s['dropped_queries']} out of coverage (no database scan within "
+        f"{s['drop_threshold_m']:g} m; {s.get('negative_queries', 0)} kept as negatives for "
+        f"the verdict), {s['database_scans']} database scans",
         "",
         "| " + " | ".join(head) + " |",
         "|" + "|".join("---" if i < 2 else "---:" for i in range(len(head))) + "|",
