@@ -162,7 +162,7 @@ class Client(BaseClient):
         """Change a map's settings after creation; its keyframes and version stay.
 
         ``localizer`` is merged into the current settings, e.g.
-        ``{"verdict": {"min_confidence": 0.7}, "top_k": 30}`` (retrieval cannot change);
+        ``{"verdict": {"min_confidence": 0.9}, "top_k": 30}`` (retrieval cannot change);
         ``calibration`` is a model written by ``sgvloc calibrate`` or ``"shipped"``.
         Needs a mapper or admin key.
         """

@@ -276,6 +276,23 @@ def build_map_command(
 # -- eval and synth (sgvloc.tools.evaluation, sgvloc.tools.synth) -------------------------
 
 
+#: options that eval and calibrate share
+DbUntilOpt = Annotated[
+    float | None, typer.Option(help="time split: database = scans of the first SECONDS")
+]
+MinGapOpt = Annotated[
+    float | None,
+    typer.Option(help="loop split: database = scans >= SECONDS older than the query"),
+]
+EncoderOpt = Annotated[
+    str | None, typer.Option(help="encoder: a kind or a JSON EncoderSpec (default: learned)")
+]
+CacheDirOpt = Annotated[
+    Path | None, typer.Option(help="feature cache (default ~/.cache/sgvloc/features)")
+]
+ProgressOpt = Annotated[bool, typer.Option(help="show progress bars")]
+
+
 def _frames(text: str | None) -> tuple[int, int | None] | None:
     """``START:STOP`` (STOP optional) as a pair of frame indices."""
     if text is None:
@@ -305,13 +322,8 @@ def eval_command(
             "folder (imgs/*.png, pose.txt; needs an image encoder, e.g. bev)"
         ),
     ],
-    db_until: Annotated[
-        float | None, typer.Option(help="time split: database = scans of the first SECONDS")
-    ] = None,
-    min_gap: Annotated[
-        float | None,
-        typer.Option(help="loop split: database = scans >= SECONDS older than the query"),
-    ] = None,
+    db_until: DbUntilOpt = None,
+    min_gap: MinGapOpt = None,
     methods: Annotated[
         str, typer.Option(help="comma-separated re-ranking methods (default: all)")
     ] = "",
@@ -327,15 +339,11 @@ def eval_command(
         int | None, typer.Option(min=1, help="evaluate at most N queries")
     ] = None,
     query_stride: Annotated[int, typer.Option(min=1, help="evaluate every n-th query")] = 1,
-    encoder: Annotated[
-        str | None, typer.Option(help="encoder: a kind or a JSON EncoderSpec (default: learned)")
-    ] = None,
+    encoder: EncoderOpt = None,
     config: Annotated[
         Path | None, typer.Option(help="JSON LocalizerConfig (retrieval, sgv, pose settings)")
     ] = None,
-    cache_dir: Annotated[
-        Path | None, typer.Option(help="feature cache (default ~/.cache/sgvloc/features)")
-    ] = None,
+    cache_dir: CacheDirOpt = None,
     frames: Annotated[
         str | None,
         typer.Option(help="use only frames START:STOP of the sequence (by index; STOP optional)"),
@@ -373,7 +381,7 @@ def eval_command(
         Path,
         typer.Option(help="folder for eval.json, ntopk.png, sgv_scores.png and verdict.png"),
     ] = Path("eval-out"),
-    progress: Annotated[bool, typer.Option(help="show progress bars")] = True,
+    progress: ProgressOpt = True,
 ) -> None:
     """Evaluate every re-ranking method x top-k on a sequence (SPEC section 4).
 
@@ -437,13 +445,8 @@ def calibrate_command(
             "(repeat for several; each with its own split)",
         ),
     ] = None,
-    db_until: Annotated[
-        float | None, typer.Option(help="time split: database = scans of the first SECONDS")
-    ] = None,
-    min_gap: Annotated[
-        float | None,
-        typer.Option(help="loop split: database = scans >= SECONDS older than the query"),
-    ] = None,
+    db_until: DbUntilOpt = None,
+    min_gap: MinGapOpt = None,
     refine: Annotated[
         str, typer.Option(help="comma-separated: icp, none (3-D sequences run each)")
     ] = "icp,none",
@@ -452,16 +455,12 @@ def calibrate_command(
         int | None, typer.Option(min=1, help="at most N queries per sequence")
     ] = None,
     query_stride: Annotated[int, typer.Option(min=1, help="every n-th query")] = 1,
-    encoder: Annotated[
-        str | None, typer.Option(help="encoder: a kind or a JSON EncoderSpec (default: learned)")
-    ] = None,
+    encoder: EncoderOpt = None,
     config: Annotated[
         Path | None, typer.Option(help="JSON LocalizerConfig (top_k, sgv, pose settings)")
     ] = None,
-    cache_dir: Annotated[
-        Path | None, typer.Option(help="feature cache (default ~/.cache/sgvloc/features)")
-    ] = None,
-    progress: Annotated[bool, typer.Option(help="show progress bars")] = True,
+    cache_dir: CacheDirOpt = None,
+    progress: ProgressOpt = True,
 ) -> None:
     """Fit the confidence model on sequences with ground truth.
 

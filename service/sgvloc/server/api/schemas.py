@@ -157,7 +157,7 @@ class MapPatch(_In):
     localizer: dict[str, Any] | None = Field(
         None,
         description="merged into the map's localizer settings, e.g. "
-        '{"verdict": {"min_confidence": 0.7}, "top_k": 30}; retrieval cannot change',
+        '{"verdict": {"min_confidence": 0.9}, "top_k": 30}; retrieval cannot change',
     )
     calibration: Annotated[
         Any,

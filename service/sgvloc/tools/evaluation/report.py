@@ -164,6 +164,18 @@ def write_json(result: EvalResult, path: str | os.PathLike) -> Path:
     return p
 
 
+def _save(fig, path: str | Path) -> Path:
+    """Write a figure (creating its folder) and close it."""
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(p, dpi=110)
+    plt.close(fig)
+    return p
+
+
 def plot_sweep(result: EvalResult, path: str | os.PathLike) -> Path:
     """PNG of R@1 (first threshold) and median re-ranking time against n_topk per method."""
     import matplotlib
@@ -196,12 +208,7 @@ def plot_sweep(result: EvalResult, path: str | os.PathLike) -> Path:
     )
     name = Path(result.config["data"]).name
     fig.suptitle(f"{name}: {s['queries']} queries, {how}", fontsize=10)
-    fig.tight_layout()
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(p, dpi=110)
-    plt.close(fig)
-    return p
+    return _save(fig, path)
 
 
 def plot_sgv_scores(result: EvalResult, path: str | os.PathLike) -> Path:
@@ -241,12 +248,7 @@ def plot_sgv_scores(result: EvalResult, path: str | os.PathLike) -> Path:
         ax.legend(fontsize=8)
     name = Path(result.config["data"]).name
     fig.suptitle(f"{name}: true = within {sc.get('threshold_m', 0):g} m of the query", fontsize=9)
-    fig.tight_layout()
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(p, dpi=110)
-    plt.close(fig)
-    return p
+    return _save(fig, path)
 
 
 def plot_verdict(result: EvalResult, path: str | os.PathLike) -> Path:
@@ -307,9 +309,4 @@ def plot_verdict(result: EvalResult, path: str | os.PathLike) -> Path:
     fig.suptitle(
         f"{name}: {result.split['queries']} in coverage, {out} out of coverage", fontsize=9
     )
-    fig.tight_layout()
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(p, dpi=110)
-    plt.close(fig)
-    return p
+    return _save(fig, path)
