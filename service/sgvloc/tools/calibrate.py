@@ -6,7 +6,8 @@ degrees, out-of-coverage queries included, so that the data hold both kinds of a
 service gives: right places and wrong ones. They come from ``sgvloc eval`` reports
 (``--from OUT/eval.json``, each run with its own split) or from sequences given with
 ``--data``, which run through the same evaluation here (3-D sequences with ICP and
-without: the ``icp`` and ``none`` profiles; image sequences have no cloud: ``none``).
+without: the ``icp`` and ``none`` profiles; BEV images have no cloud and no height:
+``planar``).
 
 Per profile, a logistic regression with non-negative weights on the oriented,
 standardised features (:data:`~sgvloc.core.confidence.PROFILE_FEATURES`) is fitted by
@@ -202,7 +203,7 @@ def calibrate(
         images = open_sequence(d).kind == "bev-images"
         for mode in refine:
             if mode == "icp" and images:
-                continue  # images have no cloud: their "none" run covers them
+                continue  # images have no cloud: their run without ICP covers them
             echo(f"calibrate: {d} (refine {mode})")
             cfg = EvalConfig(
                 data=str(d),
