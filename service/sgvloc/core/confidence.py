@@ -309,6 +309,47 @@ def decide(
     return Verdict(True, "localized", f"confidence {confidence:.3f}; {pose.reason}")
 
 
+@dataclass(frozen=True)
+class Assessment:
+    """An answer's evidence, its calibrated confidence and the verdict on it."""
+
+    evidence: Evidence
+    confidence: float
+    verdict: Verdict
+
+
+def assess(
+    calibration: Calibration,
+    ranked: Sequence[int],
+    spectral: Mapping[int, SpectralCandidate],
+    T_map_kf: Callable[[int], np.ndarray],
+    *,
+    query_keypoints: np.ndarray,
+    similarity: float,
+    pose: Any,
+    T_kf_query: np.ndarray | None,
+    min_confidence: float,
+    prior: Any | None = None,
+) -> Assessment:
+    """Judge the answer whose pose ``T_kf_query`` (None: no estimate) was estimated
+    against ``ranked[0]`` (non-empty) by ``pose``: the one path the localizer and
+    ``sgvloc eval`` share, so that the evaluation measures what the service answers.
+    Arguments as for :func:`gather_evidence` and :func:`decide`."""
+    has_estimate = T_kf_query is not None
+    ev = gather_evidence(
+        ranked,
+        spectral,
+        T_map_kf,
+        similarity=similarity,
+        pose=pose if has_estimate else None,
+        T_kf_query=T_kf_query,
+        planar=not query_keypoints[:, 2].any(),
+    )
+    confidence = calibration.confidence(ev) if has_estimate else 0.0
+    T_map_query = T_map_kf(int(ranked[0])) @ T_kf_query if has_estimate else None
+    return Assessment(ev, confidence, decide(confidence, min_confidence, pose, T_map_query, prior))
+
+
 # -- the calibrated model ---------------------------------------------------------------
 
 

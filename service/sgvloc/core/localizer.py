@@ -24,8 +24,7 @@ from .confidence import (
     Calibration,
     Evidence,
     SpectralCandidate,
-    decide,
-    gather_evidence,
+    assess,
     shipped_calibration,
     spectral_candidates,
 )
@@ -358,31 +357,32 @@ class Localizer:
             T_kf = pose.T_target_source if has_estimate else None
             T_map = best.T_map_sensor @ T_kf if T_kf is not None else None
             ranked = [c.keyframe_id for c in out.candidates]
-            evidence = gather_evidence(
+            judged = assess(
+                self.calibration,
                 ranked,
                 self._spectral(query, retrieved, out, ranked),
                 lambda i: self._keyframes[i].T_map_sensor,
+                query_keypoints=query.keypoints,
                 similarity=float(query.global_descriptor @ best.features.global_descriptor),
-                pose=pose if has_estimate else None,
+                pose=pose,
                 T_kf_query=T_kf,
-                planar=not query.keypoints[:, 2].any(),
+                min_confidence=min_confidence,
+                prior=prior,
             )
-            confidence = self.calibration.confidence(evidence) if has_estimate else 0.0
-            verdict = decide(confidence, min_confidence, pose, T_map, prior)
             timings["verify"] = _ms(t)
 
         timings["total"] = _ms(t_start)
         return answer(
-            verdict.localized,
-            verdict.reason,
+            judged.verdict.localized,
+            judged.verdict.reason,
             best.id,
             pose,
             retrieved,
             out.candidates,
             map_version=version,
-            verdict=verdict.code,
-            confidence=confidence,
-            evidence=evidence,
+            verdict=judged.verdict.code,
+            confidence=judged.confidence,
+            evidence=judged.evidence,
             T_map_sensor_estimate=T_map,
             T_keyframe_sensor_estimate=T_kf,
             prior=prior_info,

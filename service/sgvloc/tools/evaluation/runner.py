@@ -181,8 +181,7 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
     """Evaluate every method of ``cfg`` at every k of its plan. See the module docstring."""
     from sgvloc.core.confidence import (
         Calibration,
-        decide,
-        gather_evidence,
+        assess,
         shipped_calibration,
         spectral_candidates,
     )
@@ -313,30 +312,29 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
         pose, T_kf_q = pose_for(qk, ids[0])
         spectral_for(qk, ids, spectral)
         fq = qfeats[qk]
-        ev = gather_evidence(
+        judged = assess(
+            calibration,
             ids,
             spectral,
             lambda i: poses[i],
+            query_keypoints=fq.keypoints,
             similarity=float(fq.global_descriptor @ feats[ids[0]].global_descriptor),
-            pose=pose if T_kf_q is not None else None,
+            pose=pose,
             T_kf_query=T_kf_q,
-            planar=not fq.keypoints[:, 2].any(),
+            min_confidence=min_confidence,
+            prior=prior,
         )
-        confidence = calibration.confidence(ev) if T_kf_q is not None else 0.0
         T_est = poses[ids[0]] @ (T_kf_q if T_kf_q is not None else np.eye(4))
-        verdict = decide(
-            confidence, min_confidence, pose, T_est if T_kf_q is not None else None, prior
-        )
         e_t, e_r = rte(T_est, gt, in_plane), rre(T_est, gt, in_plane)
         return {
             "rte": e_t if same_world else float("nan"),
             "rre": e_r if same_world else float("nan"),
             "localized": pose.localized,
             "has_estimate": T_kf_q is not None,
-            "confidence": confidence,
-            "evidence": ev.to_dict(),
-            "verdict": verdict.code,
-            "accepted": verdict.localized,
+            "confidence": judged.confidence,
+            "evidence": judged.evidence.to_dict(),
+            "verdict": judged.verdict.code,
+            "accepted": judged.verdict.localized,
             "correct": bool(same_world and success([e_t], [e_r])[0]),
         }
 

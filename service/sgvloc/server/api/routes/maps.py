@@ -122,11 +122,11 @@ async def update_map(
     """Change a map's localizer settings or calibration (its keyframes and version stay)."""
 
     def work() -> MapInfo:
-        manager.get(map_name)
+        handle = manager.get(map_name)  # 404 before the body is judged
         req = MapPatch.model_validate(body.decode(), context=limits(settings))
         cal = req.calibration
         calibration = (
-            shipped_calibration(manager.get(map_name).record.encoder_spec.kind)
+            shipped_calibration(handle.record.encoder_spec.kind)
             if cal == "shipped"
             else parse_calibration(cal, "calibration")
         )
