@@ -64,3 +64,37 @@ def test_serve_caps_threads_before_the_libraries_load(tmp_path) -> None:
     assert run.returncode == 2, run.stderr
     assert "sgvloc serve:" in run.stderr
     assert "may not apply" not in run.stderr, run.stderr
+
+
+def test_offline_commands_cap_threads_before_the_libraries_load(balm_mini_dir, tmp_path) -> None:
+    """``sgvloc eval`` in a fresh process: 1 thread by default, --threads wins over the
+    environment, and no library was loaded before the cap (eval.json records torch's)."""
+    env = {k: v for k, v in os.environ.items() if k not in ENV_VARS and k != "SGVLOC_THREADS"}
+    args = [sys.executable, "-m", "sgvloc.cli", "eval", "--data", str(balm_mini_dir)]
+    args += ["--min-gap", "30", "--topk", "2", "--sweep", "2", "--methods", "none"]
+    args += ["--no-progress", "--cache-dir", str(tmp_path / "cache")]
+    for extra, preset, expected in (([], {}, 1), (["--threads", "2"], {"OMP_NUM_THREADS": "3"}, 2)):
+        out = tmp_path / f"out{expected}"
+        run = subprocess.run(
+            [*args, "--out", str(out), *extra],
+            env={**env, **preset},
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
+        assert run.returncode == 0, run.stderr
+        assert "may not apply" not in run.stderr, run.stderr
+        report = json.loads((out / "eval.json").read_text())
+        assert report["timings"]["torch_threads"] == expected
+
+
+def test_every_command_states_its_thread_policy() -> None:
+    from typer.testing import CliRunner
+
+    from sgvloc.cli import app
+
+    for name in ("eval", "calibrate", "build-map", "bench", "synth", "bev-images", "train",
+                 "loadtest", "export-weights", "serve"):  # fmt: skip
+        res = CliRunner().invoke(app, [name, "--help"], env={"COLUMNS": "200"})
+        assert res.exit_code == 0, res.output
+        assert "--threads" in res.output and "Threads" in res.output, name

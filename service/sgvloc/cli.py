@@ -23,6 +23,36 @@ def _root() -> None:
     """sgvloc: LiDAR localization service and tools."""
 
 
+#: every command but serve: threads of each numeric library
+ThreadsOpt = Annotated[
+    int | None,
+    typer.Option(
+        min=1,
+        envvar="SGVLOC_THREADS",
+        help="threads of each numeric library (env SGVLOC_THREADS; default: see below)",
+    ),
+]
+
+
+def _threads_epilog(default: str) -> str:
+    return (
+        "Threads: each numeric library (OpenMP in Open3D and FAISS, BLAS, numba, torch) "
+        f"gets --threads threads, default {default}, set before any of them loads; "
+        "OMP_NUM_THREADS and the like, when set, win over the default (not over --threads). "
+        "See docs/OPERATIONS.md, 'Threads'."
+    )
+
+
+ONE_THREAD = _threads_epilog("1 (measured fastest: several small calls per scan)")
+
+
+def _cap_threads(threads: int | None, default: int = 1) -> None:
+    """Apply the thread policy (sgvloc.server.threads) before numpy & co. are imported."""
+    from .server.threads import limit_library_threads
+
+    limit_library_threads(threads or default, force=threads is not None)
+
+
 def _configure_logging(level: str) -> None:
     logging.basicConfig(
         level=level.upper(),
@@ -30,7 +60,12 @@ def _configure_logging(level: str) -> None:
     )
 
 
-@app.command()
+@app.command(
+    epilog="Threads: each numeric library (OpenMP in Open3D and FAISS, BLAS, numba, torch) "
+    "gets --threads threads per worker (env SGVLOC_THREADS_PER_WORKER), default usable "
+    "cores // workers, set before any of them loads; OMP_NUM_THREADS and the like, when "
+    "set, win. See docs/OPERATIONS.md, 'Threads'."
+)
 def serve(
     host: Annotated[
         str | None, typer.Option(help="interface to bind (env SGVLOC_HOST, default 127.0.0.1)")
@@ -48,6 +83,10 @@ def serve(
             help="threads for CPU work (encode, search, re-rank, pose) "
             "(env SGVLOC_WORKERS, default 2)"
         ),
+    ] = None,
+    threads: Annotated[
+        int | None,
+        typer.Option(min=1, help="threads of each numeric library per worker (see below)"),
     ] = None,
     log_level: Annotated[
         str | None, typer.Option(help="critical|error|warning|info|debug (env SGVLOC_LOG_LEVEL)")
@@ -91,6 +130,7 @@ def serve(
         "port": port,
         "data_dir": data_dir,
         "workers": workers,
+        "threads_per_worker": threads,
         "log_level": log_level.lower() if log_level else None,
         "keys_file": keys_file,
         "dev": True if dev else None,
@@ -137,7 +177,7 @@ def new_key_command(
 # -- loadtest (sgvloc.tools.loadtest) -----------------------------------------------------
 
 
-@app.command("loadtest")
+@app.command("loadtest", epilog=ONE_THREAD)
 def loadtest_command(
     url: Annotated[
         str | None,
@@ -153,10 +193,12 @@ def loadtest_command(
         str | None, typer.Option(help="bearer token (mapper or admin)", envvar="SGVLOC_API_KEY")
     ] = None,
     json_out: Annotated[Path | None, typer.Option("--json", help="write the figures here")] = None,
+    threads: ThreadsOpt = None,
 ) -> None:
     """Load a local service with N clients for D seconds (localize + bulk inserts); report
     errors, p50/p99 latency and throughput. Exits 1 if any request failed (429/503 with
     Retry-After are counted apart, as deliberate refusals)."""
+    _cap_threads(threads)
     import json
 
     import httpx
@@ -185,7 +227,7 @@ def loadtest_command(
 # -- build-map (sgvloc.tools.build_map) ---------------------------------------------------
 
 
-@app.command("build-map")
+@app.command("build-map", epilog=ONE_THREAD)
 def build_map_command(
     ctx: typer.Context,
     source: Annotated[
@@ -229,6 +271,7 @@ def build_map_command(
         str | None, typer.Option(help="bearer token for the service", envvar="SGVLOC_API_KEY")
     ] = None,
     progress: Annotated[bool, typer.Option(help="show a progress bar")] = True,
+    threads: ThreadsOpt = None,
 ) -> None:
     """Insert a KITTI-layout sequence into a map of a running service or a data directory.
 
@@ -240,6 +283,7 @@ def build_map_command(
     it later loads the map at once. A service already running on that directory would not
     see them: stop it first, or use --url.
     """
+    _cap_threads(threads)
     import sgvloc_client
 
     from .core.errors import SgvlocError
@@ -313,7 +357,7 @@ def _int_list(text: str) -> list[int]:
         raise typer.BadParameter(f"expected comma-separated integers, got {text!r}") from None
 
 
-@app.command("eval")
+@app.command("eval", epilog=ONE_THREAD)
 def eval_command(
     data: Annotated[
         Path,
@@ -382,6 +426,7 @@ def eval_command(
         typer.Option(help="folder for eval.json, ntopk.png, sgv_scores.png and verdict.png"),
     ] = Path("eval-out"),
     progress: ProgressOpt = True,
+    threads: ThreadsOpt = None,
 ) -> None:
     """Evaluate every re-ranking method x top-k on a sequence (SPEC section 4).
 
@@ -393,6 +438,7 @@ def eval_command(
     OUT/verdict.png (precision and recall of the verdict over confidence thresholds, and
     a reliability diagram).
     """
+    _cap_threads(threads)
     from .core.errors import SgvlocError
     from .tools.evaluation.command import evaluate
 
@@ -430,7 +476,7 @@ def eval_command(
         raise typer.Exit(1) from None
 
 
-@app.command("calibrate")
+@app.command("calibrate", epilog=ONE_THREAD)
 def calibrate_command(
     out: Annotated[Path, typer.Option(help="calibration file to write (JSON)")],
     data: Annotated[
@@ -461,6 +507,7 @@ def calibrate_command(
     ] = None,
     cache_dir: CacheDirOpt = None,
     progress: ProgressOpt = True,
+    threads: ThreadsOpt = None,
 ) -> None:
     """Fit the confidence model on sequences with ground truth.
 
@@ -471,6 +518,7 @@ def calibrate_command(
     or PATCH /v1/maps/{map}) or to `sgvloc eval --calibration`. Calibrate on data you do
     not report on.
     """
+    _cap_threads(threads)
     from .core.config import LocalizerConfig
     from .core.encoders import EncoderSpec
     from .core.errors import SgvlocError
@@ -510,7 +558,7 @@ def calibrate_command(
     typer.echo(f"wrote {out} (calibration {cal.name}, fingerprint {cal.fingerprint})")
 
 
-@app.command("synth")
+@app.command("synth", epilog=ONE_THREAD)
 def synth_command(
     out: Annotated[Path, typer.Argument(help="output folder (KITTI layout)")],
     scans: Annotated[int, typer.Option(min=1, help="number of scans")] = 400,
@@ -518,8 +566,10 @@ def synth_command(
     beams: Annotated[int, typer.Option(min=8, max=128, help="LiDAR beams")] = 32,
     overwrite: Annotated[bool, typer.Option(help="replace an existing sequence")] = False,
     progress: Annotated[bool, typer.Option(help="show a progress bar")] = True,
+    threads: ThreadsOpt = None,
 ) -> None:
     """Generate a synthetic town with repeated blocks and a revisiting LiDAR drive."""
+    _cap_threads(threads)
     from .core.errors import SgvlocError
     from .tools.synth import SynthConfig, generate
 
@@ -543,14 +593,16 @@ def synth_command(
 # -- bench and train (sgvloc.tools.bench, sgvloc.tools.train) -----------------------------
 
 
-@app.command("bev-images")
+@app.command("bev-images", epilog=ONE_THREAD)
 def bev_images_command(
     src: Annotated[Path, typer.Argument(help="KITTI-layout scan sequence (velodyne/, poses.txt)")],
     out: Annotated[Path, typer.Argument(help="output folder (kitti-bev layout)")],
     overwrite: Annotated[bool, typer.Option(help="replace existing images")] = False,
     progress: Annotated[bool, typer.Option(help="show a progress bar")] = True,
+    threads: ThreadsOpt = None,
 ) -> None:
     """Write a scan sequence as kitti-bev images (imgs/*.png, pose.txt, times.txt)."""
+    _cap_threads(threads)
     from .core.errors import SgvlocError
     from .tools.bev_images import export_bev_images
 
@@ -562,7 +614,7 @@ def bev_images_command(
     typer.echo(f"wrote {n} images to {out}")
 
 
-@app.command("bench")
+@app.command("bench", epilog=ONE_THREAD)
 def bench_command(
     ctx: typer.Context,
     only: Annotated[
@@ -618,6 +670,7 @@ def bench_command(
     prior_noise: Annotated[
         float, typer.Option(min=0.0, help="prior: position noise per axis (m)")
     ] = 5.0,
+    threads: ThreadsOpt = None,
 ) -> None:
     """Measure re-ranking, retrieval, encoding, the service end to end (http, scaling) and
     localize with a prior (prior); print tables and write --out (JSON).
@@ -627,10 +680,11 @@ def bench_command(
     present. http and scaling start the service on 127.0.0.1 (--dev, temporary data)
     and load it from a second process (see sgvloc.tools.bench.http).
     """
+    _cap_threads(threads)
     from .tools.bench import check_sections, run_bench
 
     _configure_logging("warning")
-    options = {k: v for k, v in ctx.params.items() if k not in ("only", "out")}
+    options = {k: v for k, v in ctx.params.items() if k not in ("only", "out", "threads")}
     for key in ("ks", "ns", "large_ns", "sizes", "scan_sizes", "http_clients",
                 "scale_sizes", "scale_clients", "prior_sizes"):  # fmt: skip
         options[key] = _int_list(options[key])
@@ -641,7 +695,7 @@ def bench_command(
     run_bench(sections, options, out, typer.echo)
 
 
-@app.command("train")
+@app.command("train", epilog=_threads_epilog("every usable core (one large torch job)"))
 def train_command(
     data: Annotated[
         list[Path],
@@ -659,8 +713,12 @@ def train_command(
     seed: Annotated[int, typer.Option(help="random seed")] = 0,
     device: Annotated[str, typer.Option(help="cpu | cuda | auto")] = "cpu",
     resume: Annotated[bool, typer.Option(help="continue from OUT/checkpoint.pt")] = True,
+    threads: ThreadsOpt = None,
 ) -> None:
     """Train the learned BEV encoder (a small CNN) on BEV image sequences with poses."""
+    from .server.threads import usable_cpus
+
+    _cap_threads(threads, usable_cpus())
     from .core.errors import SgvlocError
     from .tools.train import Sequence, TrainConfig, train
 
@@ -676,16 +734,18 @@ def train_command(
     typer.echo(f"wrote {ckpt}")
 
 
-@app.command("export-weights")
+@app.command("export-weights", epilog=ONE_THREAD)
 def export_weights_command(
     checkpoint: Annotated[Path, typer.Argument(help="checkpoint.pt written by 'sgvloc train'")],
     out: Annotated[Path, typer.Argument(help="weights file to write (use as model_path)")],
     note: Annotated[str, typer.Option(help="free text stored in the file")] = "",
+    threads: ThreadsOpt = None,
 ) -> None:
     """Export a training checkpoint as weights for the 'learned' encoder kind.
 
     A map uses them with the encoder spec {"kind": "learned", "model_path": OUT}.
     """
+    _cap_threads(threads)
     from .core.errors import SgvlocError
     from .tools.train import export_weights
 

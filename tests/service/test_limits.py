@@ -27,7 +27,8 @@ from svc_helpers import (
 
 from sgvloc.core.encoders import EncoderSpec
 from sgvloc.server.api import create_app
-from sgvloc.server.settings import Settings, usable_cpus
+from sgvloc.server.settings import Settings
+from sgvloc.server.threads import usable_cpus
 from sgvloc_client import wire
 
 SPEC = EncoderSpec.model_validate(PRECOMPUTED)

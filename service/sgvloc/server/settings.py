@@ -6,12 +6,13 @@ overridden by the ``sgvloc serve`` options.
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import Literal
 
 from pydantic import Field, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from .threads import usable_cpus
 
 LogLevel = Literal["critical", "error", "warning", "info", "debug"]
 ProbeAuth = Literal["open", "viewer"]
@@ -99,11 +100,3 @@ class Settings(BaseSettings):
     def maps_dir(self) -> Path:
         """``<data_dir>/maps``: one folder per map."""
         return self.data_dir / "maps"
-
-
-def usable_cpus() -> int:
-    """CPUs this process may run on (its affinity mask, e.g. a container's cpuset)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # pragma: no cover - not on Linux
-        return os.cpu_count() or 1

@@ -4,9 +4,12 @@ The service runs CPU work on ``workers`` threads at once. Each library called in
 request (Open3D and FAISS through OpenMP, NumPy and SciPy through OpenBLAS, numba, torch)
 brings its own pool of one thread per core, so by default two workers on two cores run
 four or more busy threads: they preempt each other, and a parallel region waits for its
-slowest, descheduled thread. ``sgvloc serve`` therefore gives each library
-``threads_per_worker`` threads (default: usable cores // workers) through the usual
-environment variables, before any of them is loaded.
+slowest, descheduled thread. Every ``sgvloc`` command therefore gives each library a
+fixed number of threads through the usual environment variables, before any of them is
+loaded: ``serve`` ``threads_per_worker`` (default: usable cores // workers), the offline
+commands ``--threads`` (default 1: one loop of small calls into several libraries, whose
+idle OpenMP pools would spin on the cores the next call needs; ``train``: every core, one
+large torch job at a time).
 """
 
 from __future__ import annotations
@@ -22,9 +25,10 @@ ENV_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA
 _LIBRARIES = ("numpy", "scipy", "torch", "open3d", "faiss", "numba")
 
 
-def limit_library_threads(n: int) -> dict[str, str]:
+def limit_library_threads(n: int, *, force: bool = False) -> dict[str, str]:
     """Give every numeric library ``n`` threads, except where the environment already
-    names a count (the operator's choice wins); returns the variables in force.
+    names a count (the operator's choice wins) unless ``force``; returns the variables in
+    force.
 
     Must run before the libraries are imported: OpenMP and OpenBLAS read their
     environment once, when loaded. Raises ``ValueError`` if ``n < 1``.
@@ -35,5 +39,16 @@ def limit_library_threads(n: int) -> dict[str, str]:
     if loaded:
         log.warning("thread limits set after %s were loaded: they may not apply", loaded)
     for var in ENV_VARS:
-        os.environ.setdefault(var, str(n))
+        if force:
+            os.environ[var] = str(n)
+        else:
+            os.environ.setdefault(var, str(n))
     return {var: os.environ[var] for var in ENV_VARS}
+
+
+def usable_cpus() -> int:
+    """CPUs this process may run on (its affinity mask, e.g. a container's cpuset)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not on Linux
+        return os.cpu_count() or 1
