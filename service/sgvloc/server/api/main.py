@@ -19,6 +19,7 @@ import anyio
 import anyio.to_thread
 from fastapi import FastAPI
 from fastapi.routing import APIRoute
+from fastapi_offline import FastAPIOffline
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from sgvloc import __version__
@@ -130,7 +131,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         snapshot_delay_s=settings.snapshot_delay_s,
         on_change=metrics.set_map_keyframes,
     )
-    app = FastAPI(
+    # /docs (Swagger UI) and /redoc with their scripts, styles and favicon served from this
+    # process (the fastapi-offline package ships them), not from a CDN: they work offline
+    app = FastAPIOffline(
         title="sgvloc",
         version=__version__,
         description="LiDAR localization in prior maps: FAISS retrieval, SpectralGV "
