@@ -93,8 +93,9 @@ def test_dockerfile_base_user_volume_and_cmd(docker, cmd, port) -> None:
     assert int(option(cmd, "--port")) == port == 8470
     assert option(cmd, "--host") == "0.0.0.0"
     assert docker["VOLUME"] == ["/data"] and option(cmd, "--data-dir") == "/data"
-    # authentication on: the keys come from a mounted secret, never development mode
-    assert option(cmd, "--keys-file") == KEYS_SECRET and "--dev" not in cmd
+    # keys come from SGVLOC_KEYS_FILE (compose sets it), so SGVLOC_DEV=1 can work too
+    assert "--keys-file" not in cmd and "--dev" not in cmd
+    assert not any("SGVLOC_DEV" in e or "SGVLOC_KEYS_FILE" in e for e in docker.get("ENV", []))
     # a non-root user is active when the service starts
     users = [u for u in docker.get("USER", [])]
     assert users and users[-1].split(":")[0] not in ("root", "0")
@@ -165,11 +166,12 @@ def test_installed_package_carries_the_learned_weights(tmp_path: Path) -> None:
     assert data == shipped_weights_path().read_bytes()
 
 
-def test_dockerfile_healthcheck_probes_healthz(docker, port) -> None:
+def test_dockerfile_healthcheck_probes_readyz(docker, port) -> None:
+    """Healthy means ready (every map loaded), not merely up."""
     (hc,) = docker["HEALTHCHECK"]
     probe = exec_form(hc)
     assert probe[:2] == ["python", "-c"]
-    assert f"127.0.0.1:{port}/healthz" in probe[2]
+    assert f"127.0.0.1:{port}/readyz" in probe[2]
 
 
 def test_compose_services(compose, port) -> None:
@@ -187,20 +189,22 @@ def test_compose_services(compose, port) -> None:
 
     sgv = services["sgvloc"]
     assert sgv["build"] == {"context": ".", "dockerfile": "docker/Dockerfile"}
-    published = [str(p) for p in sgv["ports"]]
-    assert f"{port}:{port}" in published
+    # plain HTTP is published on the host's loopback only
+    assert [str(p) for p in sgv["ports"]] == [f"127.0.0.1:{port}:{port}"]
+    assert all(str(p).startswith("127.0.0.1:") for p in services["prometheus"]["ports"])
     mounts = [str(v).split(":") for v in sgv["volumes"]]
     data = [m for m in mounts if m[1] == "/data"]
     assert data and data[0][0] in (compose.get("volumes") or {}), "named volume for /data"
     test = sgv["healthcheck"]["test"]
     probe = " ".join(test if isinstance(test, list) else [test])
-    assert f"127.0.0.1:{port}/healthz" in probe
+    assert f"127.0.0.1:{port}/readyz" in probe
     assert test[0] in ("CMD", "CMD-SHELL") and "curl" not in probe
-    # the keys file is a secret at the path the CMD reads; no development mode
+    # the keys file is a secret at the path SGVLOC_KEYS_FILE names; no development mode
     secrets = compose["secrets"]
+    environment = sgv.get("environment") or {}
+    assert environment["SGVLOC_KEYS_FILE"] == KEYS_SECRET and "SGVLOC_DEV" not in environment
     (keys,) = [s for s in sgv["secrets"] if s["target"] == KEYS_SECRET]
     assert keys["source"] in secrets and "file" in secrets[keys["source"]]
-    assert "SGVLOC_DEV" not in (sgv.get("environment") or {})
     ignored = (ROOT / ".dockerignore").read_text().split()
     for secret in secrets.values():  # never baked into the image, never committed
         name = Path(secret["file"]).name
@@ -255,49 +259,108 @@ def test_cli_accepts_the_dockerfile_cmd(cmd) -> None:
             assert arg in help_run.stdout
 
 
-def test_container_commands_run_natively(docker, cmd, port, tmp_path: Path) -> None:
-    """The CMD (on a free port and a temporary data dir) serves, the HEALTHCHECK command
-    passes against it and fails once it is gone, and /metrics has the service's series."""
-    import socket
+def documented_key_commands() -> list[list[str]]:
+    """The commands of docker-compose.yml's header that make its secrets."""
+    lines = [ln.lstrip("#").strip() for ln in COMPOSE.read_text().splitlines()]
+    cmds = [shlex.split(ln) for ln in lines if ln.startswith(("sgvloc new-key", "chmod "))]
+    assert [c[0] for c in cmds] == ["sgvloc", "sgvloc", "chmod"], cmds
+    return cmds
 
-    import httpx
 
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        free = s.getsockname()[1]
+def make_documented_secrets(compose: dict, where: Path) -> dict[str, Path]:
+    """Run the documented commands in ``where``; the compose secrets' files by name."""
+    for argv in documented_key_commands():
+        if argv[0] == "sgvloc":
+            argv = [sys.executable, "-c", "from sgvloc.cli import main; main()", *argv[1:]]
+        run = subprocess.run(argv, cwd=where, capture_output=True, text=True, timeout=60)
+        assert run.returncode == 0, (argv, run.stderr)
+    files = {name: where / s["file"] for name, s in compose["secrets"].items()}
+    for path in files.values():  # the containers' users (not the host's) read them
+        assert path.is_file() and path.stat().st_mode & 0o004, path
+    return files
+
+
+def serve_container_cmd(cmd, argv_env, tmp_path, port):
+    """Start the Dockerfile's CMD natively on ``port`` with the given environment."""
     argv = list(cmd[2:])
-    argv[argv.index("--port") + 1] = str(free)
+    argv[argv.index("--port") + 1] = str(port)
     argv[argv.index("--data-dir") + 1] = str(tmp_path / "data")
-    viewer_key = "deploy-test-viewer-key-0123456789"
-    keys = tmp_path / "sgvloc-keys"  # the secret, as mounted: no suffix, so TOML
-    keys.write_text(f'[[keys]]\nname = "prometheus"\nrole = "viewer"\nkey = "{viewer_key}"\n')
-    argv[argv.index("--keys-file") + 1] = str(keys)
-    probe = [a.replace(f":{port}/", f":{free}/") for a in exec_form(docker["HEALTHCHECK"][0])]
-    probe[0] = sys.executable  # "python" in the image
-
     log = tmp_path / "serve.log"
+    env = {k: v for k, v in os.environ.items() if not k.startswith("SGVLOC_")}
     with open(log, "wb") as out:
         server = subprocess.Popen(
             [sys.executable, "-c", "from sgvloc.cli import main; main()", "serve", *argv],
             stdout=out,
             stderr=subprocess.STDOUT,
-            env={
-                **{k: v for k, v in os.environ.items() if k not in ("SGVLOC_DEV",)},
-                "SGVLOC_LOG_LEVEL": "warning",
-            },
+            env={**env, "SGVLOC_LOG_LEVEL": "warning", **argv_env},
         )
+    return server, log
+
+
+def wait_healthy(probe, server, log) -> None:
+    deadline = time.monotonic() + 90
+    while subprocess.run(probe, capture_output=True, timeout=30).returncode != 0:
+        assert server.poll() is None, log.read_text()[-3000:]
+        assert time.monotonic() < deadline, "HEALTHCHECK never passed"
+        time.sleep(0.3)
+
+
+def free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_container_commands_run_natively(compose, docker, cmd, port, tmp_path: Path) -> None:
+    """The documented key commands make the secrets; the CMD with compose's environment
+    (on a free port and a temporary data dir) serves with them; the HEALTHCHECK passes
+    against it and fails once it is gone; Prometheus's key reads /metrics and the admin
+    key may create a map."""
+    import httpx
+
+    secrets = make_documented_secrets(compose, tmp_path)
+    env = dict(compose["services"]["sgvloc"]["environment"])
+    env["SGVLOC_KEYS_FILE"] = str(secrets["sgvloc-keys"])
+    free = free_port()
+    probe = [a.replace(f":{port}/", f":{free}/") for a in exec_form(docker["HEALTHCHECK"][0])]
+    probe[0] = sys.executable  # "python" in the image
+    server, log = serve_container_cmd(cmd, env, tmp_path, free)
     try:
-        deadline = time.monotonic() + 90
-        while subprocess.run(probe, capture_output=True, timeout=30).returncode != 0:
-            assert server.poll() is None, log.read_text()[-3000:]
-            assert time.monotonic() < deadline, "HEALTHCHECK never passed"
-            time.sleep(0.3)
-        url = f"http://127.0.0.1:{free}/metrics"
-        assert httpx.get(url, timeout=10).status_code == 401  # metrics need a viewer key
-        metrics = httpx.get(url, headers={"Authorization": f"Bearer {viewer_key}"}, timeout=10)
-        assert metrics.status_code == 200
-        assert "sgvloc_http_requests_total" in metrics.text
+        wait_healthy(probe, server, log)
+        base = f"http://127.0.0.1:{free}"
+        assert httpx.get(f"{base}/metrics", timeout=10).status_code == 401
+        viewer = secrets["sgvloc-metrics-key"].read_text()
+        metrics = httpx.get(
+            f"{base}/metrics", headers={"Authorization": f"Bearer {viewer}"}, timeout=10
+        )
+        assert metrics.status_code == 200 and "sgvloc_http_requests_total" in metrics.text
+        admin = (tmp_path / "sgvloc-admin.key").read_text()
+        made = httpx.post(
+            f"{base}/v1/maps",
+            json={"name": "m", "encoder": {"kind": "handcrafted"}},
+            headers={"Authorization": f"Bearer {admin}"},
+            timeout=60,
+        )
+        assert made.status_code == 201, made.text
     finally:
         server.terminate()
         server.wait(timeout=30)
     assert subprocess.run(probe, capture_output=True, timeout=30).returncode != 0
+
+
+def test_container_cmd_in_development_mode(cmd, docker, port, tmp_path: Path) -> None:
+    """SGVLOC_DEV=1 with the same CMD: no keys needed, the service becomes healthy."""
+    import httpx
+
+    free = free_port()
+    probe = [a.replace(f":{port}/", f":{free}/") for a in exec_form(docker["HEALTHCHECK"][0])]
+    probe[0] = sys.executable
+    server, log = serve_container_cmd(cmd, {"SGVLOC_DEV": "1"}, tmp_path, free)
+    try:
+        wait_healthy(probe, server, log)
+        assert httpx.get(f"http://127.0.0.1:{free}/v1/maps", timeout=10).status_code == 200
+    finally:
+        server.terminate()
+        server.wait(timeout=30)

@@ -6,4 +6,6 @@ with RANSAC. The engine lives in :mod:`sgvloc.core`; importing this package is c
 (no torch, FAISS or Open3D until a core module is used).
 """
 
-__version__ = "0.1.0"
+from .about import __version__
+
+__all__ = ["__version__"]

@@ -18,9 +18,32 @@ app = typer.Typer(
 )
 
 
+def _print_version(value: bool) -> None:
+    if value:
+        from .about import __version__
+
+        typer.echo(f"sgvloc {__version__}")
+        raise typer.Exit()
+
+
 @app.callback()
-def _root() -> None:
+def _root(
+    version: Annotated[
+        bool,
+        typer.Option(
+            "--version", callback=_print_version, is_eager=True, help="print the version"
+        ),
+    ] = False,
+) -> None:
     """sgvloc: LiDAR localization service and tools."""
+
+
+#: top-level modules of the service extra (pyproject.toml); a command that needs one of
+#: them says so in one line when the client-only install lacks it
+SERVICE_MODULES = frozenset(
+    "torch faiss open3d scipy numba fastapi fastapi_offline starlette uvicorn "
+    "pydantic_settings prometheus_client matplotlib cv2 pypcd4 plyfile".split()
+)
 
 
 #: every command but serve: threads of each numeric library
@@ -154,24 +177,51 @@ def new_key_command(
     maps: Annotated[
         str, typer.Option(help="comma-separated maps the key may use (default: every map)")
     ] = "",
+    keys_file: Annotated[
+        Path | None,
+        typer.Option(
+            help="append the entry to this keys file (created if missing, readable by all: "
+            "it holds the key's SHA-256 only) instead of printing it",
+            dir_okay=False,
+        ),
+    ] = None,
+    key_file: Annotated[
+        Path | None,
+        typer.Option(
+            help="write the key itself to this new file (owner-only) instead of stderr",
+            dir_okay=False,
+        ),
+    ] = None,
 ) -> None:
-    """Make a random API key: prints the key (give it to the client; it is not stored)
-    and the keys-file entry holding only its SHA-256."""
-    import json
-    import secrets
+    """Make a random API key: the key goes to the client (stderr, or --key-file; it is
+    not stored), the keys-file entry holds only its SHA-256 (stdout, or --keys-file).
+    Works with the client-only install.
 
-    from .server.api.auth import ROLES, hash_key
+    The keys of docker-compose.yml: `sgvloc new-key --role admin --name operator
+    --keys-file sgvloc-keys.toml --key-file sgvloc-admin.key`, then the same with
+    `--role viewer --name prometheus --key-file sgvloc-metrics.key`.
+    """
+    from .server.keys import ROLES, append_entry, keys_entry, new_key, write_key
 
     if role not in ROLES:
         raise typer.BadParameter(f"role must be one of {', '.join(ROLES)}", param_hint="--role")
-    key = secrets.token_urlsafe(32)
-    names = [m.strip() for m in maps.split(",") if m.strip()]
-    typer.echo(f"key: {key}", err=True)
-    # JSON strings are valid TOML basic strings
-    entry = f'[[keys]]\nname = {json.dumps(name)}\nrole = "{role}"\nkey = "{hash_key(key)}"\n'
-    if names:
-        entry += f"maps = {json.dumps(names)}\n"
-    typer.echo(entry)
+    key = new_key()
+    entry = keys_entry(name, role, key, [m.strip() for m in maps.split(",") if m.strip()])
+    if key_file is not None:
+        try:
+            write_key(key_file, key)
+        except FileExistsError:
+            raise typer.BadParameter(
+                f"{key_file} exists: a key file is never overwritten", param_hint="--key-file"
+            ) from None
+        typer.echo(f"wrote the {role} key {name!r} to {key_file}", err=True)
+    else:
+        typer.echo(f"key: {key}", err=True)
+    if keys_file is not None:
+        append_entry(keys_file, entry)
+        typer.echo(f"added {name!r} ({role}) to {keys_file}", err=True)
+    else:
+        typer.echo(entry)
 
 
 # -- loadtest (sgvloc.tools.loadtest) -----------------------------------------------------
@@ -759,7 +809,20 @@ def export_weights_command(
 
 def main() -> None:
     """Entry point of the ``sgvloc`` console script."""
-    app()
+    try:
+        app()
+    except ModuleNotFoundError as exc:
+        if (exc.name or "").split(".")[0] not in SERVICE_MODULES:
+            raise
+        import sys
+
+        command = next((a for a in sys.argv[1:] if not a.startswith("-")), "")
+        print(
+            f"sgvloc {command}: needs the service extra (module {exc.name!r} is missing): "
+            "pip install -e '.[service]' after the CPU build of torch (README, Install)",
+            file=sys.stderr,
+        )
+        sys.exit(2)
 
 
 if __name__ == "__main__":

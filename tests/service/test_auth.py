@@ -22,7 +22,8 @@ from conftest import Server
 from svc_helpers import PRECOMPUTED, error_of, post_msgpack, random_features
 
 import sgvloc_client
-from sgvloc.server.api.auth import ROUTE_ROLES, KeyRing, KeysError, hash_key, parse_keys
+from sgvloc.server.api.auth import ROUTE_ROLES, KeyRing, KeysError, parse_keys
+from sgvloc.server.keys import hash_key
 from sgvloc.server.settings import Settings
 
 ROLES = ("vehicle", "mapper", "viewer", "admin")

@@ -18,7 +18,7 @@ def render(url: str) -> str:
     """The DOM of ``url`` after its scripts ran, in headless chromium that can reach
     127.0.0.1 and nothing else (every other host name resolves to nothing)."""
     if CHROMIUM is None:
-        pytest.fail("Debian's chromium is not installed (README, Install: apt-get install chromium)")
+        pytest.fail("Debian's chromium is not installed (README, Install)")
     with tempfile.TemporaryDirectory() as profile:
         run = subprocess.run(
             [

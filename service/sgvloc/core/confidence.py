@@ -36,11 +36,12 @@ import json
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
-from importlib import resources
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from sgvloc.about import PACKAGE_DIR
 
 from .errors import InputError
 
@@ -459,7 +460,7 @@ def shipped_calibration(encoder_kind: str) -> Calibration:
     """The calibration shipped for ``encoder_kind``, else the learned encoder's (the
     default encoder; its figures may not hold for another encoder: its ``encoder_kind``
     says what it was fitted for)."""
-    pkg = resources.files("sgvloc") / "calibration"
+    pkg = PACKAGE_DIR / "calibration"
     for kind in (encoder_kind, "learned"):
         f = pkg / f"{kind}.json"
         if f.is_file():

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import errno
 import logging
+import socket
 
 from .settings import Settings
 from .threads import limit_library_threads
@@ -17,10 +19,12 @@ class StartupError(Exception):
 def serve(settings: Settings) -> None:
     """Run the service until it is stopped.
 
-    Library threads are capped before numpy, Open3D, FAISS and torch are loaded (by the
-    app's modules), so this module imports none of them at the top. Raises
-    :class:`StartupError` when the keys file is unusable.
+    The port is checked first, so a busy one fails at once; library threads are capped
+    before numpy, Open3D, FAISS and torch are loaded (by the app's modules), so this
+    module imports none of them at the top. Raises :class:`StartupError` when the port
+    is taken or the keys file is unusable.
     """
+    check_port(settings.host, settings.port)
     threads = limit_library_threads(settings.library_threads)
     log.info("library threads per worker: %s", threads)
 
@@ -41,3 +45,23 @@ def serve(settings: Settings) -> None:
         workers=None,  # one process: an app object cannot be forked into workers anyway
         access_log=settings.log_level == "debug",
     )
+
+
+def check_port(host: str, port: int) -> None:
+    """Raise :class:`StartupError` unless ``host:port`` can be bound now (as uvicorn binds
+    it: ``SO_REUSEADDR``, so a port in TIME_WAIT counts as free)."""
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except socket.gaierror as exc:
+        raise StartupError(f"cannot listen on {host}:{port}: {exc.strerror}") from None
+    family, kind, proto, _, address = infos[0]
+    with socket.socket(family, kind, proto) as sock:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            sock.bind(address)
+        except OSError as exc:
+            hint = " (another process listens there: stop it or pick --port)"
+            raise StartupError(
+                f"cannot listen on {host}:{port}: {exc.strerror}"
+                + (hint if exc.errno == errno.EADDRINUSE else "")
+            ) from None

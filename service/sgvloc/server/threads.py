@@ -35,7 +35,7 @@ def limit_library_threads(n: int, *, force: bool = False) -> dict[str, str]:
     """
     if n < 1:
         raise ValueError(f"thread count must be >= 1, got {n}")
-    loaded = [m for m in _LIBRARIES if m in sys.modules]
+    loaded = [m for m in _LIBRARIES if sys.modules.get(m) is not None]
     if loaded:
         log.warning("thread limits set after %s were loaded: they may not apply", loaded)
     for var in ENV_VARS:

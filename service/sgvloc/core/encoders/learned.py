@@ -33,11 +33,12 @@ from __future__ import annotations
 
 import logging
 import math
-from importlib import resources
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from sgvloc.about import PACKAGE_DIR
 
 from ..bev import (
     KITTI_BEV,
@@ -67,7 +68,7 @@ POLAR_DIM = POLAR_RINGS * (POLAR_SECTORS // 2 + 1)
 
 def shipped_weights_path() -> Path:
     """Path of the weights file shipped in the package."""
-    return Path(str(resources.files("sgvloc").joinpath("weights", SHIPPED_WEIGHTS)))
+    return PACKAGE_DIR / "weights" / SHIPPED_WEIGHTS
 
 
 def load_weights(path: str | Path) -> tuple[Any, dict[str, Any]]:

@@ -30,17 +30,16 @@ import logging
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 from fastapi import Request
 
+from ..keys import ROLES, SHA_PREFIX, Role
 from ..settings import Settings
 from .errors import ApiError
 
 log = logging.getLogger(__name__)
 
-Role = Literal["vehicle", "mapper", "viewer", "admin"]
-ROLES: tuple[Role, ...] = ("vehicle", "mapper", "viewer", "admin")
 
 #: operation_id -> the roles allowed to call it. The one place that says who may do what.
 #: ``None`` marks a route open to anyone (no key needed); ``"probe:<setting>"`` routes are
@@ -67,7 +66,6 @@ ROUTE_ROLES: dict[str, frozenset[Role] | None | str] = {
 _PROBE_ROLES: frozenset[Role] = frozenset({"viewer", "admin"})
 
 _HEX64 = re.compile(r"^[0-9a-f]{64}$")
-_SHA_PREFIX = "sha256:"
 
 
 class KeysError(ValueError):
@@ -95,11 +93,6 @@ class ApiKey:
 
     digest: bytes  # 32 bytes
     principal: Principal
-
-
-def hash_key(key: str) -> str:
-    """The ``sha256:<hex>`` entry for a keys file, from a plain key."""
-    return _SHA_PREFIX + hashlib.sha256(key.encode()).hexdigest()
 
 
 def _read_file(path: Path) -> Any:
@@ -139,8 +132,8 @@ def _entry(raw: Any, i: int, source: str) -> ApiKey:
         raise KeysError(f"{where} ({name}): role must be one of {', '.join(ROLES)}, got {role!r}")
     if not isinstance(secret, str) or not secret:
         raise KeysError(f"{where} ({name}): key must be a non-empty string")
-    if secret.startswith(_SHA_PREFIX):
-        hexdigest = secret[len(_SHA_PREFIX) :].lower()
+    if secret.startswith(SHA_PREFIX):
+        hexdigest = secret[len(SHA_PREFIX) :].lower()
         if not _HEX64.match(hexdigest):
             raise KeysError(f"{where} ({name}): a sha256: key needs 64 hex digits")
         digest = bytes.fromhex(hexdigest)
@@ -180,14 +173,14 @@ class KeyRing:
     def from_settings(cls, settings: Settings) -> KeyRing:
         """The keys of ``settings``; raises :class:`KeysError` when there are none outside
         development mode (the service must not run open by accident)."""
+        if settings.dev:  # the keys file is not even read: it may be absent
+            if settings.keys_file is not None:
+                log.warning("development mode: the keys file %s is ignored", settings.keys_file)
+            log.warning("development mode: authentication is OFF; do not expose this service")
+            return cls([], enabled=False)
         keys: list[ApiKey] = []
         if settings.keys_file is not None:
             keys = parse_keys(_read_file(settings.keys_file), str(settings.keys_file))
-        if settings.dev:
-            if keys:
-                log.warning("development mode: the %d configured key(s) are ignored", len(keys))
-            log.warning("development mode: authentication is OFF; do not expose this service")
-            return cls([], enabled=False)
         if not keys:
             where = f"the keys file {settings.keys_file}" if settings.keys_file else "no keys file"
             raise KeysError(

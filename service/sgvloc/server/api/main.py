@@ -22,7 +22,7 @@ from fastapi.routing import APIRoute
 from fastapi_offline import FastAPIOffline
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from sgvloc import __version__
+from sgvloc.about import __version__
 
 from ..maps import MapManager
 from ..metrics import Metrics

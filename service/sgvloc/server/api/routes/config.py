@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Depends, Request, Response
 
-from sgvloc import __version__
+from sgvloc.about import __version__
 
 from ..auth import KeyRing, authorize
 from ..body import encode

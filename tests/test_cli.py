@@ -1,0 +1,98 @@
+"""The ``sgvloc`` command's own behaviour: --version, one-line errors where the
+client-only install lacks the service extra, API keys with that install, a busy port."""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+import time
+import tomllib
+from pathlib import Path
+
+from sgvloc.about import __version__
+from sgvloc.server.api.auth import parse_keys
+from sgvloc.server.keys import hash_key
+
+#: what a client-only install (``pip install -e .``) lacks: importing any of them fails
+BLOCKED = ("torch", "faiss", "open3d", "scipy", "numba", "fastapi", "uvicorn",
+           "pydantic_settings", "prometheus_client", "matplotlib", "cv2")  # fmt: skip
+
+
+def sgvloc(*args: str, client_only: bool = False, cwd: Path | None = None, timeout=120):
+    block = f"[sys.modules.__setitem__(m, None) for m in {BLOCKED!r}]; " if client_only else ""
+    code = f"import sys; {block}sys.argv = ['sgvloc', *sys.argv[1:]]; "
+    code += "from sgvloc.cli import main; main()"
+    return subprocess.run(
+        [sys.executable, "-c", code, *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        cwd=cwd,
+        env={**os.environ, "COLUMNS": "200"},
+    )
+
+
+def test_version() -> None:
+    run = sgvloc("--version", client_only=True)
+    assert run.returncode == 0 and run.stdout.strip() == f"sgvloc {__version__}"
+
+
+def test_client_only_install_says_what_is_missing(tmp_path: Path) -> None:
+    for args in (
+        ["serve", "--dev", "--data-dir", str(tmp_path / "d")],
+        ["eval", "--data", str(tmp_path)],
+        ["train", "--data", str(tmp_path), "--out", str(tmp_path / "t")],
+        ["bench", "--only", "rerank"],
+    ):
+        run = sgvloc(*args, client_only=True)
+        assert run.returncode == 2, (args, run.stdout, run.stderr)
+        assert "Traceback" not in run.stderr, run.stderr
+        (line,) = run.stderr.strip().splitlines()
+        assert line.startswith(f"sgvloc {args[0]}: needs the service extra"), line
+
+
+def test_new_key_with_the_client_only_install(tmp_path: Path) -> None:
+    keys, admin, viewer = tmp_path / "keys.toml", tmp_path / "admin.key", tmp_path / "m.key"
+    for role, name, key_file in (("admin", "operator", admin), ("viewer", "prom", viewer)):
+        run = sgvloc("new-key", "--role", role, "--name", name, "--keys-file", str(keys),
+                     "--key-file", str(key_file), client_only=True)  # fmt: skip
+        assert run.returncode == 0, run.stderr
+        assert run.stdout == ""  # nothing secret or needed on stdout
+    assert keys.stat().st_mode & 0o777 == 0o644 and admin.stat().st_mode & 0o777 == 0o600
+    parsed = parse_keys(tomllib.loads(keys.read_text()), "keys.toml")
+    assert [(k.principal.name, k.principal.role) for k in parsed] == [
+        ("operator", "admin"),
+        ("prom", "viewer"),
+    ]
+    text = keys.read_text()
+    for key_file in (admin, viewer):
+        key = key_file.read_text()
+        assert len(key) == 43 and key not in text and hash_key(key) in text
+    # a key file is never overwritten; the keys file is left as it was
+    run = sgvloc("new-key", "--role", "admin", "--name", "x", "--keys-file", str(keys),
+                 "--key-file", str(admin), client_only=True)  # fmt: skip
+    assert run.returncode == 2 and "never overwritten" in run.stderr
+    assert keys.read_text() == text
+    # without files: the key on stderr, the entry on stdout
+    run = sgvloc("new-key", "--role", "vehicle", "--name", "t1", "--maps", "a,b")
+    assert run.returncode == 0 and run.stderr.startswith("key: ")
+    entry = tomllib.loads(run.stdout)["keys"][0]
+    assert entry["maps"] == ["a", "b"] and entry["key"] == hash_key(run.stderr[5:].strip())
+
+
+def test_serve_on_a_busy_port_fails_at_once(tmp_path: Path) -> None:
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        t0 = time.monotonic()
+        run = sgvloc("serve", "--dev", "--port", str(port), "--data-dir", str(tmp_path / "d"))
+        took = time.monotonic() - t0
+    assert run.returncode == 2
+    (line,) = [ln for ln in run.stderr.splitlines() if ln.strip()]
+    assert line.startswith(f"sgvloc serve: cannot listen on 127.0.0.1:{port}"), run.stderr
+    assert "another process listens there" in line
+    # nothing was loaded: no data directory made, no map or kernel work (seconds otherwise)
+    assert not (tmp_path / "d").exists(), took
