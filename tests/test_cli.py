@@ -8,12 +8,15 @@ import socket
 import subprocess
 import sys
 import time
-import tomllib
 from pathlib import Path
+
+import pytest
 
 from sgvloc.about import __version__
 from sgvloc.server.api.auth import parse_keys
 from sgvloc.server.keys import hash_key
+
+tomllib = pytest.importorskip("tomllib", reason="Python 3.11+ reads TOML")
 
 #: what a client-only install (``pip install -e .``) lacks: importing any of them fails
 BLOCKED = ("torch", "faiss", "open3d", "scipy", "numba", "fastapi", "uvicorn",
@@ -96,3 +99,40 @@ def test_serve_on_a_busy_port_fails_at_once(tmp_path: Path) -> None:
     assert "another process listens there" in line
     # nothing was loaded: no data directory made, no map or kernel work (seconds otherwise)
     assert not (tmp_path / "d").exists(), took
+
+
+def test_serve_starts_without_library_noise(tmp_path: Path) -> None:
+    """Start-up at the default log level: no faiss loader lines, no numba or torch
+    warnings (the SGV kernels are compiled before /readyz says ready)."""
+    import httpx
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    log = tmp_path / "serve.log"
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("SGVLOC_", "NUMBA_"))}
+    with log.open("wb") as out:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "sgvloc.cli", "serve", "--dev", "--port", str(port)]
+            + ["--data-dir", str(tmp_path / "d")],
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            env=env,
+        )
+    try:
+        deadline = time.monotonic() + 120
+        while True:
+            assert proc.poll() is None and time.monotonic() < deadline, log.read_text()
+            try:
+                if httpx.get(f"http://127.0.0.1:{port}/readyz", timeout=2).status_code == 200:
+                    break
+            except httpx.TransportError:
+                pass
+            time.sleep(0.3)
+    finally:
+        proc.terminate()
+        proc.wait(timeout=60)
+    text = log.read_text()
+    assert "sgv numba kernels ready" in text
+    for noise in ("faiss.loader", "NumbaWarning", "UserWarning", "Traceback"):
+        assert noise not in text, text

@@ -30,9 +30,7 @@ def _print_version(value: bool) -> None:
 def _root(
     version: Annotated[
         bool,
-        typer.Option(
-            "--version", callback=_print_version, is_eager=True, help="print the version"
-        ),
+        typer.Option("--version", callback=_print_version, is_eager=True, help="print the version"),
     ] = False,
 ) -> None:
     """sgvloc: LiDAR localization service and tools."""
@@ -81,6 +79,8 @@ def _configure_logging(level: str) -> None:
         level=level.upper(),
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
+    # faiss logs which CPU build it loaded (and every build it could not) at INFO
+    logging.getLogger("faiss.loader").setLevel(logging.WARNING)
 
 
 @app.command(
@@ -281,14 +281,23 @@ def loadtest_command(
 def build_map_command(
     ctx: typer.Context,
     source: Annotated[
-        Path,
+        Path | None,
         typer.Argument(
+            help="the same as --data (kept for earlier scripts)",
+            exists=True,
+            file_okay=False,
+            show_default=False,
+        ),
+    ] = None,
+    map_name: Annotated[str, typer.Option("--map", "-m", help="the map to fill")] = "",
+    data: Annotated[
+        Path | None,
+        typer.Option(
             help="KITTI-layout folder: velodyne/*.bin and poses.txt (times.txt optional)",
             exists=True,
             file_okay=False,
         ),
-    ],
-    map_name: Annotated[str, typer.Option("--map", "-m", help="the map to fill")],
+    ] = None,
     url: Annotated[
         str,
         typer.Option(
@@ -316,6 +325,14 @@ def build_map_command(
     ] = 16,
     every: Annotated[int, typer.Option(min=1, help="insert every n-th scan only")] = 1,
     limit: Annotated[int | None, typer.Option(min=0, help="insert at most this many scans")] = None,
+    until: Annotated[
+        float | None,
+        typer.Option(
+            min=0.0,
+            help="insert only the scans of the first SECONDS (times.txt; the database of "
+            "sgvloc eval --db-until)",
+        ),
+    ] = None,
     timeout: Annotated[float, typer.Option(help="seconds to wait for one request")] = 300.0,
     api_key: Annotated[
         str | None, typer.Option(help="bearer token for the service", envvar="SGVLOC_API_KEY")
@@ -339,6 +356,13 @@ def build_map_command(
     from .core.errors import SgvlocError
     from .tools.build_map import build_map
 
+    if (source is None) == (data is None):
+        raise typer.BadParameter(
+            "give the sequence folder once: --data FOLDER", ctx=ctx, param_hint="'--data'"
+        )
+    source = source or data
+    if not map_name:
+        raise typer.BadParameter("name the map to fill", ctx=ctx, param_hint="'--map'")
     # SGVLOC_URL in the environment is no conflict; --url on the command line is
     url_source = ctx.get_parameter_source("url")
     if data_dir is not None and getattr(url_source, "name", None) == "COMMANDLINE":
@@ -350,7 +374,7 @@ def build_map_command(
     _configure_logging("warning")
 
     options = dict(create=create, encoder=encoder, batch_size=batch_size, every=every)
-    options.update(limit=limit, progress=progress)
+    options.update(limit=limit, until=until, progress=progress)
     try:
         if data_dir is not None:
             result = build_map(source, data_dir, map_name, **options)

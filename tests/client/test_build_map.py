@@ -36,6 +36,12 @@ def test_select_frames_and_encoder_option() -> None:
     assert select_frames(10, limit=0) == []
     with pytest.raises(InputError, match="every"):
         select_frames(10, every=0)
+    # a time window counted from the first scan's time, as eval --db-until
+    times = 100.0 + np.arange(10) * 0.5
+    assert select_frames(10, until=2.0, times=times) == [0, 1, 2, 3, 4]
+    assert select_frames(10, every=2, limit=2, until=2.0, times=times) == [0, 2]
+    with pytest.raises(InputError, match="times.txt"):
+        select_frames(10, until=2.0)
     assert parse_encoder(None) is None
     assert parse_encoder("handcrafted") == {"kind": "handcrafted"}
     assert parse_encoder('{"kind": "handcrafted", "num_keypoints": 64}')["num_keypoints"] == 64
@@ -102,8 +108,20 @@ def test_build_map_command(service_url: str, balm_mini_dir: Path) -> None:
     missing = ["build-map", str(balm_mini_dir), "--map", "nope", "--url", service_url]
     out = runner.invoke(app, [*missing, "--no-create", "--no-progress"])
     assert out.exit_code == 1 and "does not exist" in out.output
+    # --data is the folder's option (as in eval and train); --until a time window
+    times = np.loadtxt(balm_mini_dir / "times.txt")
+    n_until = int((times - times[0] <= 10.0).sum())
+    assert 0 < n_until < len(times)
+    args = ["build-map", "--data", str(balm_mini_dir), "--map", "cli-until", "--url"]
+    out = runner.invoke(app, [*args, service_url, "--until", "10", "--no-progress"])
+    assert out.exit_code == 0, out.output
+    assert f"{n_until} scans sent, {n_until} new keyframes" in out.output
+    both = ["build-map", str(balm_mini_dir), "--data", str(balm_mini_dir), "--map", "x"]
+    out = runner.invoke(app, both)
+    assert out.exit_code == 2 and "--data" in out.output
     with Client(service_url) as c:
         c.delete_map("cli-built")
+        c.delete_map("cli-until")
 
 
 def test_build_map_needs_poses(tmp_path: Path, balm_mini_dir: Path) -> None:
@@ -200,3 +218,16 @@ def test_build_map_command_data_dir(tmp_path: Path, balm_mini_dir: Path) -> None
 
     out = runner.invoke(app, [*args[:-5], "--map", "nope", "--no-create", "--no-progress"])
     assert out.exit_code == 1 and "does not exist" in out.output
+
+
+def test_build_map_reports_the_services_conflict(tmp_path: Path, balm_mini_dir: Path) -> None:
+    """A map folder that failed to load: the service answers 404 to reads and 409 to a
+    create; build-map shows the 409's reason, not the 404."""
+    from conftest import running_service
+
+    (tmp_path / "maps" / "broken").mkdir(parents=True)
+    with running_service(tmp_path) as url:
+        args = ["build-map", "--data", str(balm_mini_dir), "--map", "broken", "--url", url]
+        out = CliRunner().invoke(app, [*args, "--limit", "1", "--no-progress"])
+    assert out.exit_code == 1
+    assert "409" in out.output and "could not be loaded" in out.output, out.output

@@ -461,3 +461,19 @@ def test_cuda_matches_cpu():
     a = sgv_rerank_scores(*args, CPU)
     b = sgv_rerank_scores(*args, SGVConfig(device="cuda"))
     np.testing.assert_allclose(b.score, a.score, rtol=1e-5)
+
+
+def test_read_only_arrays_are_accepted_without_a_warning() -> None:
+    """Arrays decoded from MessagePack (np.frombuffer) or memory-mapped are read-only."""
+    import warnings
+
+    rng = np.random.default_rng(0)
+    q = rng.normal(size=(16, 8)).astype(np.float32)
+    c = rng.normal(size=(2, 16, 8)).astype(np.float32)
+    ro_q = np.frombuffer(q.tobytes(), np.float32).reshape(q.shape)
+    ro_c = np.frombuffer(c.tobytes(), np.float32).reshape(c.shape)
+    assert not ro_q.flags.writeable
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        got = nn_correspondences(ro_q, ro_c)
+    np.testing.assert_array_equal(np.asarray(got), np.asarray(nn_correspondences(q, c)))

@@ -202,7 +202,10 @@ def rank(scores: SGVScores | np.ndarray | Sequence[float]) -> np.ndarray:
 def _as_tensor(x: Any, name: str, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
     """``x`` (numpy, torch or nested sequence) as a tensor of ``dtype`` on ``device``."""
     try:
-        t = torch.as_tensor(np.asarray(x) if not isinstance(x, torch.Tensor) else x)
+        a = x if isinstance(x, torch.Tensor) else np.asarray(x)
+        if isinstance(a, np.ndarray) and not a.flags.writeable:
+            a = a.copy()  # torch cannot share read-only memory (decoded MessagePack, mmap)
+        t = torch.as_tensor(a)
     except (TypeError, ValueError) as exc:
         raise InputError(f"{name} is not a numeric array: {exc}") from exc
     if dtype != torch.bool and (t.dtype == torch.bool or t.is_complex()):

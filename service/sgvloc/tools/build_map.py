@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -108,13 +109,30 @@ def parse_encoder(value: str | Mapping[str, Any] | None) -> dict[str, Any] | Non
     return {"kind": text}
 
 
-def select_frames(n: int, every: int = 1, limit: int | None = None) -> list[int]:
-    """Indices of the scans to insert: every ``every``-th of ``n``, at most ``limit``."""
+def select_frames(
+    n: int,
+    every: int = 1,
+    limit: int | None = None,
+    *,
+    until: float | None = None,
+    times: np.ndarray | None = None,
+) -> list[int]:
+    """Indices of the scans to insert: those of the first ``until`` seconds (by ``times``,
+    counted from the first scan's, as ``sgvloc eval --db-until``), every ``every``-th of
+    them, at most ``limit``."""
     if every < 1:
         raise InputError(f"every must be >= 1, got {every}")
     if limit is not None and limit < 0:
         raise InputError(f"limit must be >= 0, got {limit}")
-    return list(range(0, n, every))[:limit]
+    if until is None:
+        return list(range(0, n, every))[:limit]
+    if times is None:
+        raise InputError("until: the sequence has no times.txt")
+    if not math.isfinite(until) or until < 0:
+        raise InputError(f"until must be a finite number of seconds >= 0, got {until}")
+    t = np.asarray(times, dtype=np.float64)
+    inside = np.flatnonzero(t - t[0] <= until).tolist() if len(t) else []
+    return inside[::every][:limit]
 
 
 def _check_encoder_kind(name: str, kind: str | None, encoder: dict[str, Any] | None) -> None:
@@ -149,8 +167,11 @@ class ClientSink:
                     "created map %s (encoder %s)", name, info.encoder.name or info.encoder.kind
                 )
                 return
-            except Conflict:  # created meanwhile by someone else
-                info = client.get_map(name)
+            except Conflict as conflict:  # created meanwhile by someone else?
+                try:
+                    info = client.get_map(name)
+                except NotFound:  # no: the service refuses the name; say why
+                    raise conflict from None
         _check_encoder_kind(name, info.encoder.kind, encoder)
         log.info("map %s exists with %d keyframes; resuming", name, info.keyframes)
 
@@ -258,6 +279,7 @@ def build_map(
     batch_size: int = 16,
     every: int = 1,
     limit: int | None = None,
+    until: float | None = None,
     progress: bool = True,
 ) -> BuildMapResult:
     """Insert a KITTI-layout sequence into map ``map_name`` of a service or a data directory.
@@ -277,6 +299,8 @@ def build_map(
         batch_size: keyframes per insert (one request, or one store transaction).
         every: insert every n-th scan only.
         limit: insert at most this many scans (after ``every``).
+        until: insert only the scans of the first ``until`` seconds (``times.txt``,
+            counted from the first scan; the database of ``sgvloc eval --db-until``).
         progress: show a tqdm progress bar.
 
     Raises :class:`~sgvloc.core.errors.InputError` for a bad sequence or option, the
@@ -289,7 +313,7 @@ def build_map(
     seq = KittiSequence(root)
     if seq.poses is None:
         raise InputError(f"{root}: no poses.txt; a map needs a pose for every keyframe")
-    frames = select_frames(len(seq), every, limit)
+    frames = select_frames(len(seq), every, limit, until=until, times=seq.times)
     prefix = root.resolve().name
     spec = parse_encoder(encoder)
 
