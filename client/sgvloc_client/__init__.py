@@ -24,6 +24,7 @@ from ._errors import (
     BadRequest,
     Conflict,
     EncoderMismatch,
+    Forbidden,
     NotFound,
     Overloaded,
     PayloadTooLarge,
@@ -31,6 +32,7 @@ from ._errors import (
     ServerError,
     SgvlocError,
     TransportError,
+    Unauthorized,
 )
 from ._models import (
     Candidate,
@@ -65,8 +67,10 @@ __all__ = [
     "Localization",
     "MapInfo",
     "NotFound",
+    "Forbidden",
     "Overloaded",
     "PayloadTooLarge",
+    "Unauthorized",
     "PoseInfo",
     "Prior",
     "ScanFileError",

@@ -96,9 +96,13 @@ class BaseClient:
         backoff: float = 0.2,
         max_backoff: float = 5.0,
         wire_format: WireFormat = "msgpack",
+        retry_overloaded: bool = False,
+        max_retry_after: float = 30.0,
     ) -> None:
         if retries < 0:
             raise ValueError(f"retries must be >= 0, got {retries}")
+        if not max_retry_after >= 0:
+            raise ValueError(f"max_retry_after must be >= 0, got {max_retry_after}")
         if wire_format not in ("msgpack", "json"):
             raise ValueError(f"wire_format must be 'msgpack' or 'json', got {wire_format!r}")
         self.base_url = str(base_url).rstrip("/")
@@ -107,6 +111,8 @@ class BaseClient:
         self.backoff = backoff
         self.max_backoff = max_backoff
         self.wire_format: WireFormat = wire_format
+        self.retry_overloaded = retry_overloaded
+        self.max_retry_after = max_retry_after
         self._api_key = api_key
 
     def __repr__(self) -> str:
@@ -159,6 +165,30 @@ class BaseClient:
             f"attempt{'s' if tries > 1 else ''}: {kind}: {detail}",
             attempts=tries,
         ) from exc
+
+    def _overload_delay(self, call: Call[Any], attempt: int, response: httpx.Response) -> float:
+        """Seconds to wait before resending ``call`` after its answer ``response`` (try
+        number ``attempt``, 0-based), or -1 to keep the answer: only with
+        ``retry_overloaded``, only for calls safe to resend, only for 429/503 that the call
+        does not take as a result, at most ``retries`` times, and only when
+        ``Retry-After`` (seconds; without it, the backoff) is within ``max_retry_after``."""
+        status = response.status_code
+        if not (
+            self.retry_overloaded
+            and call.idempotent
+            and status in (429, 503)
+            and status not in call.passthrough
+            and attempt < self.retries
+        ):
+            return -1.0
+        header = response.headers.get("retry-after")
+        try:
+            delay = float(header) if header is not None else self.backoff * 2**attempt
+        except ValueError:  # an HTTP date, or garbage: the backoff
+            delay = self.backoff * 2**attempt
+        if not 0.0 <= delay <= self.max_retry_after:
+            return -1.0
+        return delay
 
     # ----------------------------------------------------------------------------------
     # Responses

@@ -35,11 +35,17 @@ class Client(BaseClient):
             with exponential backoff (``backoff * 2**n`` seconds, at most
             ``max_backoff``). Only calls that are safe to resend are: GET and DELETE,
             localize, and inserts whose keyframes all carry a ``key``; never
-            ``create_map`` or a keyless insert. Error answers (4xx/5xx) are never retried.
+            ``create_map`` or a keyless insert. Error answers (4xx/5xx) are not retried,
+            except as ``retry_overloaded`` says.
         api_key: sent as ``Authorization: Bearer <key>``.
         transport: an ``httpx.BaseTransport`` to send through (tests, custom TLS).
         wire_format: ``"msgpack"`` (default; arrays travel as raw float32 bytes) or
             ``"json"``.
+        retry_overloaded: also resend those calls after a 429 or 503 answer (too busy,
+            still loading), waiting the answer's ``Retry-After`` seconds; counts against
+            ``retries``. Off by default: a vehicle may prefer a fresh scan to a late answer.
+        max_retry_after: a ``Retry-After`` longer than this (seconds) is not waited for:
+            the :class:`Overloaded` error is raised at once.
 
     Use as a context manager (or call :meth:`close`). Errors are the exceptions of
     :mod:`sgvloc_client._errors` (see :class:`~sgvloc_client.SgvlocError`).
@@ -56,6 +62,8 @@ class Client(BaseClient):
         backoff: float = 0.2,
         max_backoff: float = 5.0,
         wire_format: WireFormat = "msgpack",
+        retry_overloaded: bool = False,
+        max_retry_after: float = 30.0,
     ) -> None:
         super().__init__(
             base_url,
@@ -65,6 +73,8 @@ class Client(BaseClient):
             backoff=backoff,
             max_backoff=max_backoff,
             wire_format=wire_format,
+            retry_overloaded=retry_overloaded,
+            max_retry_after=max_retry_after,
         )
         self._http = httpx.Client(transport=transport, **self._http_options())
 
@@ -92,6 +102,11 @@ class Client(BaseClient):
                 )
             except httpx.TransportError as exc:
                 time.sleep(self._retry_delay(call, attempt, exc))
+                attempt += 1
+                continue
+            delay = self._overload_delay(call, attempt, response)
+            if delay >= 0:
+                time.sleep(delay)
                 attempt += 1
                 continue
             return self._finish(call, response)

@@ -16,11 +16,13 @@ Every exception derives from :class:`SgvlocError`::
         ├── NotFound         404: unknown map or keyframe
         ├── Conflict         409 ``conflict``: e.g. a map with that name exists
         ├── EncoderMismatch  409 ``encoder_mismatch``: features from another encoder
+        ├── Unauthorized     401: no key, or one the service does not know
+        ├── Forbidden        403: the key's role or maps do not allow this
         ├── PayloadTooLarge  413: the body is over the service's limit
         ├── Overloaded       429 / 503: too busy or not ready; try again later
         └── ServerError      other 5xx: a fault in the service
 
-Other error statuses (401, 403, 405, ...) raise :class:`APIError` itself. The service's
+Other error statuses (405, ...) raise :class:`APIError` itself. The service's
 error body is ``{"error": {"code", "message", "field"}}``; a body of another shape (from a
 proxy, say) still gives an :class:`APIError` with ``code = "http_<status>"``.
 """
@@ -82,6 +84,14 @@ class EncoderMismatch(APIError):
     """409 ``encoder_mismatch``: features come from another encoder than the map's."""
 
 
+class Unauthorized(APIError):
+    """401: no API key was sent, or the service does not know it."""
+
+
+class Forbidden(APIError):
+    """403: the API key's role or maps do not allow this request."""
+
+
 class PayloadTooLarge(APIError):
     """413: the request body is larger than the service accepts."""
 
@@ -96,6 +106,8 @@ class ServerError(APIError):
 
 _BY_STATUS: dict[int, type[APIError]] = {
     400: BadRequest,
+    401: Unauthorized,
+    403: Forbidden,
     404: NotFound,
     409: Conflict,
     413: PayloadTooLarge,

@@ -25,6 +25,7 @@ from sgvloc_client import (
     Client,
     Conflict,
     EncoderMismatch,
+    Forbidden,
     KeyframeIn,
     NotFound,
     Overloaded,
@@ -33,6 +34,7 @@ from sgvloc_client import (
     ServerError,
     SgvlocError,
     TransportError,
+    Unauthorized,
     wire,
 )
 from sgvloc_client.scans import read_kitti_bin, read_scan
@@ -62,7 +64,9 @@ def _error_response(status: int, code: str, message: str = "m", field=None) -> h
         (503, "not_ready", Overloaded),
         (500, "internal", ServerError),
         (502, "http_502", ServerError),
-        (401, "unauthorized", APIError),
+        (401, "unauthorized", Unauthorized),
+        (403, "forbidden", Forbidden),
+        (405, "method_not_allowed", APIError),
     ],
 )
 def test_error_status_maps_to_exception(status: int, code: str, cls: type) -> None:
@@ -350,3 +354,74 @@ def test_json_bodies_roundtrip_through_models() -> None:
         "handcrafted",
         "flat",
     )
+
+
+def _overloaded_then_ok(statuses: list[int], retry_after: str | None = "0"):
+    """A transport answering each status of ``statuses`` in turn (429/503 with
+    ``Retry-After``), then 200 with a map; records every request."""
+    seen: list[httpx.Request] = []
+    body = {"name": "campus", "version": 1, "keyframes": 0, "encoder": {}, "retrieval": {}}
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        seen.append(request)
+        if len(seen) <= len(statuses):
+            headers = {} if retry_after is None else {"Retry-After": retry_after}
+            status = statuses[len(seen) - 1]
+            return httpx.Response(
+                status, json={"error": {"code": "overloaded", "message": "busy"}}, headers=headers
+            )
+        return httpx.Response(200, json=body)
+
+    return handler, seen
+
+
+def test_overloaded_answers_are_retried_only_when_asked() -> None:
+    handler, seen = _overloaded_then_ok([429, 503])
+    transport = httpx.MockTransport(handler)
+    # off by default: the first 429 is the answer
+    with Client(transport=transport) as c, pytest.raises(Overloaded):
+        c.get_map("campus")
+    assert len(seen) == 1
+    seen.clear()
+    with Client(transport=transport, retry_overloaded=True, retries=3) as c:
+        assert c.get_map("campus").name == "campus"
+    assert len(seen) == 3
+    # the retries are counted: 2 overloaded answers with retries=1 raise
+    seen.clear()
+    with Client(transport=transport, retry_overloaded=True, retries=1) as c:
+        with pytest.raises(Overloaded):
+            c.get_map("campus")
+    assert len(seen) == 2
+
+
+def test_overload_retry_waits_retry_after_and_skips_unsafe_calls() -> None:
+    import time
+
+    handler, seen = _overloaded_then_ok([503], retry_after="0.3")
+    with Client(transport=httpx.MockTransport(handler), retry_overloaded=True) as c:
+        t0 = time.monotonic()
+        c.get_map("campus")
+        assert time.monotonic() - t0 >= 0.3 and len(seen) == 2
+    # a Retry-After longer than max_retry_after is not waited for
+    handler, seen = _overloaded_then_ok([503], retry_after="120")
+    with Client(transport=httpx.MockTransport(handler), retry_overloaded=True) as c:
+        with pytest.raises(Overloaded):
+            c.get_map("campus")
+    assert len(seen) == 1
+    # create_map is not safe to resend: never retried
+    handler, seen = _overloaded_then_ok([429])
+    with Client(transport=httpx.MockTransport(handler), retry_overloaded=True) as c:
+        with pytest.raises(Overloaded):
+            c.create_map("campus")
+    assert len(seen) == 1
+
+
+def test_async_client_retries_overloaded_answers() -> None:
+    handler, seen = _overloaded_then_ok([429, 429], retry_after=None)
+
+    async def main() -> str:
+        transport = httpx.MockTransport(handler)
+        async with AsyncClient(transport=transport, retry_overloaded=True, backoff=0.01) as c:
+            return (await c.get_map("campus")).name
+
+    assert asyncio.run(main()) == "campus" and len(seen) == 3
