@@ -502,7 +502,7 @@ def eval_command(
     progress: ProgressOpt = True,
     threads: ThreadsOpt = None,
 ) -> None:
-    """Evaluate every re-ranking method x top-k on a sequence (SPEC section 4).
+    """Evaluate every re-ranking method x top-k on a sequence (docs/EVALUATION.md).
 
     Prints a Markdown table (recall over the in-coverage queries, the recall ceiling of
     the top-k, pose success), a verdict table over every query, in and out of coverage

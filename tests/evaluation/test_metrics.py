@@ -1,4 +1,4 @@
-"""Metric functions against hand-computed cases (SPEC section 4)."""
+"""Metric functions against hand-computed cases (docs/EVALUATION.md)."""
 
 import math
 

@@ -1,6 +1,6 @@
 """Bird's-eye-view (BEV) density raster of a scan, the same as the kitti-bev images.
 
-The kitti-bev data set (BEVPlace's KITTI images, see ``../shared/data/kitti-bev/README.md``)
+The kitti-bev data set (BEVPlace's KITTI images, docs/EVALUATION.md, "Data")
 stores one 151 x 151 grey image per scan. :func:`rasterize` makes that image from a 3-D
 scan so that an encoder (or a model trained on those images) runs on raw scans:
 

@@ -1,8 +1,9 @@
 """Confidence of a localization: the evidence behind it and a calibrated probability.
 
 Every answer carries ``confidence``, meant as the probability that its pose is within
-2 m and 5 degrees of the truth (SPEC section 4's success). It comes from evidence the
-pipeline has already computed, fed to a small fitted model (:class:`Calibration`):
+2 m and 5 degrees of the truth (the success criterion of docs/EVALUATION.md). It comes
+from evidence the pipeline has already computed, fed to a small fitted model
+(:class:`Calibration`):
 
 - ``sgv``: the normalised SpectralGV score of the re-ranked top-1 (about its inlier
   ratio, comparable across queries with different keypoint counts);
@@ -51,7 +52,7 @@ DISTINCT_RADIUS_M = 5.0
 AGREEMENT_CANDIDATES = 5
 #: agreement counts at most this many candidates
 AGREEMENT_CAP = 3
-#: implied poses agree within these bounds (the success thresholds of SPEC section 4)
+#: implied poses agree within these bounds (the success thresholds of docs/EVALUATION.md)
 AGREEMENT_M, AGREEMENT_DEG = 2.0, 5.0
 
 #: model inputs: name -> how it is derived from the evidence (oriented: larger = better)

@@ -170,8 +170,8 @@ def _ransac(src: np.ndarray, dst: np.ndarray, pairs: np.ndarray, cfg: PoseConfig
     Hypotheses from ``ransac_n`` distinct correspondences, drawn in batches; a sample is
     kept when every pair of its points has lengths within ``edge_length_ratio`` in both
     clouds and its fit moves each sampled point within ``max_correspondence_distance`` of
-    its partner (the checkers of SPEC section 4). The best hypothesis has the most inliers
-    (then the smallest squared error); the loop stops at ``max_iterations`` or once
+    its partner (the checkers of the SpectralGV reference code). The best hypothesis has
+    the most inliers (then the smallest squared error); the loop stops at ``max_iterations`` or once
     ``confidence`` is reached for the best inlier share. The result is refitted on its
     inliers unless that loses inliers.
     """
@@ -257,7 +257,7 @@ def ransac_pose(
 ) -> PoseResult:
     """RANSAC registration of source keypoints onto target keypoints via feature matching.
 
-    Reference settings (SPEC section 4): mutual filter, 0.5 m max correspondence distance,
+    Reference settings (docs/EVALUATION.md): mutual filter, 0.5 m max correspondence distance,
     3-point samples, edge-length (0.8) and distance checkers, 10000 iterations, 0.999
     confidence. Seeded and deterministic (:func:`_ransac`).
     """

@@ -2,7 +2,7 @@
 
 For a query and each of its k retrieved candidates, local-feature correspondences
 ``c_i = (x_i, y_i)`` (query keypoint, candidate keypoint) are scored by how well they
-preserve pairwise lengths (SPEC section 2, paper eq. 2):
+preserve pairwise lengths (the SpectralGV paper, eq. 2):
 
 - ``d_ij = | ||x_i - x_j|| - ||y_i - y_j|| |``;
 - ``M_ij = max(0, 1 - d_ij^2 / d_thr^2)``, ``M_ii = 1`` (reference) or 0;
@@ -343,7 +343,7 @@ def _nn_numpy(q: np.ndarray, c: np.ndarray, mask: np.ndarray, budget_bytes: int)
 def reference_compatibility_matrix(
     src: np.ndarray, dst: np.ndarray, d_thr: float, diagonal: Literal["one", "zero"] = "one"
 ) -> np.ndarray:
-    """``M [n, n]`` float64 of SPEC section 2 for one candidate (plain numpy, small n).
+    """``M [n, n]`` float64 of the SpectralGV paper (eq. 2), one candidate (numpy, small n).
 
     ``d_ij = | ||src_i - src_j|| - ||dst_i - dst_j|| |``,
     ``M_ij = max(0, 1 - d_ij^2 / d_thr^2)``, ``M_ii = 1`` (``diagonal="one"``) or 0.

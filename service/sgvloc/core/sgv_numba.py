@@ -1,7 +1,8 @@
 """SpectralGV on CPU with numba: fused kernels that never hold more than one ``M`` per thread.
 
-The semantics are those of :func:`sgvloc.core.sgv.sgv_scores` (SPEC section 2): for each
-candidate, ``M_ij = max(0, 1 - (||s_i - s_j|| - ||d_i - d_j||)^2 / d_thr^2)``, ``M_ii`` the
+The semantics are those of :func:`sgvloc.core.sgv.sgv_scores` (the SpectralGV paper,
+eq. 2): for each candidate,
+``M_ij = max(0, 1 - (||s_i - s_j|| - ||d_i - d_j||)^2 / d_thr^2)``, ``M_ii`` the
 configured diagonal, ``v`` = ``iterations`` normalised power steps from all-ones, and
 ``lambda = v^T M v``. Masked correspondences are dropped before scoring (each candidate is
 compacted to its valid rows), so a padded candidate scores exactly as it would alone.

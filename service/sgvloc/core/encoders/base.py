@@ -5,13 +5,14 @@ descriptor for retrieval plus keypoints and local features for re-ranking and po
 encoder runs its own preprocessing, so its :class:`EncoderIdentity` covers every
 parameter that changes its output; features are only comparable between equal identities.
 
-Three kinds (see SPEC section 5):
+The kinds:
 
-- ``handcrafted`` (default): polar-grid global descriptor + FPFH, no weights;
+- ``handcrafted``: polar-grid global descriptor + FPFH, no weights;
 - ``precomputed``: the client runs its own network and sends features;
 - ``torchscript``: a learned model loaded from a TorchScript file;
 - ``bev``: SIFT/ORB on the bird's-eye-view density image + polar/FFT descriptor, no weights;
-- ``learned``: a small CNN on the same density image, trained in-project (weights shipped).
+- ``learned`` (default): a small CNN on the same density image, trained in-project
+  (weights shipped).
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Evaluation harness: the paper's protocol (SPEC section 4) on KITTI-layout sequences.
+"""Evaluation harness: the paper's protocol (docs/EVALUATION.md) on KITTI-layout sequences.
 
 - :mod:`.metrics`: Recall@N, MRR, RTE/RRE, pose success;
 - :mod:`.splits`: database/query splits by time or loop-closure gap;

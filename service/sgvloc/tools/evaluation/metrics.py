@@ -1,4 +1,4 @@
-"""Evaluation metrics, exactly as SPEC section 4.
+"""Evaluation metrics, exactly as docs/EVALUATION.md defines them.
 
 Place recognition, per query: the 1-based rank of the first retrieved keyframe within the
 revisit threshold (``None`` when none of the top-k is). Over queries:
@@ -21,7 +21,7 @@ import numpy as np
 
 from sgvloc.core.errors import InputError
 
-#: SPEC section 4: success thresholds on the re-ranked top-1 pose
+#: docs/EVALUATION.md: success thresholds on the re-ranked top-1 pose
 MAX_RTE_M = 2.0
 MAX_RRE_DEG = 5.0
 
@@ -89,7 +89,7 @@ def rte(T_est: np.ndarray, T_gt: np.ndarray, planar: bool = False) -> np.ndarray
 
 
 def rre(T_est: np.ndarray, T_gt: np.ndarray, planar: bool = False) -> np.ndarray | float:
-    """Relative rotation error in degrees for ``[..., 4, 4]`` poses (SPEC section 4);
+    """Relative rotation error in degrees for ``[..., 4, 4]`` poses (docs/EVALUATION.md);
     ``planar``: the heading (yaw) difference only."""
     e, g = _check_pose(T_est, "T_est"), _check_pose(T_gt, "T_gt")
     if planar:

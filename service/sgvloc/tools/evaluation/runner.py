@@ -1,4 +1,4 @@
-"""Run the evaluation protocol (SPEC section 4) over one KITTI-layout sequence.
+"""Run the evaluation protocol (docs/EVALUATION.md) over one KITTI-layout sequence.
 
 The sequence is 3-D scans (``velodyne/``, ``poses.txt``, ``times.txt``) or kitti-bev BEV
 images (``imgs/*.png``, ``pose.txt``; :mod:`.data`). Images need an encoder with

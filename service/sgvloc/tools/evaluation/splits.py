@@ -1,4 +1,4 @@
-"""Database/query splits of one sequence (SPEC section 4).
+"""Database/query splits of one sequence (docs/EVALUATION.md).
 
 Two modes:
 
