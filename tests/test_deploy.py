@@ -364,3 +364,18 @@ def test_container_cmd_in_development_mode(cmd, docker, port, tmp_path: Path) ->
     finally:
         server.terminate()
         server.wait(timeout=30)
+
+
+def test_ci_runs_the_readme_install_and_test_commands() -> None:
+    """.ci/run installs and tests exactly as the README tells a newcomer to."""
+    readme = (ROOT / "README.md").read_text()
+    ci = (ROOT / ".ci" / "run").read_text()
+    blocks = {}
+    for title in ("Install", "Test"):
+        section = readme.split(f"\n## {title}\n", 1)[1]
+        blocks[title] = re.search(r"```bash\n(.*?)```", section, re.S).group(1)
+    lines = [ln for b in blocks.values() for ln in b.splitlines() if ln.strip()]
+    assert any("torch==2.13.0+cpu" in ln and "whl/cpu" in ln for ln in lines)
+    assert any(ln.startswith("python3 -m venv") for ln in lines)
+    for line in lines:
+        assert line in ci, f".ci/run lacks the README's command: {line}"
