@@ -136,3 +136,22 @@ def test_serve_starts_without_library_noise(tmp_path: Path) -> None:
     assert "sgv numba kernels ready" in text
     for noise in ("faiss.loader", "NumbaWarning", "UserWarning", "Traceback"):
         assert noise not in text, text
+
+
+def test_package_data_loads_beside_a_folder_named_sgvloc(tmp_path: Path) -> None:
+    """Run from a folder holding a ``sgvloc/`` checkout: the package's weights,
+    calibrations and version still load (an editable install can see ``sgvloc`` as a
+    namespace there)."""
+    (tmp_path / "sgvloc" / "service").mkdir(parents=True)
+    code = (
+        "from sgvloc.about import __version__\n"
+        "from sgvloc.core.confidence import shipped_calibration\n"
+        "from sgvloc.core.encoders import EncoderSpec, make_encoder\n"
+        "make_encoder(EncoderSpec())\n"
+        "print(__version__, shipped_calibration('learned').name)\n"
+    )
+    run = subprocess.run(
+        [sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=120
+    )
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.startswith(__version__)

@@ -220,13 +220,13 @@ def test_build_map_command_data_dir(tmp_path: Path, balm_mini_dir: Path) -> None
     assert out.exit_code == 1 and "does not exist" in out.output
 
 
-def test_build_map_reports_the_services_conflict(tmp_path: Path, balm_mini_dir: Path) -> None:
+def test_build_map_reports_the_services_conflict(
+    tmp_path: Path, balm_mini_dir: Path, start_service
+) -> None:
     """A map folder that failed to load: the service answers 404 to reads and 409 to a
     create; build-map shows the 409's reason, not the 404."""
-    from conftest import running_service
-
     (tmp_path / "maps" / "broken").mkdir(parents=True)
-    with running_service(tmp_path) as url:
+    with start_service(tmp_path) as url:
         args = ["build-map", "--data", str(balm_mini_dir), "--map", "broken", "--url", url]
         out = CliRunner().invoke(app, [*args, "--limit", "1", "--no-progress"])
     assert out.exit_code == 1

@@ -31,13 +31,18 @@ def limit_library_threads(n: int, *, force: bool = False) -> dict[str, str]:
     force.
 
     Must run before the libraries are imported: OpenMP and OpenBLAS read their
-    environment once, when loaded. Raises ``ValueError`` if ``n < 1``.
+    environment once, when loaded. Once one of them is loaded (a command called inside a
+    Python program that already uses them) nothing is changed and a warning says so.
+    Raises ``ValueError`` if ``n < 1``.
     """
     if n < 1:
         raise ValueError(f"thread count must be >= 1, got {n}")
     loaded = [m for m in _LIBRARIES if sys.modules.get(m) is not None]
     if loaded:
-        log.warning("thread limits set after %s were loaded: they may not apply", loaded)
+        # too late to apply, and numba refuses to run once its setting differs from the
+        # thread count it launched with: leave the environment as it is
+        log.warning("thread limits not applied: %s already loaded", ", ".join(loaded))
+        return {var: os.environ.get(var, "") for var in ENV_VARS}
     for var in ENV_VARS:
         if force:
             os.environ[var] = str(n)
