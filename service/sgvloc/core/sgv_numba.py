@@ -37,11 +37,17 @@ and each call already uses every core.
 from __future__ import annotations
 
 import logging
+import os
 import threading
 import time
 
-import numpy as np
-from numba import get_num_threads, njit, prange
+# parallel kernels on OpenMP first (as Open3D and FAISS): numba's default order tries TBB
+# first, which warns at the first parallel call where the system's TBB is too old. Read
+# when the first parallel kernel launches; a setting of the user's wins.
+os.environ.setdefault("NUMBA_THREADING_LAYER_PRIORITY", "omp workqueue tbb")
+
+import numpy as np  # noqa: E402
+from numba import get_num_threads, njit, prange  # noqa: E402
 
 log = logging.getLogger(__name__)
 

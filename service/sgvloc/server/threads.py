@@ -48,9 +48,6 @@ def limit_library_threads(n: int, *, force: bool = False) -> dict[str, str]:
             os.environ[var] = str(n)
         else:
             os.environ.setdefault(var, str(n))
-    # numba's parallel kernels on OpenMP, as Open3D and FAISS: its default order tries
-    # TBB first, which warns on every start where the system's TBB is too old
-    os.environ.setdefault("NUMBA_THREADING_LAYER_PRIORITY", "omp workqueue tbb")
     return {var: os.environ[var] for var in ENV_VARS}
 
 
