@@ -87,7 +87,7 @@ def _configure_logging(level: str) -> None:
     epilog="Threads: each numeric library (OpenMP in Open3D and FAISS, BLAS, numba, torch) "
     "gets --threads threads per worker (env SGVLOC_THREADS_PER_WORKER), default usable "
     "cores // workers, set before any of them loads; OMP_NUM_THREADS and the like, when "
-    "set, win. See docs/OPERATIONS.md, 'Threads'."
+    "set, win over the default (not over --threads). See docs/OPERATIONS.md, 'Threads'."
 )
 def serve(
     host: Annotated[

@@ -25,7 +25,10 @@ def serve(settings: Settings) -> None:
     is taken or the keys file is unusable.
     """
     check_port(settings.host, settings.port)
-    threads = limit_library_threads(settings.library_threads)
+    # an explicit threads_per_worker wins over OMP_NUM_THREADS & co.; the default does not
+    threads = limit_library_threads(
+        settings.library_threads, force=settings.threads_per_worker is not None
+    )
     log.info("library threads per worker: %s", threads)
 
     import uvicorn
