@@ -16,7 +16,7 @@ Pixel ``(r, c)`` is the column centred at ``x = (75 - r + 0.5) * 0.4``,
 ``y = (75 - c + 0.5) * 0.4`` (x forward = up, y left = left): ``r = 75 - floor(x / 0.4)``,
 ``c = 75 - floor(y / 0.4)``.
 
-Grey levels: the README states "counts capped at 10; counts <= 1 set to 0; x10". Read
+Grey levels: the data set's README states "counts capped at 10; counts <= 1 set to 0; x10". Read
 literally that gives the levels ``{0, 51, 76, ..., 255}`` (9 non-zero levels, counts 2..10).
 The released images have 10 non-zero levels ``k * 25.5`` (k = 1..10: 26, 51, ..., 255) and
 no bare ground (level 1 lies on object edges), which is what step 4 produces: a column of

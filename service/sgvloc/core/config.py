@@ -1,6 +1,6 @@
 """One typed configuration tree for the engine (pydantic).
 
-Every stage reads its own section; the defaults are the ones the README documents.
+Every stage reads its own section; the defaults are the ones docs/API.md documents.
 """
 
 from __future__ import annotations

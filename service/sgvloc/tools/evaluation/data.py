@@ -4,7 +4,7 @@ Two folder layouts:
 
 - ``scans`` (KITTI odometry): ``velodyne/`` (or ``scans/``) scan files, ``poses.txt`` and
   ``times.txt`` (:class:`sgvloc.core.sequence.KittiSequence`);
-- ``bev-images`` (kitti-bev, see the data README): ``imgs/NNNNNN.png`` (151 x 151 grey
+- ``bev-images`` (kitti-bev, docs/EVALUATION.md, "Data"): ``imgs/NNNNNN.png`` (151 x 151 grey
   BEV density images) and ``pose.txt`` (row-major top 3x4 of ``T_world_lidar``). Scans
   were taken at 10 Hz, so scan ``i`` is at ``i * 0.1`` s unless a ``times.txt`` is there.
   Only encoders with an ``encode_image(image)`` method can describe these; there is no
