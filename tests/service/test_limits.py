@@ -42,6 +42,7 @@ def test_config_reports_the_limits(client: httpx.Client) -> None:
     assert cfg["limits"] == {
         "max_body_bytes": MAX_BODY_BYTES,
         "max_points": MAX_POINTS,
+        "max_keypoints": 4096,
         "max_batch": MAX_BATCH,
         "max_top_k": MAX_TOP_K,
         "max_inflight_localize": 8,  # 4 x 2 workers

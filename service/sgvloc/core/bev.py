@@ -47,12 +47,14 @@ class BEVRasterConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    resolution: float = Field(0.4, gt=0.0, description="cell and voxel size (m)")
-    extent: float = Field(25.0, gt=0.0, description="keep |x|, |y|, |z| below this (m)")
+    resolution: float = Field(0.4, ge=0.01, le=10.0, description="cell and voxel size (m)")
+    extent: float = Field(25.0, gt=0.0, le=1000.0, description="keep |x|, |y|, |z| below this (m)")
     half_cells: int = Field(
-        75, ge=1, description="pixels from the centre to the border: image side 2 h + 1"
+        75, ge=1, le=1024, description="pixels from the centre to the border: image side 2 h + 1"
     )
-    max_level: int = Field(10, ge=1, description="density level cap (voxels per column - 1)")
+    max_level: int = Field(
+        10, ge=1, le=255, description="density level cap (voxels per column - 1)"
+    )
 
     @property
     def size(self) -> int:
@@ -293,19 +295,22 @@ class BEVEncoderConfig(BaseModel):
     )
     num_keypoints: int = Field(256, ge=1, le=5000, description="keypoints at most per scan")
     sift_contrast_threshold: float = Field(
-        0.04, gt=0.0, description="SIFT: weakest blob kept (OpenCV contrastThreshold)"
+        0.04, gt=0.0, le=1.0, description="SIFT: weakest blob kept (OpenCV contrastThreshold)"
     )
     root_sift: bool = Field(True, description="SIFT: Hellinger (RootSIFT) descriptors")
-    orb_fast_threshold: int = Field(10, ge=1, description="ORB: FAST corner threshold")
+    orb_fast_threshold: int = Field(10, ge=1, le=255, description="ORB: FAST corner threshold")
     blur_sigma: float = Field(
-        1.0, ge=0.0, description="Gaussian blur of the image before detection (pixels); 0 = off"
+        1.0,
+        ge=0.0,
+        le=20.0,
+        description="Gaussian blur of the image before detection (pixels); 0 = off",
     )
     keypoint_z: Literal["zero", "column_mean"] = Field(
         "zero",
         description="keypoint height: 0, or the mean voxel height of its column (scans only)",
     )
-    rings: int = Field(20, ge=2, description="global descriptor: radial bins")
-    sectors: int = Field(60, ge=4, description="global descriptor: angular bins")
+    rings: int = Field(20, ge=2, le=256, description="global descriptor: radial bins")
+    sectors: int = Field(60, ge=4, le=720, description="global descriptor: angular bins")
 
 
 class LearnedEncoderConfig(BaseModel):

@@ -17,11 +17,17 @@ class _Section(BaseModel):
 class PreprocessConfig(_Section):
     """Scan clean-up before encoding."""
 
-    min_range: float = Field(0.5, ge=0.0, description="drop points closer than this (m)")
-    max_range: float = Field(60.0, gt=0.0, description="drop points farther than this (m)")
-    voxel_size: float = Field(0.3, ge=0.0, description="voxel downsampling size (m); 0 = off")
+    min_range: float = Field(0.5, ge=0.0, le=1000.0, description="drop points closer than this (m)")
+    max_range: float = Field(
+        60.0, gt=0.0, le=1000.0, description="drop points farther than this (m)"
+    )
+    voxel_size: float = Field(
+        0.3, ge=0.0, le=100.0, description="voxel downsampling size (m); 0 = off"
+    )
     remove_ground: bool = Field(False, description="remove the dominant ground plane")
-    ground_distance: float = Field(0.2, gt=0.0, description="RANSAC plane inlier distance (m)")
+    ground_distance: float = Field(
+        0.2, gt=0.0, le=10.0, description="RANSAC plane inlier distance (m)"
+    )
     ground_max_tilt_deg: float = Field(
         20.0, ge=0.0, le=90.0, description="only planes within this tilt of horizontal are ground"
     )
@@ -31,34 +37,36 @@ class HandcraftedEncoderConfig(_Section):
     """Built-in encoder: ScanContext-style yaw-invariant global descriptor + FPFH keypoints."""
 
     num_keypoints: int = Field(512, ge=1, le=20000)
-    fpfh_radius: float = Field(2.0, gt=0.0, description="FPFH feature radius (m)")
-    normal_radius: float = Field(0.75, gt=0.0, description="normal estimation radius (m)")
-    rings: int = Field(20, ge=2, description="radial bins of the polar grid")
-    sectors: int = Field(60, ge=4, description="angular bins of the polar grid")
-    max_radius: float = Field(40.0, gt=0.0, description="polar grid radius (m)")
-    seed: int = 0
+    fpfh_radius: float = Field(2.0, gt=0.0, le=50.0, description="FPFH feature radius (m)")
+    normal_radius: float = Field(0.75, gt=0.0, le=50.0, description="normal estimation radius (m)")
+    rings: int = Field(20, ge=2, le=256, description="radial bins of the polar grid")
+    sectors: int = Field(60, ge=4, le=720, description="angular bins of the polar grid")
+    max_radius: float = Field(40.0, gt=0.0, le=1000.0, description="polar grid radius (m)")
+    seed: int = Field(0, ge=0, le=2**32 - 1)
 
 
 class RetrievalConfig(_Section):
     """FAISS index over global descriptors (inner product on L2-normalised vectors)."""
 
     index: Literal["flat", "ivf", "hnsw"] = "flat"
-    nlist: int = Field(256, ge=1, description="IVF: number of coarse cells")
-    nprobe: int = Field(16, ge=1, description="IVF: cells visited per search")
-    hnsw_m: int = Field(32, ge=4, description="HNSW: neighbours per node")
-    ef_search: int = Field(128, ge=1, description="HNSW: search breadth")
+    nlist: int = Field(256, ge=1, le=65536, description="IVF: number of coarse cells")
+    nprobe: int = Field(16, ge=1, le=65536, description="IVF: cells visited per search")
+    hnsw_m: int = Field(32, ge=4, le=128, description="HNSW: neighbours per node")
+    ef_search: int = Field(128, ge=1, le=4096, description="HNSW: search breadth")
 
 
 class SGVConfig(_Section):
     """Spectral Geometric Verification settings (see :mod:`sgvloc.core.sgv`)."""
 
-    d_thr: float = Field(0.4, gt=0.0, description="compatibility length tolerance (m)")
+    d_thr: float = Field(0.4, gt=0.0, le=100.0, description="compatibility length tolerance (m)")
     iterations: int = Field(5, ge=1, le=100, description="power iterations from all-ones")
     diagonal: Literal["one", "zero"] = Field("one", description="M_ii = 1 (reference) or 0")
     normalise: Literal["n", "none"] = Field(
         "n", description="'n': s = v^T M v / n (reference); 'none': raw v^T M v"
     )
-    chunk_size: int = Field(2048, ge=16, description="rows of M built at once for large n")
+    chunk_size: int = Field(
+        2048, ge=16, le=65536, description="rows of M built at once for large n"
+    )
     device: Literal["auto", "cpu", "cuda"] = "auto"
     backend: Literal["auto", "torch", "numba"] = Field(
         "auto",
@@ -70,16 +78,18 @@ class SGVConfig(_Section):
 class PoseConfig(_Section):
     """RANSAC on feature correspondences, then optional ICP refinement."""
 
-    max_correspondence_distance: float = Field(0.5, gt=0.0)
-    ransac_n: int = Field(3, ge=3)
+    max_correspondence_distance: float = Field(0.5, gt=0.0, le=100.0)
+    ransac_n: int = Field(3, ge=3, le=10)
     edge_length_ratio: float = Field(0.8, gt=0.0, lt=1.0)
-    max_iterations: int = Field(10000, ge=1)
+    max_iterations: int = Field(10000, ge=1, le=1_000_000)
     confidence: float = Field(0.999, gt=0.0, le=1.0)
     mutual_filter: bool = True
-    seed: int = 0
+    seed: int = Field(0, ge=0, le=2**32 - 1)
     refine: Literal["none", "icp"] = "icp"
-    icp_max_distance: float = Field(1.0, gt=0.0, description="ICP correspondence distance (m)")
-    icp_iterations: int = Field(30, ge=1)
+    icp_max_distance: float = Field(
+        1.0, gt=0.0, le=100.0, description="ICP correspondence distance (m)"
+    )
+    icp_iterations: int = Field(30, ge=1, le=1000)
     min_icp_fitness: float = Field(
         0.5,
         ge=0.0,
@@ -87,7 +97,9 @@ class PoseConfig(_Section):
         description="after ICP: share of query points within icp_max_distance of the "
         "keyframe cloud needed to call the pose localized (replaces the RANSAC thresholds)",
     )
-    min_inliers: int = Field(10, ge=3, description="fewer RANSAC inliers = not localized")
+    min_inliers: int = Field(
+        10, ge=3, le=100_000, description="fewer RANSAC inliers = not localized"
+    )
     min_fitness: float = Field(0.05, ge=0.0, le=1.0, description="lower fitness = not localized")
 
 
@@ -120,5 +132,5 @@ class LocalizerConfig(_Section):
     verdict: VerdictConfig = VerdictConfig()
     top_k: int = Field(20, ge=1, le=1000)
     rerank: RerankMethod = "sgv"
-    qe_k: int = Field(3, ge=1, description="query expansion: neighbours averaged")
-    qe_alpha: float = Field(3.0, ge=0.0, description="alpha-QE weight exponent")
+    qe_k: int = Field(3, ge=1, le=100, description="query expansion: neighbours averaged")
+    qe_alpha: float = Field(3.0, ge=0.0, le=100.0, description="alpha-QE weight exponent")

@@ -228,9 +228,15 @@ class MapManager:
             t0 = time.perf_counter()
             try:
                 handle = self._load(folder)
-            except (SgvlocError, *self.backend.errors, OSError, ValueError) as exc:
-                log.error("map %r could not be loaded: %s", name, exc)
-                self.failed[name] = str(exc)
+            except Exception as exc:  # one bad folder never keeps the others from loading
+                why = str(exc) or type(exc).__name__
+                log.error("map %r could not be loaded: %s", name, why)
+                # callers see the map's name, never the server's paths (the log has them)
+                self.failed[name] = (
+                    why.replace(str(folder), f"map {name}")
+                    .replace(str(self.maps_dir.resolve()), "<maps>")
+                    .replace(str(self.maps_dir), "<maps>")
+                )
                 continue
             with self._lock:
                 self._maps[name] = handle
@@ -405,26 +411,32 @@ class MapManager:
                 created_at=utc_now(),
                 calibration=calibration or shipped_calibration(encoder_spec.kind),
             )
-            # build the folder aside, then move it into place in one rename
-            self.maps_dir.mkdir(parents=True, exist_ok=True)
-            tmp = self.maps_dir / f"{_TMP_PREFIX}{name}-{uuid.uuid4().hex[:8]}"
-            tmp.mkdir()
-            try:
-                self.backend.create(tmp, record).close()
-                tmp.rename(self.maps_dir / name)
-            except BaseException:
-                shutil.rmtree(tmp, ignore_errors=True)
-                raise
-            folder = self.maps_dir / name
-            store = self.backend.open(folder)
             localizer = Localizer(
                 encoder,
                 localizer_config,
                 keep_clouds=record.keep_clouds,
                 calibration=record.calibration,
             )
+            # build the whole folder aside (store and index snapshot), then move it into
+            # place in one rename: a map folder exists only once it is complete
+            self.maps_dir.mkdir(parents=True, exist_ok=True)
+            tmp = self.maps_dir / f"{_TMP_PREFIX}{name}-{uuid.uuid4().hex[:8]}"
+            tmp.mkdir()
+            folder = self.maps_dir / name
+            store = None
+            try:
+                self.backend.create(tmp, record).close()
+                localizer.index.save(tmp / INDEX_NAME)
+                tmp.rename(folder)
+                store = self.backend.open(folder)
+            except BaseException:
+                if store is not None:
+                    store.close()
+                for leftover in (tmp, folder):
+                    if leftover.exists():
+                        shutil.rmtree(leftover, ignore_errors=True)
+                raise
             handle = MapHandle(name, folder, record, store, localizer)
-            self._save_snapshot(handle)
             with self._lock:
                 self._maps[name] = handle
         finally:

@@ -39,7 +39,15 @@ class Settings(BaseSettings):
     )
     max_body_bytes: int = Field(64 * 1024 * 1024, ge=1024, description="413 above this")
     max_batch: int = Field(1000, ge=1, description="keyframes per insert request")
-    max_points: int = Field(500_000, ge=1, description="points per scan")
+    max_points: int = Field(500_000, ge=1, le=10_000_000, description="points per scan")
+    max_keypoints: int = Field(
+        4096,
+        ge=1,
+        le=100_000,
+        description="keypoints per feature set: precomputed features in a request, and a new "
+        "map's encoder num_keypoints (the encoders make at most 512 by default). Re-ranking "
+        "costs grow with its square",
+    )
     max_top_k: int = Field(100, ge=1, description="largest top_k a localize request may ask")
     snapshot_every: int = Field(
         1000, ge=1, description="save a map's FAISS snapshot after this many keyframe changes"
@@ -53,6 +61,12 @@ class Settings(BaseSettings):
     dev: bool = Field(
         False,
         description="development mode: authentication is OFF (never on a shared network)",
+    )
+    models_dir: Path | None = Field(
+        None,
+        description="the only folder whose files a map's encoder.model_path may name (a "
+        "name relative to it, or a path inside it); unset: maps created over HTTP cannot "
+        "name model files",
     )
     keys_file: Path | None = Field(
         None, description="TOML or JSON file of API keys with roles (see docs/OPERATIONS.md)"

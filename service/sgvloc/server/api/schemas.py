@@ -38,6 +38,7 @@ def limits(settings: Settings) -> dict[str, int]:
     """The validation context carrying the request size limits."""
     return {
         "max_points": settings.max_points,
+        "max_keypoints": settings.max_keypoints,
         "max_batch": settings.max_batch,
         "max_top_k": settings.max_top_k,
     }
@@ -241,9 +242,9 @@ class FeaturesBody(_In):
     @field_validator("keypoints", "local_features")
     @classmethod
     def _rows(cls, v: np.ndarray, info: ValidationInfo) -> np.ndarray:
-        cap = _limit(info, "max_points")
+        cap = _limit(info, "max_keypoints")
         if v.ndim >= 1 and cap is not None and v.shape[0] > cap:
-            raise ValueError(f"has {v.shape[0]} rows, the limit is {cap}")
+            raise ValueError(f"has {v.shape[0]} keypoints, the limit is {cap} (max_keypoints)")
         return v
 
     def to_input(self) -> FeaturesIn:
@@ -259,7 +260,7 @@ class FeaturesBody(_In):
 class KeyframeMetadata(_In):
     """Optional keyframe metadata."""
 
-    timestamp: float | None = None
+    timestamp: float | None = Field(None, allow_inf_nan=False, description="seconds")
     sequence: str | None = Field(None, max_length=256)
     tags: dict[str, str] | None = None
 
@@ -527,7 +528,10 @@ class LimitsOut(BaseModel):
     """The request limits and admission settings in force."""
 
     max_body_bytes: int = Field(description="413 above this")
-    max_points: int = Field(description="points per scan, keypoints per feature set (422)")
+    max_points: int = Field(description="points per scan (422)")
+    max_keypoints: int = Field(
+        description="keypoints per feature set, and a new map's encoder num_keypoints (422)"
+    )
     max_batch: int = Field(description="keyframes per insert request (422)")
     max_top_k: int = Field(description="largest top_k of a localize request (422)")
     max_inflight_localize: int = Field(description="localize requests admitted at once (429)")

@@ -33,6 +33,7 @@ async def get_config(request: Request, settings: SettingsDep) -> Response:
             limits=LimitsOut(
                 max_body_bytes=s.max_body_bytes,
                 max_points=s.max_points,
+                max_keypoints=s.max_keypoints,
                 max_batch=s.max_batch,
                 max_top_k=s.max_top_k,
                 max_inflight_localize=s.inflight_limit,

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from fastapi import APIRouter, Depends, Request, Response
 
 from sgvloc.core.confidence import shipped_calibration
+from sgvloc.core.encoders import EncoderSpec
 
 from ...maps import MapHandle
 from ..auth import authorize, principal_of
@@ -76,9 +79,11 @@ async def create_map(
         req = MapCreate.model_validate(body.decode(), context=limits(settings))
         if not caller.may_use_map(req.name):
             raise ApiError(403, "forbidden", f"this key may not use map {req.name!r}", "name")
+        check_keypoint_budget(req.encoder, settings.max_keypoints)
+        encoder = confine_model_path(req.encoder, settings.models_dir)
         handle = manager.create(
             req.name,
-            req.encoder,
+            encoder,
             req.localizer_config(),
             keep_clouds=req.keep_clouds,
             calibration=parse_calibration(req.calibration, "calibration"),
@@ -86,6 +91,44 @@ async def create_map(
         return map_info(handle)
 
     return encode(request, await worker.run(work), 201)
+
+
+def check_keypoint_budget(spec: EncoderSpec | None, max_keypoints: int) -> None:
+    """422 when the encoder of a new map would make more keypoints per scan than
+    ``max_keypoints`` (re-ranking and pose cost grow with its square)."""
+    spec = spec or EncoderSpec()
+    sections = {"handcrafted": spec.handcrafted, "bev": spec.bev, "learned": spec.learned}
+    section = sections.get(spec.kind)
+    if section is not None and section.num_keypoints > max_keypoints:
+        raise ApiError(
+            422,
+            "invalid_input",
+            f"{section.num_keypoints} keypoints per scan; the limit is {max_keypoints} "
+            "(max_keypoints)",
+            f"encoder.{spec.kind}.num_keypoints",
+        )
+
+
+def confine_model_path(spec: EncoderSpec | None, models_dir: Path | None) -> EncoderSpec | None:
+    """``spec`` with its ``model_path`` resolved inside ``models_dir``; 422 with one message
+    for any other path (or any path when no models directory is configured), so a caller
+    learns nothing about the server's files and never has one loaded as a model."""
+    if spec is None or spec.model_path is None:
+        return spec
+    refused = ApiError(
+        422,
+        "invalid_input",
+        "model files must be in the service's models directory (SGVLOC_MODELS_DIR): give "
+        "a file name there",
+        "encoder.model_path",
+    )
+    if models_dir is None:
+        raise refused
+    root = models_dir.resolve()
+    path = (root / spec.model_path).resolve()
+    if not path.is_relative_to(root) or not path.is_file():
+        raise refused
+    return spec.model_copy(update={"model_path": str(path)})
 
 
 @router.get("", response_model=MapList, operation_id="list_maps", responses=error_responses())
