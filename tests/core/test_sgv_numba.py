@@ -245,3 +245,32 @@ def test_nn_correspondences_cpu_equals_brute_force():
     c0 = torch.as_tensor(np.where(mask[..., None], c, 0.0).astype(np.float32))
     ref = _nn_torch(torch.as_tensor(q), c0, torch.as_tensor(mask), 2**20)
     np.testing.assert_array_equal(ref.numpy(), idx)
+
+
+def test_kernels_do_not_wait_for_each_other() -> None:
+    """While one parallel kernel holds the workqueue lock (here: the test holds it), a
+    small batch still runs; under OpenMP a large one does too. One large request must
+    never hold up the others."""
+    import threading
+
+    import numba
+
+    from sgvloc.core import sgv_numba
+
+    sgv_numba.warm_up()
+    rng = np.random.default_rng(1)
+    small = rng.uniform(-5, 5, size=(2, 64, 3)).astype(np.float32)
+    large = rng.uniform(-5, 5, size=(2, 1200, 3)).astype(np.float32)  # 2.9M entries
+    cases = [small] + ([large] if numba.threading_layer() != "workqueue" else [])
+    for pts in cases:
+        done = threading.Event()
+
+        def run(pts=pts, done=done) -> None:
+            mask = np.ones(pts.shape[:2], np.bool_)
+            sgv_numba.power_iteration(pts, pts, mask, 0.4, 3, 1.0, 2**40)
+            done.set()
+
+        with sgv_numba._LOCK:
+            worker = threading.Thread(target=run, daemon=True)
+            worker.start()
+            assert done.wait(60), f"a batch of {pts.shape[1]} waited for the lock"

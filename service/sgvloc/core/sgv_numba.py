@@ -29,13 +29,16 @@ away are good to ~2e-6 m, so an entry near ``d_thr`` is good to ~2e-5, and a sco
 disk (``cache=True``); :func:`warm_up` compiles or loads every kernel on tiny inputs so
 that no request pays for it.
 
-Kernel calls are serialised by a lock: numba's ``workqueue`` threading layer (the fallback
-where neither OpenMP nor TBB is available) must not be entered from two threads at once,
-and each call already uses every core.
+Serial kernels (small batches, the usual case) run concurrently from any number of
+threads. Parallel kernels take a lock only under numba's ``workqueue`` threading layer
+(the fallback where neither OpenMP nor TBB is available), which must not be entered from
+two threads at once; under OpenMP (tried first, see below) nothing is serialised, so one
+large request never holds up the others.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import threading
@@ -47,7 +50,7 @@ import time
 os.environ.setdefault("NUMBA_THREADING_LAYER_PRIORITY", "omp workqueue tbb")
 
 import numpy as np  # noqa: E402
-from numba import get_num_threads, njit, prange  # noqa: E402
+from numba import get_num_threads, njit, prange, threading_layer  # noqa: E402
 
 log = logging.getLogger(__name__)
 
@@ -58,8 +61,18 @@ FREE_CHUNKS = 16
 #: (about 1-2 ms of work on one core: k = 20 at n = 256 is 1.3M).
 SERIAL_MAX_ENTRIES = 2_000_000
 
+#: serialises parallel kernels under the workqueue layer only (see the module docstring)
 _LOCK = threading.Lock()
 _WARM = False
+
+
+def _parallel_guard() -> contextlib.AbstractContextManager:
+    """The lock a parallel kernel must hold: none unless the layer is ``workqueue``."""
+    try:
+        layer = threading_layer()
+    except ValueError:  # no parallel kernel has run yet; the first one picks the layer
+        return _LOCK
+    return _LOCK if layer == "workqueue" else contextlib.nullcontext()
 
 
 @njit(cache=True, nogil=True)
@@ -254,8 +267,9 @@ def power_iteration(
     # slowest thread, and on a busy 2-core machine a descheduled one costs a time slice
     # (measured: ~8 ms, dwarfing the work below this size).
     work = int((counts[dense].astype(np.int64) ** 2).sum())
-    batch = _dense_batch if work > SERIAL_MAX_ENTRIES else _dense_batch_serial
-    with _LOCK:
+    parallel = work > SERIAL_MAX_ENTRIES
+    batch = _dense_batch if parallel else _dense_batch_serial
+    with _parallel_guard() if parallel or not dense.all() else contextlib.nullcontext():
         if dense.any():
             batch(src, dst, mask, dense, inv_d2, dg, int(iterations), lam, v)
         for b in np.flatnonzero(~dense):
