@@ -5,13 +5,16 @@ and leaks no server path."""
 from __future__ import annotations
 
 import shutil
+import socket
+import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
 import numpy as np
 import pytest
 from conftest import Server
-from svc_helpers import PRECOMPUTED, error_of, post_msgpack
+from svc_helpers import PRECOMPUTED, error_of, post_msgpack, random_features
 
 from sgvloc.core.encoders.learned import shipped_weights_path
 
@@ -145,3 +148,83 @@ def test_a_bad_map_folder_blocks_no_other_map_and_leaks_no_path(tmp_path: Path) 
             assert str(tmp_path) not in text, text
     finally:
         srv.stop()
+
+
+@pytest.fixture(scope="module")
+def strict_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
+    """A server with one localize slot, a 1 s compute deadline and a 2 s body deadline,
+    holding map ``heavy`` (30 keyframes of 2000 keypoints) and map ``light``."""
+    root = tmp_path_factory.mktemp("strict")
+    env = {
+        "SGVLOC_MAX_INFLIGHT_LOCALIZE": "1",
+        "SGVLOC_REQUEST_TIMEOUT_S": "1.0",
+        "SGVLOC_BODY_TIMEOUT_S": "2.0",
+    }
+    srv = Server(root / "data", root / "server.log", env=env)
+    srv.start()
+    rng = np.random.default_rng(5)
+    with httpx.Client(base_url=srv.url, timeout=120) as c:
+        for name, n, count in (("heavy", 2000, 30), ("light", 32, 5)):
+            assert (
+                c.post("/v1/maps", json={"name": name, "encoder": PRECOMPUTED}).status_code == 201
+            )
+            for start in range(0, count, 10):
+                kfs = [{"T_map_sensor": np.eye(4), "features": random_features(rng, n)}
+                       for _ in range(min(10, count - start))]  # fmt: skip
+                r = post_msgpack(c, f"/v1/maps/{name}/keyframes", {"keyframes": kfs})
+                assert r.status_code == 201, r.text
+    try:
+        yield srv
+    finally:
+        srv.stop()
+
+
+def test_a_localize_past_its_deadline_stops_and_says_so(strict_server: Server) -> None:
+    """RANSAC-RIR over 30 candidates of 2000 keypoints takes seconds; with
+    request_timeout_s = 1 the work stops at its next step: 503 deadline_exceeded, and
+    the message names the step (a candidate before the last: the rest never ran)."""
+    rng = np.random.default_rng(6)
+    body = {"features": random_features(rng, 2000), "top_k": 30, "rerank": "ransac-rir"}
+    with httpx.Client(base_url=strict_server.url, timeout=120) as c:
+        r = post_msgpack(c, "/v1/maps/heavy/localize", body)
+        assert r.status_code == 503, r.text
+        err = error_of(r)
+        assert err["code"] == "deadline_exceeded" and r.headers["Retry-After"] == "1"
+        assert "stopped at" in err["message"], err
+        if "candidate" in err["message"]:
+            k = int(err["message"].split("candidate ")[1].split(" of")[0])
+            assert k < 30, err
+        # the service is free again at once: a light request is answered
+        light = {"features": random_features(rng, 32), "rerank": "none", "refine": "none"}
+        assert post_msgpack(c, "/v1/maps/light/localize", light).status_code == 200
+
+
+def test_a_slow_upload_holds_no_localize_slot(strict_server: Server) -> None:
+    """With one localize slot, an upload trickling its body does not keep a normal
+    localize out (it used to take the slot before its body was read); the slow one gets
+    408 with Connection: close once body_timeout_s has passed."""
+    rng = np.random.default_rng(7)
+    slow = socket.create_connection(("127.0.0.1", strict_server.port))
+    try:
+        slow.sendall(
+            b"POST /v1/maps/light/localize HTTP/1.1\r\nHost: x\r\n"
+            b'Content-Type: application/json\r\nContent-Length: 100000\r\n\r\n{"points": ['
+        )
+        time.sleep(0.3)  # the server has the headers and waits for the body
+        body = {"features": random_features(rng, 32), "rerank": "none", "refine": "none"}
+        with httpx.Client(base_url=strict_server.url, timeout=60) as c:
+            for _ in range(3):
+                r = post_msgpack(c, "/v1/maps/light/localize", body)
+                assert r.status_code == 200, r.text
+        slow.settimeout(30)
+        answer = b""
+        while b"\r\n\r\n" not in answer:
+            chunk = slow.recv(4096)
+            if not chunk:
+                break
+            answer += chunk
+    finally:
+        slow.close()
+    head = answer.split(b"\r\n\r\n")[0].decode().lower()
+    assert head.startswith("http/1.1 408"), answer[:300]
+    assert "connection: close" in head

@@ -48,6 +48,7 @@ def test_config_reports_the_limits(client: httpx.Client) -> None:
         "max_inflight_localize": 8,  # 4 x 2 workers
         "request_timeout_s": 30.0,
         "retry_after_s": 1,
+        "body_timeout_s": 30.0,
         "workers": 2,
         "threads_per_worker": max(1, usable_cpus() // 2),
     }
@@ -135,7 +136,7 @@ def test_waiting_too_long_for_a_worker_is_503(tmp_path: Path) -> None:
     assert app.state.admission.inflight == 0
 
 
-# -- a real server: a slow client holds the only localize slot ----------------------------
+# -- a real server: a slow upload does not hold the only localize slot -------------------
 
 
 @pytest.fixture(scope="module")
@@ -153,7 +154,7 @@ def one_slot_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server
         srv.stop()
 
 
-def test_slot_is_held_until_the_answer(one_slot_server: Server) -> None:
+def test_a_slow_body_holds_no_slot(one_slot_server: Server) -> None:
     url = one_slot_server.url
     with httpx.Client(base_url=url, timeout=60) as c:
         assert c.post("/v1/maps", json={"name": "one", "encoder": PRECOMPUTED}).status_code == 201
@@ -187,17 +188,13 @@ def test_slot_is_held_until_the_answer(one_slot_server: Server) -> None:
     try:
         assert sent.wait(60)
         with httpx.Client(base_url=url, timeout=60) as c:
-            for _ in range(200):  # until the slow request holds the slot
+            for _ in range(5):  # the slow upload holds no slot: every probe is served
                 r = c.post("/v1/maps/one/localize", content=body, headers=_MSGPACK)
                 seen.append(r.status_code)
-                if r.status_code == 429:
-                    break
-                threading.Event().wait(0.05)
     finally:
         release.set()
         thread.join(120)
-    assert seen[-1] == 429, seen
-    assert r.headers["retry-after"] == "1" and error_of(r)["code"] == "overloaded"
+    assert seen == [200] * 5, seen
     assert slow["r"].status_code == 200, slow["r"].text
     with httpx.Client(base_url=url, timeout=60) as c:  # the slot is free again
         assert c.post("/v1/maps/one/localize", content=body, headers=_MSGPACK).status_code == 200

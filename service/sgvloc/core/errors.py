@@ -6,7 +6,8 @@ All derive from :class:`SgvlocError`. The HTTP layer maps them to status codes:
   file) -> 422 / 400;
 - :class:`EncoderMismatchError` (features from another encoder than the map's) -> 409;
 - :class:`NotFoundError` (unknown keyframe or map) -> 404;
-- :class:`ConflictError` (duplicate name or key) -> 409.
+- :class:`ConflictError` (duplicate name or key) -> 409;
+- :class:`DeadlineExceeded` (a call ran past its time limit and stopped) -> 503.
 """
 
 
@@ -35,3 +36,7 @@ class NotFoundError(SgvlocError, KeyError):
 
 class ConflictError(SgvlocError):
     """The operation conflicts with existing state (duplicate name, key, ...)."""
+
+
+class DeadlineExceeded(SgvlocError):
+    """The call ran past its time limit (:mod:`sgvloc.core.deadline`) and stopped."""

@@ -29,6 +29,7 @@ from .confidence import (
     spectral_candidates,
 )
 from .config import LocalizerConfig
+from .deadline import check as check_deadline
 from .encoders import Encoder
 from .errors import ConflictError, InputError, NotFoundError
 from .features import Features
@@ -301,6 +302,7 @@ class Localizer:
             query = features
         timings["encode"] = _ms(t)
 
+        check_deadline("retrieval")
         with self._lock.read():
             version = self.version
             # 2. retrieve the top-k keyframes by global descriptor (inside the prior's radius)
@@ -333,11 +335,13 @@ class Localizer:
                 )
 
             # 3. re-rank the candidates
+            check_deadline("re-ranking")
             t = time.perf_counter()
             out = rerank(method, query, retrieved, self._features_of, self.index, cfg)
             timings["rerank"] = _ms(t)
 
             # 4. estimate the pose against the re-ranked top-1
+            check_deadline("the pose")
             t = time.perf_counter()
             best = self._keyframes[out.candidates[0].keyframe_id]
             pose = out.poses.get(best.id) or ransac_pose(
@@ -349,10 +353,12 @@ class Localizer:
             )
             has_estimate = pose.num_correspondences >= cfg.pose.ransac_n
             if refine == "icp" and has_estimate:
+                check_deadline("ICP")
                 pose = self._refine(pose, query_cloud, best)
             timings["pose"] = _ms(t)
 
             # 5. the evidence, its calibrated confidence and the verdict
+            check_deadline("the verdict")
             t = time.perf_counter()
             T_kf = pose.T_target_source if has_estimate else None
             T_map = best.T_map_sensor @ T_kf if T_kf is not None else None

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .config import PoseConfig
+from .deadline import check as check_deadline
 from .errors import InputError
 
 log = logging.getLogger(__name__)
@@ -186,6 +187,7 @@ def _ransac(src: np.ndarray, dst: np.ndarray, pairs: np.ndarray, cfg: PoseConfig
     best_T = np.eye(4)
     done, needed = 0, cfg.max_iterations
     while done < needed:
+        check_deadline("RANSAC")
         b = min(batch, needed - done)
         done += b
         idx = rng.integers(0, C, size=(b, n))  # [b, n]

@@ -25,6 +25,7 @@ from typing import Any, get_args
 import numpy as np
 
 from .config import LocalizerConfig, RerankMethod
+from .deadline import check as check_deadline
 from .errors import InputError
 from .features import Features
 from .pose import PoseResult, fgr_pose, ransac_pose
@@ -151,6 +152,7 @@ def _rir(
     poses: dict[int, PoseResult] = {}
     scores = np.zeros(len(retrieved))
     for i, c in enumerate(retrieved):
+        check_deadline(f"{method} candidate {i + 1} of {len(retrieved)}")
         cand = features_of(c.keyframe_id)
         if method == "ransac-rir":
             pose = ransac_pose(

@@ -91,6 +91,13 @@ class Settings(BaseSettings):
         description="longest a request waits for a worker thread; beyond it 503 with Retry-After",
     )
     retry_after_s: int = Field(1, ge=1, description="Retry-After of 429/503 answers (seconds)")
+    body_timeout_s: float = Field(
+        30.0,
+        gt=0,
+        le=3600,
+        description="longest a request body may take to arrive; beyond it 408 and the "
+        "connection is closed (a slow upload holds no localize slot meanwhile)",
+    )
 
     @model_validator(mode="after")
     def _default_inflight(self) -> Settings:

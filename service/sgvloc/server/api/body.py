@@ -14,6 +14,7 @@ import json
 from dataclasses import dataclass
 from typing import Any
 
+import anyio
 import numpy as np
 from fastapi import Request
 from fastapi.responses import Response
@@ -58,9 +59,10 @@ class RawBody:
             raise ApiError(400, "bad_body", f"body cannot be decoded: {exc}") from None
 
 
-async def read_body(request: Request, limit: int) -> RawBody:
-    """Read the whole body, at most ``limit`` bytes; 415 for a media type other than
-    JSON or MessagePack, 413 beyond the limit."""
+async def read_body(request: Request, limit: int, timeout_s: float | None = None) -> RawBody:
+    """Read the whole body, at most ``limit`` bytes within ``timeout_s`` seconds; 415 for
+    a media type other than JSON or MessagePack, 413 beyond the limit, 408 (and the
+    connection closed) when the body is not complete in time."""
     ctype = media_type(request.headers.get("content-type"))
     if ctype not in MSGPACK_TYPES + JSON_TYPES:
         raise ApiError(
@@ -75,10 +77,18 @@ async def read_body(request: Request, limit: int) -> RawBody:
             413, "payload_too_large", f"body has {int(declared)} bytes, the limit is {limit}"
         )
     buf = bytearray()
-    async for chunk in request.stream():
-        buf += chunk
-        if len(buf) > limit:
-            raise ApiError(413, "payload_too_large", f"body exceeds the limit of {limit} bytes")
+    with anyio.move_on_after(timeout_s) as scope:
+        async for chunk in request.stream():
+            buf += chunk
+            if len(buf) > limit:
+                raise ApiError(413, "payload_too_large", f"body exceeds the limit of {limit} bytes")
+    if scope.cancelled_caught:
+        raise ApiError(
+            408,
+            "request_timeout",
+            f"the body did not arrive within body_timeout_s={timeout_s:g} s",
+            headers={"Connection": "close"},
+        )
     return RawBody(bytes(buf), ctype)
 
 

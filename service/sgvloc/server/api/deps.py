@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import time
 from collections.abc import AsyncIterator, Callable
 from typing import Annotated, TypeVar
 
 import anyio
 import anyio.to_thread
 from fastapi import Depends, Path, Request
+
+from sgvloc.core.deadline import deadline
 
 from ..maps import MapManager
 from ..metrics import Metrics
@@ -58,8 +61,13 @@ class Worker:
         self._settings = settings
         self._threads = threads
 
-    async def run(self, fn: Callable[[], T]) -> T:
+    async def run(self, fn: Callable[[], T], *, deadline_at: float | None = None) -> T:
+        """Run ``fn`` on a worker thread. With ``deadline_at`` (``time.monotonic()``
+        seconds) the wait for a worker ends there too, and the engine stops the work at
+        its next step once it has passed (503 ``deadline_exceeded``)."""
         timeout = self._settings.request_timeout_s
+        if deadline_at is not None:
+            timeout = max(0.0, min(timeout, deadline_at - time.monotonic()))
         acquired = False
         with anyio.move_on_after(timeout):
             await self._limiter.acquire()
@@ -68,13 +76,21 @@ class Worker:
             raise busy(
                 503,
                 "queue_timeout",
-                f"no worker was free within request_timeout_s={timeout:g} s; retry later",
+                f"no worker was free within request_timeout_s="
+                f"{self._settings.request_timeout_s:g} s; retry later",
                 self._settings,
             )
         try:
             # the token taken above is the bound; ``threads`` (as many) only keeps the
             # work off anyio's default pool of 40
-            return await anyio.to_thread.run_sync(fn, limiter=self._threads)
+            if deadline_at is None:
+                return await anyio.to_thread.run_sync(fn, limiter=self._threads)
+
+            def limited() -> T:
+                with deadline(deadline_at):
+                    return fn()
+
+            return await anyio.to_thread.run_sync(limited, limiter=self._threads)
         finally:
             self._limiter.release()
 
@@ -116,8 +132,9 @@ async def admit_localize(request: Request) -> AsyncIterator[None]:
 async def get_body(
     request: Request, settings: Annotated[Settings, Depends(get_settings)]
 ) -> RawBody:
-    """The raw request body, within ``max_body_bytes`` (413) and of a known type (415)."""
-    return await read_body(request, settings.max_body_bytes)
+    """The raw request body, within ``max_body_bytes`` (413) and ``body_timeout_s`` (408)
+    and of a known type (415)."""
+    return await read_body(request, settings.max_body_bytes, settings.body_timeout_s)
 
 
 SettingsDep = Annotated[Settings, Depends(get_settings)]

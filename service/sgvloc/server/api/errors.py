@@ -21,6 +21,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from sgvloc.core.errors import (
     ConflictError,
+    DeadlineExceeded,
     EncoderMismatchError,
     InputError,
     NotFoundError,
@@ -112,6 +113,11 @@ async def _api_error(request: Request, exc: Exception) -> Response:
 async def _engine_error(request: Request, exc: Exception) -> Response:
     assert isinstance(exc, SgvlocError)
     field = getattr(exc, "field", None)
+    if isinstance(exc, DeadlineExceeded):
+        retry = str(request.app.state.settings.retry_after_s)
+        return error_response(
+            request, 503, "deadline_exceeded", str(exc), None, {"Retry-After": retry}
+        )
     for cls, status, code in _ENGINE_CODES:
         if isinstance(exc, cls):
             return error_response(request, status, code, str(exc), field)
@@ -167,8 +173,14 @@ def _allowed_methods(request: Request) -> list[str]:
 
 async def _unexpected(request: Request, exc: Exception) -> Response:
     log.exception("internal error on %s %s", request.method, request.url.path, exc_info=exc)
+    # Starlette re-raises after this answer and the server then drops the connection:
+    # say so, so that a keep-alive client opens a new one for its next request
     return error_response(
-        request, 500, "internal", f"internal error ({type(exc).__name__}); see the service log"
+        request,
+        500,
+        "internal",
+        f"internal error ({type(exc).__name__}); see the service log",
+        headers={"Connection": "close"},
     )
 
 

@@ -537,6 +537,7 @@ class LimitsOut(BaseModel):
     max_inflight_localize: int = Field(description="localize requests admitted at once (429)")
     request_timeout_s: float = Field(description="longest wait for a worker thread (503)")
     retry_after_s: int = Field(description="Retry-After of 429/503 answers")
+    body_timeout_s: float = Field(description="longest a request body may take to arrive (408)")
     workers: int = Field(description="threads running CPU work")
     threads_per_worker: int = Field(
         description="threads each numeric library may use inside one request (as configured; "

@@ -39,6 +39,7 @@ async def get_config(request: Request, settings: SettingsDep) -> Response:
                 max_inflight_localize=s.inflight_limit,
                 request_timeout_s=s.request_timeout_s,
                 retry_after_s=s.retry_after_s,
+                body_timeout_s=s.body_timeout_s,
                 workers=s.workers,
                 threads_per_worker=s.library_threads,
             ),

@@ -21,7 +21,7 @@ router = APIRouter(
     response_model=InsertOut,
     operation_id="insert_keyframes",
     openapi_extra=body_doc(KeyframeBatch),
-    responses=error_responses(400, 404, 409, 413, 415, 422),
+    responses=error_responses(400, 404, 408, 409, 413, 415, 422),
 )
 async def insert_keyframes(
     request: Request,

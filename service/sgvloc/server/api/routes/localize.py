@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 from fastapi import APIRouter, Depends, Request, Response
 from scipy.spatial.transform import Rotation
@@ -110,13 +112,13 @@ def localize_out(name: str, result: LocalizationResult) -> LocalizeOut:
     response_model=LocalizeOut,
     operation_id="localize",
     openapi_extra=body_doc(LocalizeBody),
-    responses=error_responses(400, 404, 409, 413, 415, 422, 429),
+    responses=error_responses(400, 404, 408, 409, 413, 415, 422, 429),
 )
 async def localize(
     request: Request,
     map_name: MapName,
-    _slot: LocalizeSlot,  # before the body: a refused request is not read
-    body: BodyDep,
+    body: BodyDep,  # read (within body_timeout_s) before the slot: slow uploads hold none
+    _slot: LocalizeSlot,
     manager: ManagerDep,
     settings: SettingsDep,
     metrics: MetricsDep,
@@ -125,7 +127,10 @@ async def localize(
     """Localize a scan: retrieve, re-rank, estimate the pose against the top-1.
 
     At most ``max_inflight_localize`` localize requests are admitted at once; beyond
-    that the answer is 429 with ``Retry-After``."""
+    that the answer is 429 with ``Retry-After``. Waiting and computing end within
+    ``request_timeout_s`` of the body's arrival: past it the work stops at its next step
+    and the answer is 503 ``deadline_exceeded``."""
+    deadline_at = time.monotonic() + settings.request_timeout_s
 
     def work() -> LocalizeOut:
         manager.get(map_name)
@@ -143,4 +148,4 @@ async def localize(
         metrics.observe_localization(result)
         return localize_out(map_name, result)
 
-    return encode(request, await worker.run(work))
+    return encode(request, await worker.run(work, deadline_at=deadline_at))

@@ -66,7 +66,7 @@ def map_info(handle: MapHandle) -> MapInfo:
     response_model=MapInfo,
     operation_id="create_map",
     openapi_extra=body_doc(MapCreate),
-    responses=error_responses(400, 409, 413, 415, 422),
+    responses=error_responses(400, 408, 409, 413, 415, 422),
 )
 async def create_map(
     request: Request, body: BodyDep, manager: ManagerDep, settings: SettingsDep, worker: WorkerDep
@@ -152,7 +152,7 @@ async def get_map(request: Request, map_name: MapName, manager: ManagerDep) -> R
     response_model=MapInfo,
     operation_id="update_map",
     openapi_extra=body_doc(MapPatch),
-    responses=error_responses(400, 404, 413, 415, 422),
+    responses=error_responses(400, 404, 408, 413, 415, 422),
 )
 async def update_map(
     request: Request,

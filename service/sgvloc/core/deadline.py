@@ -1,0 +1,41 @@
+"""A time limit on one call's work, checked between its steps.
+
+The service gives each localize a deadline (``request_timeout_s`` after the request
+arrived); the engine calls :func:`check` between its stages, between RANSAC batches and
+between the candidates of registration-based re-ranking, and stops with
+:class:`~sgvloc.core.errors.DeadlineExceeded` once it has passed. A localize changes
+nothing, so stopping it midway loses nothing. The steps between checks are bounded by
+the request limits (keypoints, ``top_k``, RANSAC iterations), so a call overruns its
+deadline by at most one step. Without a deadline (the library's default) ``check`` does
+nothing.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+from .errors import DeadlineExceeded
+
+_local = threading.local()
+
+
+@contextmanager
+def deadline(at: float | None) -> Iterator[None]:
+    """Run the block with a deadline at ``at`` (``time.monotonic()`` seconds; None: no
+    limit), for this thread."""
+    previous = getattr(_local, "at", None)
+    _local.at = at
+    try:
+        yield
+    finally:
+        _local.at = previous
+
+
+def check(step: str) -> None:
+    """Raise :class:`DeadlineExceeded` if this thread's deadline has passed."""
+    at = getattr(_local, "at", None)
+    if at is not None and time.monotonic() > at:
+        raise DeadlineExceeded(f"the request ran past its time limit and was stopped at {step}")
