@@ -228,3 +228,43 @@ def test_a_slow_upload_holds_no_localize_slot(strict_server: Server) -> None:
     head = answer.split(b"\r\n\r\n")[0].decode().lower()
     assert head.startswith("http/1.1 408"), answer[:300]
     assert "connection: close" in head
+
+
+def test_sigterm_stops_in_flight_work_and_exits(tmp_path: Path) -> None:
+    """SIGTERM while a long localize runs (request_timeout_s 300 s: no deadline cuts it):
+    the work stops at its next step, its client gets 503, and the process exits (it
+    used to wait for the whole computation)."""
+    import signal
+    import threading
+
+    env = {"SGVLOC_REQUEST_TIMEOUT_S": "300", "SGVLOC_SHUTDOWN_TIMEOUT_S": "5"}
+    srv = Server(tmp_path / "data", tmp_path / "server.log", env=env)
+    srv.start()
+    rng = np.random.default_rng(8)
+    answer: dict[str, httpx.Response] = {}
+    try:
+        with httpx.Client(base_url=srv.url, timeout=120) as c:
+            assert c.post("/v1/maps", json={"name": "h", "encoder": PRECOMPUTED}).status_code == 201
+            for _ in range(3):
+                kfs = [{"T_map_sensor": np.eye(4), "features": random_features(rng, 2000)}
+                       for _ in range(10)]  # fmt: skip
+                assert (
+                    post_msgpack(c, "/v1/maps/h/keyframes", {"keyframes": kfs}).status_code == 201
+                )
+        body = {"features": random_features(rng, 2000), "top_k": 30, "rerank": "ransac-rir"}
+
+        def heavy() -> None:
+            with httpx.Client(base_url=srv.url, timeout=120) as c:
+                answer["r"] = post_msgpack(c, "/v1/maps/h/localize", body)
+
+        client = threading.Thread(target=heavy)
+        client.start()
+        time.sleep(1.0)  # the localize is computing now
+        srv.proc.send_signal(signal.SIGTERM)
+        code = srv.proc.wait(timeout=60)
+        client.join(60)
+    finally:
+        srv.kill()
+    assert code in (0, -signal.SIGTERM), srv.log()[-2000:]  # uvicorn re-raises the signal
+    r = answer["r"]
+    assert r.status_code == 503 and "shutting down" in error_of(r)["message"], r.text

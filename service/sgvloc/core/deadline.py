@@ -20,6 +20,8 @@ from contextlib import contextmanager
 from .errors import DeadlineExceeded
 
 _local = threading.local()
+#: set when the process shuts down: every call with a deadline stops at its next step
+_abort = threading.Event()
 
 
 @contextmanager
@@ -35,7 +37,17 @@ def deadline(at: float | None) -> Iterator[None]:
 
 
 def check(step: str) -> None:
-    """Raise :class:`DeadlineExceeded` if this thread's deadline has passed."""
+    """Raise :class:`DeadlineExceeded` if this thread's deadline has passed, or if
+    :func:`abort_all` was called while it has one."""
     at = getattr(_local, "at", None)
-    if at is not None and time.monotonic() > at:
+    if at is None:
+        return
+    if _abort.is_set():
+        raise DeadlineExceeded(f"the service is shutting down; stopped at {step}")
+    if time.monotonic() > at:
         raise DeadlineExceeded(f"the request ran past its time limit and was stopped at {step}")
+
+
+def abort_all() -> None:
+    """Stop every call that runs with a deadline at its next step (process shutdown)."""
+    _abort.set()

@@ -221,6 +221,9 @@ class MapManager:
                 log.info("removing leftover folder %s", leftover)
                 shutil.rmtree(leftover, ignore_errors=True)
         for folder in sorted(p for p in self.maps_dir.iterdir() if p.is_dir()):
+            if self._stop.is_set():
+                log.warning("shutting down: maps from %r on were not loaded", folder.name)
+                break
             name = folder.name
             if not MAP_NAME_RE.fullmatch(name):
                 log.warning("ignoring folder %s: not a valid map name", folder)
@@ -334,6 +337,10 @@ class MapManager:
                 since = handle.unsaved_since
                 if since is not None and now - since >= self.snapshot_delay_s:
                     self.snapshot(handle.name)
+
+    def stop_loading(self) -> None:
+        """Make :meth:`load_all` stop after the map it is loading (shutdown)."""
+        self._stop.set()
 
     def close(self) -> None:
         """Stop the snapshot thread, save every changed map's snapshot, close the stores."""

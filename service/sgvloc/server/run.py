@@ -40,14 +40,33 @@ def serve(settings: Settings) -> None:
         application = create_app(settings)
     except KeysError as exc:
         raise StartupError(str(exc)) from None
-    uvicorn.run(
+    config = uvicorn.Config(
         application,
         host=settings.host,
         port=settings.port,
         log_level=settings.log_level,
         workers=None,  # one process: an app object cannot be forked into workers anyway
         access_log=settings.log_level == "debug",
+        timeout_graceful_shutdown=settings.shutdown_timeout_s,
     )
+    _graceful_server(config).run()
+
+
+def _graceful_server(config):  # uvicorn is imported late: after the thread caps
+    """uvicorn's server, which on SIGTERM/SIGINT also stops in-flight localize work at its
+    next step (:func:`sgvloc.core.deadline.abort_all`): those answers are 503 at once
+    instead of the shutdown waiting for them (at most ``shutdown_timeout_s`` in all)."""
+    import uvicorn
+
+    from sgvloc.core.deadline import abort_all
+
+    class Server(uvicorn.Server):
+        def handle_exit(self, sig, frame) -> None:
+            log.info("shutting down: stopping in-flight work, finishing requests")
+            abort_all()
+            super().handle_exit(sig, frame)
+
+    return Server(config)
 
 
 def check_port(host: str, port: int) -> None:

@@ -91,6 +91,13 @@ class Settings(BaseSettings):
         description="longest a request waits for a worker thread; beyond it 503 with Retry-After",
     )
     retry_after_s: int = Field(1, ge=1, description="Retry-After of 429/503 answers (seconds)")
+    shutdown_timeout_s: float = Field(
+        10.0,
+        gt=0,
+        le=600,
+        description="on SIGTERM, longest wait for open requests and for map loading before "
+        "the process exits (in-flight localize work is stopped at once)",
+    )
     body_timeout_s: float = Field(
         30.0,
         gt=0,

@@ -111,7 +111,8 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     try:
         yield
     finally:
-        await anyio.to_thread.run_sync(loader.join)
+        manager.stop_loading()  # a start-up still loading maps ends after the current one
+        await anyio.to_thread.run_sync(loader.join, settings.shutdown_timeout_s)
         await anyio.to_thread.run_sync(manager.close)
         log.info("shut down: snapshots saved, stores closed")
 
