@@ -66,8 +66,9 @@ def running_service(data_dir: Path, *args: str) -> Iterator[str]:
                 raise RuntimeError(
                     f"sgvloc serve exited with {proc.returncode}:\n{log_path.read_text()[-4000:]}"
                 )
-            try:  # ready = every map loaded (an empty data dir is ready at once)
-                if httpx.get(f"{url}/readyz", timeout=1.0).status_code == 200:
+            try:  # up = every map loaded, or tried (degraded: some failed to load)
+                r = httpx.get(f"{url}/readyz", timeout=1.0)
+                if r.status_code == 200 or r.json().get("status") == "degraded":
                     break
             except httpx.TransportError:
                 pass

@@ -91,8 +91,10 @@ class Server:
         while time.monotonic() < deadline:
             if self.proc.poll() is not None:
                 raise RuntimeError(f"the service exited at start-up:\n{self.log()}")
-            try:  # /readyz is open unless SGVLOC_READYZ_AUTH=viewer (then 401 = up)
-                if httpx.get(f"{self.url}/readyz", timeout=2.0).status_code in (200, 401):
+            try:  # /readyz is open unless SGVLOC_READYZ_AUTH=viewer (then 401 = up);
+                # "degraded" (503): up, with map folders that failed to load
+                r = httpx.get(f"{self.url}/readyz", timeout=2.0)
+                if r.status_code in (200, 401) or r.json().get("status") == "degraded":
                     return
             except httpx.TransportError:
                 pass

@@ -124,28 +124,48 @@ def test_model_files_only_from_the_models_directory(tmp_path: Path) -> None:
 
 
 def test_a_bad_map_folder_blocks_no_other_map_and_leaks_no_path(tmp_path: Path) -> None:
+    """Folders that fail to load block no other map, leak no server path, make /readyz
+    503 "degraded", answer 503 map_unavailable, and come back with POST .../reload once
+    the cause is gone (no restart)."""
     srv = Server(tmp_path / "data", tmp_path / "server.log")
     srv.start()
     try:
         with httpx.Client(base_url=srv.url, timeout=60) as c:
-            assert (
-                c.post("/v1/maps", json={"name": "good", "encoder": PRECOMPUTED}).status_code == 201
-            )
+            for name in ("good", "moved"):
+                made = c.post("/v1/maps", json={"name": name, "encoder": PRECOMPUTED})
+                assert made.status_code == 201
     finally:
         srv.stop()
+    maps = tmp_path / "data" / "maps"
+    (maps / "moved" / "map.sqlite").rename(tmp_path / "away.sqlite")  # a lost mount, say
     for name, content in (("broken", b"not a database"), ("empty", None)):
-        folder = tmp_path / "data" / "maps" / name
-        folder.mkdir()
+        (maps / name).mkdir()
         if content is not None:
-            (folder / "map.sqlite").write_bytes(content)
+            (maps / name / "map.sqlite").write_bytes(content)
     srv.start()
     try:
         with httpx.Client(base_url=srv.url, timeout=60) as c:
             assert c.get("/v1/maps/good").status_code == 200
-            ready = c.get("/readyz").json()
-            assert set(ready["failed"]) == {"broken", "empty"}, ready
-            text = str(ready) + c.post("/v1/maps", json={"name": "broken"}).text
+            r = c.get("/readyz")
+            assert r.status_code == 503 and r.json()["status"] == "degraded", r.text
+            assert set(r.json()["failed"]) == {"broken", "empty", "moved"}, r.text
+            gone = c.get("/v1/maps/moved")
+            assert gone.status_code == 503 and error_of(gone)["code"] == "map_unavailable"
+            text = r.text + gone.text + c.post("/v1/maps", json={"name": "broken"}).text
             assert str(tmp_path) not in text, text
+            # still broken: 503 with the reason; then the cause is fixed: 200
+            again = c.post("/v1/maps/moved/reload")
+            assert again.status_code == 503 and "still cannot be loaded" in again.text
+            (tmp_path / "away.sqlite").rename(maps / "moved" / "map.sqlite")
+            back = c.post("/v1/maps/moved/reload")
+            assert back.status_code == 200 and back.json()["name"] == "moved", back.text
+            assert c.get("/v1/maps/moved").status_code == 200
+            assert c.post("/v1/maps/good/reload").status_code == 409
+            for name in ("broken", "empty"):  # removed by the operator
+                shutil.rmtree(maps / name)
+                assert c.post(f"/v1/maps/{name}/reload").status_code == 404
+            ready = c.get("/readyz")
+            assert ready.status_code == 200 and ready.json()["status"] == "ready", ready.text
     finally:
         srv.stop()
 
@@ -268,3 +288,61 @@ def test_sigterm_stops_in_flight_work_and_exits(tmp_path: Path) -> None:
     assert code in (0, -signal.SIGTERM), srv.log()[-2000:]  # uvicorn re-raises the signal
     r = answer["r"]
     assert r.status_code == 503 and "shutting down" in error_of(r)["message"], r.text
+
+
+@pytest.fixture
+def small_disk(tmp_path: Path) -> Iterator[Path]:
+    """A real 16 MiB tmpfs (needs root and mount rights: skipped where it cannot mount)."""
+    import subprocess
+
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    run = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", "size=16m", "tmpfs", str(disk)],
+        capture_output=True,
+        text=True,
+    )
+    if run.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {run.stderr.strip()}")
+    try:
+        yield disk
+    finally:
+        subprocess.run(["umount", "-l", str(disk)], capture_output=True)
+
+
+def test_a_full_disk_is_507_and_changes_nothing(tmp_path: Path, small_disk: Path) -> None:
+    srv = Server(small_disk / "data", tmp_path / "server.log")
+    srv.start()
+    rng = np.random.default_rng(9)
+    ballast = small_disk / "ballast"
+    try:
+        with httpx.Client(base_url=srv.url, timeout=60) as c:
+            assert c.post("/v1/maps", json={"name": "d", "encoder": PRECOMPUTED}).status_code == 201
+            kfs = [{"T_map_sensor": np.eye(4), "features": random_features(rng, 64)}]
+            assert post_msgpack(c, "/v1/maps/d/keyframes", {"keyframes": kfs}).status_code == 201
+            before = c.get("/v1/maps/d").json()
+            with ballast.open("wb") as f:  # fill the disk to the last byte
+                try:
+                    while True:
+                        f.write(b"\0" * 65536)
+                        f.flush()
+                except OSError:
+                    pass
+            kfs = [{"T_map_sensor": np.eye(4), "features": random_features(rng, 2000)}
+                   for _ in range(10)]  # fmt: skip
+            r = post_msgpack(c, "/v1/maps/d/keyframes", {"keyframes": kfs})
+            assert r.status_code == 507, r.text
+            assert error_of(r)["code"] == "insufficient_storage"
+            after = c.get("/v1/maps/d").json()
+            assert (after["keyframes"], after["version"]) == (
+                before["keyframes"],
+                before["version"],
+            )
+            made = c.post("/v1/maps", json={"name": "e", "encoder": PRECOMPUTED})
+            assert made.status_code == 507, made.text
+            assert not (small_disk / "data" / "maps" / "e").exists()
+            ballast.unlink()  # space again: the same insert is stored
+            assert post_msgpack(c, "/v1/maps/d/keyframes", {"keyframes": kfs}).status_code == 201
+            assert c.get("/v1/maps/d").json()["keyframes"] == before["keyframes"] + 10
+    finally:
+        srv.stop()

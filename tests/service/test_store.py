@@ -176,6 +176,34 @@ def test_snapshot_after_n_changes_and_after_delay(tmp_path: Path) -> None:
     m.close()
 
 
+def test_failed_snapshots_back_off(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """A snapshot that cannot be written (here its path is a folder) is retried after a
+    growing pause, logged as an ERROR once and then as WARNINGs, not on every tick."""
+    rng = np.random.default_rng(5)
+    m = _manager(tmp_path, snapshot_every=1000, snapshot_delay_s=0.04)
+    m.create("a", SPEC)
+    index_path = tmp_path / "maps" / "a" / "index.faiss"
+    index_path.unlink()
+    index_path.mkdir()  # every save fails now
+    m.insert("a", _items(rng, 1))
+    with caplog.at_level(logging.WARNING, logger="sgvloc.server.maps"):
+        m.start_snapshotter()
+        time.sleep(1.0)  # 100 ticks of the snapshot thread
+        handle = m.get("a")
+        assert handle.snapshot_failures == 1 and handle.unsaved == 1
+        assert handle.snapshot_retry_at > time.monotonic() + 5  # the next try in ~10 s
+        fails = [r for r in caplog.records if "saving the index snapshot failed" in r.message]
+        assert [r.levelname for r in fails] == ["ERROR"]
+        index_path.rmdir()
+        handle.snapshot_retry_at = 0.0  # as if the pause had passed
+        deadline = time.monotonic() + 30
+        while handle.unsaved:
+            assert time.monotonic() < deadline, "the snapshot was never saved again"
+            time.sleep(0.05)
+    assert handle.snapshot_failures == 0 and FaissIndex.load(index_path).ids().tolist() == [1]
+    m.close()
+
+
 def test_store_round_trip(tmp_path: Path) -> None:
     """Arrays keep dtype and shape; ids are never reused after a delete."""
     rng = np.random.default_rng(4)

@@ -7,7 +7,8 @@ All derive from :class:`SgvlocError`. The HTTP layer maps them to status codes:
 - :class:`EncoderMismatchError` (features from another encoder than the map's) -> 409;
 - :class:`NotFoundError` (unknown keyframe or map) -> 404;
 - :class:`ConflictError` (duplicate name or key) -> 409;
-- :class:`DeadlineExceeded` (a call ran past its time limit and stopped) -> 503.
+- :class:`DeadlineExceeded` (a call ran past its time limit and stopped) -> 503;
+- :class:`StorageFullError` (the disk is full; nothing was stored) -> 507.
 """
 
 
@@ -40,3 +41,7 @@ class ConflictError(SgvlocError):
 
 class DeadlineExceeded(SgvlocError):
     """The call ran past its time limit (:mod:`sgvloc.core.deadline`) and stopped."""
+
+
+class StorageFullError(SgvlocError):
+    """A write found no space left; it was rolled back and nothing was stored."""

@@ -61,6 +61,7 @@ from .store import (
     StoreBackend,
     StoreClosedError,
     StoreError,
+    raise_if_full,
     utc_now,
 )
 
@@ -147,6 +148,10 @@ def _merge(base: dict[str, Any], patch: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+class MapUnavailableError(SgvlocError):
+    """The map's folder exists but could not be loaded (503 until it is reloaded)."""
+
+
 # -- one map -----------------------------------------------------------------------------
 
 
@@ -162,6 +167,8 @@ class MapHandle:
     write_lock: threading.Lock = field(default_factory=threading.Lock)
     unsaved: int = 0  # keyframe changes since the last snapshot
     unsaved_since: float | None = None  # monotonic time of the first unsaved change
+    snapshot_failures: int = 0  # failed saves in a row (the next try backs off)
+    snapshot_retry_at: float = 0.0  # monotonic time before which no save is tried
     closed: bool = False
 
     @property
@@ -234,12 +241,7 @@ class MapManager:
             except Exception as exc:  # one bad folder never keeps the others from loading
                 why = str(exc) or type(exc).__name__
                 log.error("map %r could not be loaded: %s", name, why)
-                # callers see the map's name, never the server's paths (the log has them)
-                self.failed[name] = (
-                    why.replace(str(folder), f"map {name}")
-                    .replace(str(self.maps_dir.resolve()), "<maps>")
-                    .replace(str(self.maps_dir), "<maps>")
-                )
+                self.failed[name] = self._scrubbed(why, folder)
                 continue
             with self._lock:
                 self._maps[name] = handle
@@ -335,8 +337,50 @@ class MapManager:
             now = time.monotonic()
             for handle in self.list():
                 since = handle.unsaved_since
-                if since is not None and now - since >= self.snapshot_delay_s:
+                due = since is not None and now - since >= self.snapshot_delay_s
+                if due and now >= handle.snapshot_retry_at:
                     self.snapshot(handle.name)
+
+    def _scrubbed(self, why: str, folder: Path) -> str:
+        """``why`` as callers may see it: the map's name, never the server's paths."""
+        return (
+            why.replace(str(folder), f"map {folder.name}")
+            .replace(str(self.maps_dir.resolve()), "<maps>")
+            .replace(str(self.maps_dir), "<maps>")
+        )
+
+    def reload(self, name: str) -> MapHandle:
+        """Load a map whose folder failed to load (at start-up or by an earlier reload),
+        once its cause is fixed, without a restart. Raises :class:`ConflictError` if the
+        map is loaded, :class:`NotFoundError` if there is no such folder, and
+        :class:`MapUnavailableError` if it still cannot be loaded."""
+        with self._lock:
+            if name in self._maps or name in self._reserved:
+                raise ConflictError(f"map {name!r} is loaded (or being created); nothing to reload")
+            self._reserved.add(name)
+        folder = self.maps_dir / name
+        try:
+            if not MAP_NAME_RE.fullmatch(name) or not folder.is_dir():
+                self.failed.pop(name, None)
+                raise NotFoundError(f"map {name!r} does not exist")
+            try:
+                handle = self._load(folder)
+            except Exception as exc:
+                why = str(exc) or type(exc).__name__
+                log.error("map %r could not be reloaded: %s", name, why)
+                self.failed[name] = self._scrubbed(why, folder)
+                raise MapUnavailableError(
+                    f"map {name!r} still cannot be loaded: {self.failed[name]}"
+                ) from None
+            with self._lock:
+                self._maps[name] = handle
+        finally:
+            with self._lock:
+                self._reserved.discard(name)
+        self.failed.pop(name, None)
+        self._on_change(name, handle.num_keyframes)
+        log.info("reloaded map %r: %d keyframes", name, handle.num_keyframes)
+        return handle
 
     def stop_loading(self) -> None:
         """Make :meth:`load_all` stop after the map it is loading (shutdown)."""
@@ -365,10 +409,17 @@ class MapManager:
             return [self._maps[n] for n in sorted(self._maps)]
 
     def get(self, name: str) -> MapHandle:
-        """A loaded map; raises :class:`NotFoundError`."""
+        """A loaded map; raises :class:`MapUnavailableError` for a map whose folder failed
+        to load, else :class:`NotFoundError`."""
         with self._lock:
             handle = self._maps.get(name)
         if handle is None:
+            why = self.failed.get(name)
+            if why is not None:
+                raise MapUnavailableError(
+                    f"map {name!r} could not be loaded ({why}); fix the cause, then POST "
+                    f"/v1/maps/{name}/reload (admin)"
+                )
             raise NotFoundError(f"map {name!r} does not exist")
         return handle
 
@@ -436,12 +487,13 @@ class MapManager:
                 localizer.index.save(tmp / INDEX_NAME)
                 tmp.rename(folder)
                 store = self.backend.open(folder)
-            except BaseException:
+            except BaseException as exc:
                 if store is not None:
                     store.close()
                 for leftover in (tmp, folder):
                     if leftover.exists():
                         shutil.rmtree(leftover, ignore_errors=True)
+                raise_if_full(exc)
                 raise
             handle = MapHandle(name, folder, record, store, localizer)
             with self._lock:
@@ -718,7 +770,7 @@ class MapManager:
         handle.unsaved += changes
         if handle.unsaved_since is None:
             handle.unsaved_since = time.monotonic()
-        if handle.unsaved >= self.snapshot_every:
+        if handle.unsaved >= self.snapshot_every and time.monotonic() >= handle.snapshot_retry_at:
             self._save_snapshot(handle)
 
     def snapshot(self, name: str) -> None:
@@ -734,7 +786,22 @@ class MapManager:
         try:
             handle.localizer.index.save(handle.index_path)
         except (OSError, RuntimeError) as exc:  # the store is intact; retry later
-            log.error("map %r: saving the index snapshot failed: %s", handle.name, exc)
+            # back off: 10 s, 20 s, ... at most 10 min between tries; one ERROR, then WARNINGs
+            handle.snapshot_failures += 1
+            wait = min(600.0, 10.0 * 2 ** (handle.snapshot_failures - 1))
+            handle.snapshot_retry_at = time.monotonic() + wait
+            level = logging.ERROR if handle.snapshot_failures == 1 else logging.WARNING
+            log.log(
+                level,
+                "map %r: saving the index snapshot failed (%d in a row), next try in %.0f s: %s",
+                handle.name,
+                handle.snapshot_failures,
+                wait,
+                exc,
+            )
             return
+        if handle.snapshot_failures:
+            log.info("map %r: index snapshot saved again", handle.name)
+        handle.snapshot_failures, handle.snapshot_retry_at = 0, 0.0
         handle.unsaved, handle.unsaved_since = 0, None
         log.debug("map %r: index snapshot saved in %.3f s", handle.name, time.perf_counter() - t0)

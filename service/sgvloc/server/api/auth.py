@@ -51,6 +51,7 @@ ROUTE_ROLES: dict[str, frozenset[Role] | None | str] = {
     "get_map": frozenset({"mapper", "viewer", "admin"}),
     "update_map": frozenset({"mapper", "admin"}),
     "delete_map": frozenset({"admin"}),
+    "reload_map": frozenset({"admin"}),
     # keyframes
     "insert_keyframes": frozenset({"mapper", "admin"}),
     "get_keyframe": frozenset({"mapper", "viewer", "admin"}),

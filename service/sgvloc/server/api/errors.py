@@ -9,6 +9,7 @@ errors (FastAPI's and pydantic's) become ``invalid_input``; anything unexpected 
 
 from __future__ import annotations
 
+import errno
 import logging
 from collections.abc import Sequence
 from typing import Any
@@ -26,8 +27,11 @@ from sgvloc.core.errors import (
     InputError,
     NotFoundError,
     SgvlocError,
+    StorageFullError,
 )
 from sgvloc_client.wire import WireError
+
+from ..maps import MapUnavailableError
 
 log = logging.getLogger(__name__)
 
@@ -98,6 +102,8 @@ def validation_message(errors: Sequence[dict[str, Any]]) -> tuple[str, str | Non
 
 
 _ENGINE_CODES: list[tuple[type[SgvlocError], int, str]] = [
+    (StorageFullError, 507, "insufficient_storage"),
+    (MapUnavailableError, 503, "map_unavailable"),
     (EncoderMismatchError, 409, "encoder_mismatch"),
     (NotFoundError, 404, "not_found"),
     (ConflictError, 409, "conflict"),
@@ -172,6 +178,14 @@ def _allowed_methods(request: Request) -> list[str]:
 
 
 async def _unexpected(request: Request, exc: Exception) -> Response:
+    if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        log.error("%s %s: the disk is full: %s", request.method, request.url.path, exc)
+        return error_response(
+            request,
+            507,
+            "insufficient_storage",
+            "no space left on the service's disk; nothing was stored (free space, retry)",
+        )
     log.exception("internal error on %s %s", request.method, request.url.path, exc_info=exc)
     # Starlette re-raises after this answer and the server then drops the connection:
     # say so, so that a keep-alive client opens a new one for its next request

@@ -517,7 +517,9 @@ class Health(BaseModel):
 class Ready(BaseModel):
     """``GET /readyz``."""
 
-    status: Literal["ready", "loading"]
+    status: Literal["ready", "loading", "degraded"] = Field(
+        description="degraded (503): every map loaded except those under failed"
+    )
     maps: int
     failed: dict[str, str] = Field(
         default_factory=dict, description="map folders that could not be loaded, and why"

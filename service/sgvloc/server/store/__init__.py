@@ -9,6 +9,7 @@ from .base import (
     StoreBackend,
     StoreClosedError,
     StoreError,
+    raise_if_full,
     utc_now,
 )
 from .sqlite import DB_NAME, SqliteBackend, SqliteMapStore
@@ -24,5 +25,6 @@ __all__ = [
     "StoreBackend",
     "StoreClosedError",
     "StoreError",
+    "raise_if_full",
     "utc_now",
 ]

@@ -7,6 +7,7 @@ backend slots in beside :mod:`.sqlite` without touching it.
 
 from __future__ import annotations
 
+import errno
 import io
 from abc import ABC, abstractmethod
 from collections.abc import Iterator
@@ -20,13 +21,27 @@ import numpy as np
 from sgvloc.core.confidence import Calibration
 from sgvloc.core.config import LocalizerConfig
 from sgvloc.core.encoders import EncoderSpec
-from sgvloc.core.errors import SgvlocError
+from sgvloc.core.errors import SgvlocError, StorageFullError
 
 INDEX_NAME = "index.faiss"  # the FAISS snapshot in a map's folder (a start-up cache)
 
 
 class StoreError(SgvlocError):
     """A map database is missing, damaged or from an unknown schema."""
+
+
+def raise_if_full(exc: BaseException) -> None:
+    """Raise :class:`~sgvloc.core.errors.StorageFullError` from ``exc`` if it says that
+    the disk is full (an OSError with ENOSPC/EDQUOT, or a database driver's "disk is full"
+    / "No space left on device"); call it where a failed write was rolled back."""
+    text = str(exc)
+    full = (isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT)) or (
+        "disk is full" in text or "No space left on device" in text
+    )
+    if full:
+        raise StorageFullError(
+            "no space left on the service's disk; nothing was stored (free space, retry)"
+        ) from exc
 
 
 def utc_now() -> str:

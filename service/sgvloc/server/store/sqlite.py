@@ -42,6 +42,7 @@ from .base import (
     StoreError,
     array_to_blob,
     blob_to_array,
+    raise_if_full,
     utc_now,
 )
 
@@ -183,8 +184,10 @@ class SqliteMapStore(MapStore):
                     "ON CONFLICT(key) DO UPDATE SET value = CAST(value AS INTEGER) + 1"
                 )
                 conn.execute("COMMIT")
-            except BaseException:
-                conn.execute("ROLLBACK")
+            except BaseException as exc:
+                if conn.in_transaction:  # a failed COMMIT (disk full) has rolled back already
+                    conn.execute("ROLLBACK")
+                raise_if_full(exc)
                 raise
         return self.record()
 
@@ -298,8 +301,10 @@ class SqliteMapStore(MapStore):
                     ids.append(int(cur.lastrowid))
                 version = self._bump_version(conn)
                 conn.execute("COMMIT")
-            except BaseException:
-                conn.execute("ROLLBACK")
+            except BaseException as exc:
+                if conn.in_transaction:  # a failed COMMIT (disk full) has rolled back already
+                    conn.execute("ROLLBACK")
+                raise_if_full(exc)
                 raise
         for row, i in zip(rows, ids, strict=True):
             row.id, row.created_at = i, now
@@ -325,8 +330,10 @@ class SqliteMapStore(MapStore):
                     version = int(set_version)
                     conn.execute("UPDATE meta SET value = ? WHERE key = 'version'", (str(version),))
                 conn.execute("COMMIT")
-            except BaseException:
-                conn.execute("ROLLBACK")
+            except BaseException as exc:
+                if conn.in_transaction:  # a failed COMMIT (disk full) has rolled back already
+                    conn.execute("ROLLBACK")
+                raise_if_full(exc)
                 raise
         return version
 

@@ -178,6 +178,21 @@ async def update_map(
     return encode(request, await worker.run(work))
 
 
+@router.post(
+    "/{map}/reload",
+    response_model=MapInfo,
+    operation_id="reload_map",
+    responses=error_responses(404, 409, 503),
+)
+async def reload_map(
+    request: Request, map_name: MapName, manager: ManagerDep, worker: WorkerDep
+) -> Response:
+    """Load a map whose folder failed to load (listed under ``failed`` by ``/readyz``),
+    after its cause is fixed, without a restart (admin). 409 if the map is loaded, 503
+    ``map_unavailable`` (with the reason) if it still cannot be loaded."""
+    return encode(request, map_info(await worker.run(lambda: manager.reload(map_name))))
+
+
 @router.delete(
     "/{map}",
     status_code=204,

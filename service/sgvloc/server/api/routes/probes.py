@@ -25,17 +25,22 @@ async def healthz(request: Request) -> Response:
     response_model=Ready,
     operation_id="readyz",
     responses={
-        503: {"model": Ready, "description": "maps still loading"},
+        503: {"model": Ready, "description": "maps still loading, or some failed to load"},
         **error_responses(401, 403, common=False),
     },
 )
 async def readyz(request: Request) -> Response:
-    """Ready once every map is loaded (503 before). Open, or viewer/admin keys only, as
+    """Ready (200) once every map is loaded; 503 while loading, and 503 ``degraded``
+    while a map folder failed to load (listed under ``failed``; fix it and POST
+    ``/v1/maps/{map}/reload``, or remove the folder). Open, or viewer/admin keys only, as
     the ``readyz_auth`` setting says."""
     manager: MapManager = request.app.state.manager
     if not manager.loaded.is_set():
         return encode(request, Ready(status="loading", maps=0), 503)
-    return encode(request, Ready(status="ready", maps=len(manager.list()), failed=manager.failed))
+    maps, failed = len(manager.list()), dict(manager.failed)
+    if failed:
+        return encode(request, Ready(status="degraded", maps=maps, failed=failed), 503)
+    return encode(request, Ready(status="ready", maps=maps))
 
 
 @router.get(
