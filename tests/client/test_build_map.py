@@ -223,11 +223,12 @@ def test_build_map_command_data_dir(tmp_path: Path, balm_mini_dir: Path) -> None
 def test_build_map_reports_the_services_conflict(
     tmp_path: Path, balm_mini_dir: Path, start_service
 ) -> None:
-    """A map folder that failed to load: the service answers 404 to reads and 409 to a
-    create; build-map shows the 409's reason, not the 404."""
+    """A map folder that failed to load: build-map shows the service's reason (503
+    map_unavailable with what to do), not a bare 404."""
     (tmp_path / "maps" / "broken").mkdir(parents=True)
     with start_service(tmp_path) as url:
         args = ["build-map", "--data", str(balm_mini_dir), "--map", "broken", "--url", url]
         out = CliRunner().invoke(app, [*args, "--limit", "1", "--no-progress"])
     assert out.exit_code == 1
-    assert "409" in out.output and "could not be loaded" in out.output, out.output
+    assert "map_unavailable" in out.output and "could not be loaded" in out.output, out.output
+    assert "reload" in out.output
