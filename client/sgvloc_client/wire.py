@@ -13,6 +13,7 @@ Allowed dtypes: little-endian float32/float64/int32/int64/uint8. Decoding checks
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import msgpack
@@ -54,7 +55,8 @@ def decode_array(obj: dict[str, Any], where: str = "array") -> np.ndarray:
         raise WireError(f"{where}: shape must be a list of at most {MAX_NDIM} non-negative ints")
     if not isinstance(data, bytes | bytearray):
         raise WireError(f"{where}: data must be bytes")
-    expected = int(np.prod(shape, dtype=np.int64)) * np.dtype(dtype).itemsize
+    # Python integers: a shape such as [2**62, 4] or [2**64 - 1] must not wrap around
+    expected = math.prod(shape) * np.dtype(dtype).itemsize
     if len(data) != expected:
         raise WireError(
             f"{where}: data has {len(data)} bytes but shape {shape} of {dtype} needs {expected}"

@@ -346,3 +346,34 @@ def test_a_full_disk_is_507_and_changes_nothing(tmp_path: Path, small_disk: Path
             assert c.get("/v1/maps/d").json()["keyframes"] == before["keyframes"] + 10
     finally:
         srv.stop()
+
+
+@pytest.mark.parametrize("shape", [[2**62, 4], [2**64 - 1], [2**32, 2**32, 3]])
+def test_msgpack_shapes_beyond_the_data_say_so(client: httpx.Client, shape: list[int]) -> None:
+    import msgpack
+
+    assert client.post("/v1/maps", json={"name": "shapes", "encoder": PRECOMPUTED}).status_code in (
+        201,
+        409,
+    )
+    arr = {"__nd__": True, "dtype": "<f4", "shape": shape, "data": b"\0" * 48}
+    body = msgpack.packb({"points": arr}, use_bin_type=True)
+    r = client.post(
+        "/v1/maps/shapes/localize", content=body, headers={"Content-Type": "application/msgpack"}
+    )
+    assert r.status_code == 400, r.text
+    message = error_of(r)["message"]
+    assert "data has 48 bytes" in message and "needs" in message and "-" not in message, message
+
+
+def test_huge_but_finite_descriptors_are_normalised(client: httpx.Client) -> None:
+    """A global descriptor of 1e38 values (finite float32) is a direction like any other."""
+    assert client.post("/v1/maps", json={"name": "huge", "encoder": PRECOMPUTED}).status_code in (
+        201,
+        409,
+    )
+    feats = random_features(np.random.default_rng(10))
+    feats["global_descriptor"] = np.full(16, 1e38, np.float32)
+    r = post_msgpack(client, "/v1/maps/huge/keyframes", {"keyframes": [
+        {"T_map_sensor": np.eye(4), "features": feats}]})  # fmt: skip
+    assert r.status_code == 201, r.text

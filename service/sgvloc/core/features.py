@@ -97,10 +97,11 @@ class Features:
             )
         if local_dim is not None and k.shape[0] > 0 and f.shape[1] != local_dim:
             raise InputError(f"local_features has dimension {f.shape[1]}, expected {local_dim}")
-        norm = float(np.linalg.norm(g))
+        g64 = g.astype(np.float64)  # float32 squares overflow from ~1e19 and vanish below 1e-19
+        norm = float(np.linalg.norm(g64))
         if norm == 0.0:
             raise InputError("global_descriptor is all zeros and cannot be normalised")
-        return cls((g / norm).astype(np.float32), k, f, encoder)
+        return cls((g64 / norm).astype(np.float32), k, f, encoder)
 
     @property
     def num_keypoints(self) -> int:
