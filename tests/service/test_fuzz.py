@@ -1,6 +1,7 @@
 """Property-based fuzzing of the HTTP API from its own OpenAPI document (schemathesis),
-in a short form: a bounded number of generated requests per operation against a real
-server of its own (development mode, so requests reach the handlers). Every answer must
+in a short form: a bounded number of generated requests per operation, JSON and
+MessagePack bodies, against a real server of its own with authentication on, every call
+made with an admin key (so requests reach the handlers of every route). Every answer must
 be a documented status with a body matching the schema; never a 5xx.
 
 Malformed binary payloads (random bytes, truncated MessagePack, arrays whose declared
@@ -24,6 +25,8 @@ from svc_helpers import PRECOMPUTED, post_msgpack, random_features
 from sgvloc_client import wire
 
 MAX_EXAMPLES = 25
+ADMIN_KEY = "fuzz-admin-key-0123456789abcdef"
+AUTH = {"Authorization": f"Bearer {ADMIN_KEY}"}
 
 
 def _packable(value):  # noqa: ANN001, ANN202
@@ -45,10 +48,14 @@ def _msgpack(ctx, value):  # noqa: ANN001, ANN202 - schemathesis' hook signature
 @pytest.fixture(scope="module")
 def fuzz_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
     root = tmp_path_factory.mktemp("fuzz")
-    srv = Server(data_dir=root / "data", log_path=root / "server.log")
+    keys = root / "keys.toml"
+    keys.write_text(f'[[keys]]\nname = "fuzz"\nrole = "admin"\nkey = "{ADMIN_KEY}"\n')
+    srv = Server(
+        data_dir=root / "data", log_path=root / "server.log", env={"SGVLOC_KEYS_FILE": str(keys)}
+    )
     srv.start()
     try:
-        with httpx.Client(base_url=srv.url, timeout=60) as c:
+        with httpx.Client(base_url=srv.url, timeout=60, headers=AUTH) as c:
             r = c.post("/v1/maps", json={"name": "fuzz", "encoder": PRECOMPUTED})
             assert r.status_code == 201
             kf = {"T_map_sensor": np.eye(4), "features": random_features(np.random.default_rng(0))}
@@ -79,7 +86,7 @@ schema = schemathesis.pytest.from_fixture("api_schema")
 def test_api_conforms_to_its_schema(case) -> None:  # noqa: ANN001
     # "schema-valid request accepted" does not hold: the service checks more than the
     # schema can say (map names, encoder specs, array shapes) and answers those with 4xx
-    case.call_and_validate(timeout=60, excluded_checks=[positive_data_acceptance])
+    case.call_and_validate(timeout=60, headers=AUTH, excluded_checks=[positive_data_acceptance])
 
 
 # -- malformed binary payloads ---------------------------------------------------------------
@@ -87,7 +94,7 @@ def test_api_conforms_to_its_schema(case) -> None:  # noqa: ANN001
 
 def _post(srv: Server, path: str, data: bytes) -> httpx.Response:
     return httpx.post(
-        f"{srv.url}{path}", content=data, headers={"Content-Type": wire.MSGPACK}, timeout=60
+        f"{srv.url}{path}", content=data, headers={"Content-Type": wire.MSGPACK, **AUTH}, timeout=60
     )
 
 
