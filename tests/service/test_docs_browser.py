@@ -61,3 +61,16 @@ def test_redoc_renders_offline(server) -> None:
     assert not re.search(r"""(src|href)=["']?(https?:)?//""", html), html
     dom = render(f"{server.url}/redoc")
     assert "/v1/maps/{map}/localize" in dom, dom[:2000]
+
+
+def test_api_docs_can_be_switched_off(tmp_path) -> None:
+    from conftest import Server
+
+    srv = Server(tmp_path / "data", tmp_path / "server.log", env={"SGVLOC_API_DOCS": "off"})
+    srv.start()
+    try:
+        for path in ("/openapi.json", "/docs", "/redoc", "/static-offline-docs/swagger-ui.css"):
+            assert httpx.get(f"{srv.url}{path}").status_code == 404, path
+        assert httpx.get(f"{srv.url}/v1/maps").status_code == 200  # the API itself is served
+    finally:
+        srv.stop()

@@ -71,6 +71,11 @@ class Settings(BaseSettings):
     keys_file: Path | None = Field(
         None, description="TOML or JSON file of API keys with roles (see docs/OPERATIONS.md)"
     )
+    api_docs: Literal["open", "off"] = Field(
+        "open",
+        description="/openapi.json, /docs and /redoc: served to anyone (they describe the API, "
+        "never data or keys), or not at all (404)",
+    )
     metrics_auth: ProbeAuth = Field(
         "viewer", description="/metrics: open to anyone, or a viewer (or admin) key"
     )

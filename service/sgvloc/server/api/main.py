@@ -132,15 +132,19 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         snapshot_delay_s=settings.snapshot_delay_s,
         on_change=metrics.set_map_keyframes,
     )
-    # /docs (Swagger UI) and /redoc with their scripts, styles and favicon served from this
-    # process (the fastapi-offline package ships them), not from a CDN: they work offline
-    app = FastAPIOffline(
+    about = dict(
         title="sgvloc",
         version=__version__,
         description="LiDAR localization in prior maps: FAISS retrieval, SpectralGV "
         "re-ranking, RANSAC pose. See docs/API.md.",
         lifespan=_lifespan,
     )
+    if settings.api_docs == "open":
+        # /docs (Swagger UI) and /redoc with their scripts, styles and favicon served from
+        # this process (the fastapi-offline package ships them), not a CDN: they work offline
+        app = FastAPIOffline(**about)
+    else:  # api_docs = "off": no /openapi.json, /docs or /redoc at all
+        app = FastAPI(**about, openapi_url=None, docs_url=None, redoc_url=None)
     app.state.settings = settings
     app.state.metrics = metrics
     app.state.manager = manager
