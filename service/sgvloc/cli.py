@@ -243,11 +243,20 @@ def loadtest_command(
         str | None, typer.Option(help="bearer token (mapper or admin)", envvar="SGVLOC_API_KEY")
     ] = None,
     json_out: Annotated[Path | None, typer.Option("--json", help="write the figures here")] = None,
+    slow_clients: Annotated[
+        int,
+        typer.Option(
+            min=0,
+            max=64,
+            help="extra connections that trickle a localize body 1 byte / 0.5 s meanwhile",
+        ),
+    ] = 0,
     threads: ThreadsOpt = None,
 ) -> None:
     """Load a local service with N clients for D seconds (localize + bulk inserts); report
     errors, p50/p99 latency and throughput. Exits 1 if any request failed (429/503 with
-    Retry-After are counted apart, as deliberate refusals)."""
+    Retry-After are counted apart, as deliberate refusals). --slow-clients shows whether
+    slow uploads hold up the others."""
     _cap_threads(threads)
     import json
 
@@ -257,7 +266,11 @@ def loadtest_command(
 
     _configure_logging("warning")
     options = dict(
-        clients=clients, duration_s=duration, insert_fraction=insert_fraction, api_key=api_key
+        clients=clients,
+        duration_s=duration,
+        insert_fraction=insert_fraction,
+        api_key=api_key,
+        slow_clients=slow_clients,
     )
     try:
         if url is None:

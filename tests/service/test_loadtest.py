@@ -21,3 +21,22 @@ def test_short_load_has_no_errors(server) -> None:
 def test_only_this_machine(url: str) -> None:
     with pytest.raises(ValueError, match="this machine"):
         check_loopback(url)
+
+
+def test_slow_uploads_hold_up_no_one(tmp_path) -> None:
+    """8 slow uploads (as many as the localize slots) against a service that closes them
+    after body_timeout_s = 1 s: every normal request is still served, none refused."""
+    from conftest import Server
+
+    env = {"SGVLOC_BODY_TIMEOUT_S": "1", "SGVLOC_MAX_INFLIGHT_LOCALIZE": "8"}
+    srv = Server(tmp_path / "data", tmp_path / "server.log", env=env)
+    srv.start()
+    try:
+        result = run_loadtest(srv.url, clients=2, duration_s=4.0, seed_keyframes=20, slow_clients=8)
+    finally:
+        srv.stop()
+    loc = result.kinds["localize"]
+    assert result.errors == 0 and loc.refused == 0 and loc.ok > 0, result.summary()
+    slow = result.slow
+    assert slow.connections >= 8 and slow.timed_out >= 8, result.summary()
+    assert "slow uploads: 8 clients" in result.summary()

@@ -9,11 +9,17 @@ throughput. Only loopback URLs are accepted: this is not a tool to load other ho
 Requests carry precomputed features (a map of kind ``precomputed``), so the figures are
 the service's own cost (HTTP, decoding, FAISS, re-ranking, SQLite commits), not the
 handcrafted encoder's.
+
+``slow_clients`` adds connections that send a localize's headers and then trickle its
+body one byte every half second (never finishing it), reconnecting when the service
+closes them: the normal clients' figures show whether slow uploads hold up others.
 """
 
 from __future__ import annotations
 
 import logging
+import select
+import socket
 import threading
 import time
 import uuid
@@ -46,6 +52,16 @@ class KindStats:
 
 
 @dataclass
+class SlowStats:
+    """The slow uploads of one run."""
+
+    clients: int = 0
+    connections: int = 0
+    bytes_sent: int = 0
+    timed_out: int = 0  # answered 408 (the service's body_timeout_s) and closed
+
+
+@dataclass
 class LoadResult:
     """The figures of one run."""
 
@@ -54,6 +70,7 @@ class LoadResult:
     duration_s: float
     kinds: dict[str, KindStats]
     error_samples: list[str]
+    slow: SlowStats = field(default_factory=SlowStats)
 
     @property
     def errors(self) -> int:
@@ -81,6 +98,7 @@ class LoadResult:
             "errors": self.errors,
             "throughput_rps": round(self.throughput, 2),
             "kinds": kinds,
+            "slow_uploads": asdict(self.slow),
             "error_samples": self.error_samples,
         }
 
@@ -94,6 +112,12 @@ class LoadResult:
             lines.append(
                 f"  {name:9s} {s.requests:6d} sent, {s.ok:6d} ok, {s.refused:4d} refused "
                 f"(429/503), {s.errors:3d} errors, p50 {s.p50_ms:7.1f} ms, p99 {s.p99_ms:7.1f} ms"
+            )
+        if self.slow.clients:
+            sl = self.slow
+            lines.append(
+                f"  slow uploads: {sl.clients} clients, {sl.connections} connections, "
+                f"{sl.bytes_sent} bytes trickled, {sl.timed_out} answered 408"
             )
         lines += [f"  error: {e}" for e in self.error_samples]
         return "\n".join(lines)
@@ -125,17 +149,21 @@ def run_loadtest(
     api_key: str | None = None,
     map_name: str | None = None,
     timeout_s: float = 60.0,
+    slow_clients: int = 0,
 ) -> LoadResult:
     """Load ``url`` with ``clients`` threads for ``duration_s`` seconds.
 
     A fresh map (``precomputed``, flat index) is created and seeded with
     ``seed_keyframes`` keyframes; then each client sends, at random, a bulk insert of
     ``batch`` keyframes (fraction ``insert_fraction``) or a localize (SGV re-ranking, no
-    ICP). The map is deleted at the end.
+    ICP). ``slow_clients`` (at most 64) trickle bodies meanwhile (see the module
+    docstring). The map is deleted at the end.
     """
     check_loopback(url)
     if clients < 1 or duration_s <= 0:
         raise ValueError("clients must be >= 1 and duration_s > 0")
+    if not 0 <= slow_clients <= 64:
+        raise ValueError("slow_clients must be between 0 and 64")
     headers = {"Authorization": f"Bearer {api_key}"} if api_key else {}
     name = map_name or f"loadtest-{uuid.uuid4().hex[:8]}"
     spec = {"kind": "precomputed", "name": "loadtest", "global_dim": G, "local_dim": D}
@@ -204,7 +232,36 @@ def run_loadtest(
                 if status in (429, 503):
                     time.sleep(0.05)
 
+    slow = SlowStats(clients=slow_clients)
+    parsed = urlparse(url)
+    auth = f"Authorization: Bearer {api_key}\r\n" if api_key else ""
+    slow_head = (
+        f"POST /v1/maps/{name}/localize HTTP/1.1\r\nHost: {parsed.hostname}\r\n{auth}"
+        "Content-Type: application/json\r\nContent-Length: 100000\r\n\r\n"
+    ).encode()
+
+    def slow_client() -> None:
+        while time.monotonic() < deadline:
+            try:
+                with socket.create_connection((parsed.hostname, parsed.port or 80), 5) as sock:
+                    sock.sendall(slow_head)
+                    with lock:
+                        slow.connections += 1
+                    while time.monotonic() < deadline:
+                        readable, _, _ = select.select([sock], [], [], 0.5)
+                        if readable:  # the service answered (408) or closed
+                            if sock.recv(4096).startswith(b"HTTP/1.1 408"):
+                                with lock:
+                                    slow.timed_out += 1
+                            break
+                        sock.sendall(b" ")
+                        with lock:
+                            slow.bytes_sent += 1
+            except OSError:
+                time.sleep(0.5)
+
     threads = [threading.Thread(target=client, args=(i,), daemon=True) for i in range(clients)]
+    threads += [threading.Thread(target=slow_client, daemon=True) for _ in range(slow_clients)]
     for t in threads:
         t.start()
     for t in threads:
@@ -216,7 +273,7 @@ def run_loadtest(
             s.p99_ms = round(float(np.percentile(s.latencies_ms, 99)), 1)
     with httpx.Client(base_url=url, headers=headers, timeout=timeout_s) as c:
         c.delete(f"/v1/maps/{name}")
-    return LoadResult(url, clients, elapsed, kinds, samples)
+    return LoadResult(url, clients, elapsed, kinds, samples, slow)
 
 
 def run_loadtest_local(*, workers: int = 2, **kwargs: Any) -> LoadResult:
