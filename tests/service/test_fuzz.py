@@ -17,6 +17,7 @@ import msgpack
 import numpy as np
 import pytest
 import schemathesis
+import schemathesis_hooks  # noqa: F401 - registers the MessagePack serializer
 from conftest import Server
 from hypothesis import HealthCheck, Phase, settings
 from schemathesis.specs.openapi.checks import positive_data_acceptance
@@ -27,22 +28,6 @@ from sgvloc_client import wire
 MAX_EXAMPLES = 25
 ADMIN_KEY = "fuzz-admin-key-0123456789abcdef"
 AUTH = {"Authorization": f"Bearer {ADMIN_KEY}"}
-
-
-def _packable(value):  # noqa: ANN001, ANN202
-    """MessagePack has 64-bit integers only: larger ones travel as floats."""
-    if isinstance(value, dict):
-        return {k: _packable(v) for k, v in value.items()}
-    if isinstance(value, list):
-        return [_packable(v) for v in value]
-    if isinstance(value, int) and not isinstance(value, bool) and not -(2**63) <= value < 2**64:
-        return float(value)
-    return value
-
-
-@schemathesis.serializer("application/msgpack")
-def _msgpack(ctx, value):  # noqa: ANN001, ANN202 - schemathesis' hook signature
-    return msgpack.packb(_packable(value), use_bin_type=True)
 
 
 @pytest.fixture(scope="module")

@@ -48,8 +48,59 @@ def serve(settings: Settings) -> None:
         workers=None,  # one process: an app object cannot be forked into workers anyway
         access_log=settings.log_level == "debug",
         timeout_graceful_shutdown=settings.shutdown_timeout_s,
+        http=_header_timeout_protocol(settings.header_timeout_s),
     )
     _graceful_server(config).run()
+
+
+def _header_timeout_protocol(header_timeout_s: float):  # uvicorn is imported late
+    """uvicorn's h11 protocol with a deadline on request headers: a connection whose
+    next request's headers are not complete within ``header_timeout_s`` (from the
+    connection or from the previous answer) is closed. uvicorn's keep-alive timeout
+    stops at the first byte, so headers trickled a byte at a time would hold a
+    connection forever otherwise."""
+    import h11
+    from uvicorn.protocols.http.h11_impl import H11Protocol
+
+    class HeaderTimeoutProtocol(H11Protocol):
+        _header_timer = None
+
+        def _arm_header_timer(self) -> None:
+            self._disarm_header_timer()
+            self._header_timer = self.loop.call_later(header_timeout_s, self._header_timeout)
+
+        def _disarm_header_timer(self) -> None:
+            if self._header_timer is not None:
+                self._header_timer.cancel()
+                self._header_timer = None
+
+        def _header_timeout(self) -> None:
+            self._header_timer = None
+            if self.conn.their_state is h11.IDLE and not self.transport.is_closing():
+                log.info(
+                    "closing a connection whose request headers took over %g s", header_timeout_s
+                )
+                self.transport.close()
+
+        def connection_made(self, transport) -> None:  # noqa: ANN001
+            super().connection_made(transport)
+            self._arm_header_timer()
+
+        def handle_events(self) -> None:
+            super().handle_events()
+            if self.conn.their_state is not h11.IDLE:  # the headers are complete
+                self._disarm_header_timer()
+
+        def on_response_complete(self) -> None:
+            super().on_response_complete()
+            if not self.transport.is_closing():
+                self._arm_header_timer()
+
+        def connection_lost(self, exc) -> None:  # noqa: ANN001
+            self._disarm_header_timer()
+            super().connection_lost(exc)
+
+    return HeaderTimeoutProtocol
 
 
 def _graceful_server(config):  # uvicorn is imported late: after the thread caps

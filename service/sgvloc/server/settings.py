@@ -103,6 +103,13 @@ class Settings(BaseSettings):
         description="on SIGTERM, longest wait for open requests and for map loading before "
         "the process exits (in-flight localize work is stopped at once)",
     )
+    header_timeout_s: float = Field(
+        10.0,
+        gt=0,
+        le=600,
+        description="longest a request's headers may take to arrive (from the connection or "
+        "the previous answer); beyond it the connection is closed",
+    )
     body_timeout_s: float = Field(
         30.0,
         gt=0,
