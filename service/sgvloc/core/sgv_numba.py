@@ -47,10 +47,16 @@ import time
 # parallel kernels on OpenMP first (as Open3D and FAISS): numba's default order tries TBB
 # first, which warns at the first parallel call where the system's TBB is too old. Read
 # when the first parallel kernel launches; a setting of the user's wins.
-os.environ.setdefault("NUMBA_THREADING_LAYER_PRIORITY", "omp workqueue tbb")
+_LAYER_ORDER = "omp workqueue tbb"
+_USER_ORDER = "NUMBA_THREADING_LAYER_PRIORITY" in os.environ
+os.environ.setdefault("NUMBA_THREADING_LAYER_PRIORITY", _LAYER_ORDER)
 
 import numpy as np  # noqa: E402
+from numba import config as numba_config  # noqa: E402
 from numba import get_num_threads, njit, prange, threading_layer  # noqa: E402
+
+if not _USER_ORDER:  # numba may have read its configuration before (imported elsewhere)
+    numba_config.THREADING_LAYER_PRIORITY = _LAYER_ORDER.split()
 
 log = logging.getLogger(__name__)
 
