@@ -115,6 +115,11 @@ def test_model_files_only_from_the_models_directory(tmp_path: Path) -> None:
                 assert error_of(r)["field"] == "encoder.model_path"
                 messages.add(error_of(r)["message"])
             assert len(messages) == 1 and "/etc" not in messages.pop()
+            (models / "broken.pt").write_bytes(b"not a model")
+            spec = {"kind": "torchscript", "model_path": "broken.pt"}
+            r = c.post("/v1/maps", json={"name": "m", "encoder": spec})
+            assert r.status_code == 422 and "broken.pt" in r.text, r.text
+            assert str(models) not in r.text, r.text  # its name, not the server's path
             spec = {"kind": "learned", "model_path": "bevnet.pt"}
             r = c.post("/v1/maps", json={"name": "m", "encoder": spec})
             assert r.status_code == 201, r.text

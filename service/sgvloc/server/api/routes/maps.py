@@ -8,6 +8,7 @@ from fastapi import APIRouter, Depends, Request, Response
 
 from sgvloc.core.confidence import shipped_calibration
 from sgvloc.core.encoders import EncoderSpec
+from sgvloc.core.errors import InputError
 
 from ...maps import MapHandle
 from ..auth import authorize, principal_of
@@ -81,13 +82,19 @@ async def create_map(
             raise ApiError(403, "forbidden", f"this key may not use map {req.name!r}", "name")
         check_keypoint_budget(req.encoder, settings.max_keypoints)
         encoder = confine_model_path(req.encoder, settings.models_dir)
-        handle = manager.create(
-            req.name,
-            encoder,
-            req.localizer_config(),
-            keep_clouds=req.keep_clouds,
-            calibration=parse_calibration(req.calibration, "calibration"),
-        )
+        try:
+            handle = manager.create(
+                req.name,
+                encoder,
+                req.localizer_config(),
+                keep_clouds=req.keep_clouds,
+                calibration=parse_calibration(req.calibration, "calibration"),
+            )
+        except InputError as exc:  # a model file's error names it by its name, not its path
+            if settings.models_dir is not None:
+                root = str(settings.models_dir.resolve())
+                exc.args = tuple(str(a).replace(root + "/", "").replace(root, "") for a in exc.args)
+            raise
         return map_info(handle)
 
     return encode(request, await worker.run(work), 201)
