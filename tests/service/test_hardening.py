@@ -175,6 +175,16 @@ def test_a_bad_map_folder_blocks_no_other_map_and_leaks_no_path(tmp_path: Path) 
         srv.stop()
 
 
+def make_map(c: httpx.Client, name: str, count: int, keypoints: int, rng) -> None:  # noqa: ANN001
+    """A precomputed-feature map of ``count`` random keyframes, inserted 10 at a time."""
+    assert c.post("/v1/maps", json={"name": name, "encoder": PRECOMPUTED}).status_code == 201
+    for start in range(0, count, 10):
+        kfs = [{"T_map_sensor": np.eye(4), "features": random_features(rng, keypoints)}
+               for _ in range(min(10, count - start))]  # fmt: skip
+        r = post_msgpack(c, f"/v1/maps/{name}/keyframes", {"keyframes": kfs})
+        assert r.status_code == 201, r.text
+
+
 @pytest.fixture(scope="module")
 def strict_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
     """A server with one localize slot, a 1 s compute deadline, a 2 s body deadline and
@@ -192,15 +202,8 @@ def strict_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
     srv.start()
     rng = np.random.default_rng(5)
     with httpx.Client(base_url=srv.url, timeout=120) as c:
-        for name, n, count in (("heavy", 2000, 80), ("light", 32, 5)):
-            assert (
-                c.post("/v1/maps", json={"name": name, "encoder": PRECOMPUTED}).status_code == 201
-            )
-            for start in range(0, count, 10):
-                kfs = [{"T_map_sensor": np.eye(4), "features": random_features(rng, n)}
-                       for _ in range(min(10, count - start))]  # fmt: skip
-                r = post_msgpack(c, f"/v1/maps/{name}/keyframes", {"keyframes": kfs})
-                assert r.status_code == 201, r.text
+        make_map(c, "heavy", 80, 2000, rng)
+        make_map(c, "light", 5, 32, rng)
     try:
         yield srv
     finally:
@@ -276,13 +279,7 @@ def test_sigterm_stops_in_flight_work_and_exits(tmp_path: Path) -> None:
     answer: dict[str, httpx.Response] = {}
     try:
         with httpx.Client(base_url=srv.url, timeout=120) as c:
-            assert c.post("/v1/maps", json={"name": "h", "encoder": PRECOMPUTED}).status_code == 201
-            for _ in range(8):
-                kfs = [{"T_map_sensor": np.eye(4), "features": random_features(rng, 2000)}
-                       for _ in range(10)]  # fmt: skip
-                assert (
-                    post_msgpack(c, "/v1/maps/h/keyframes", {"keyframes": kfs}).status_code == 201
-                )
+            make_map(c, "h", 80, 2000, rng)
         body = {"features": random_features(rng, 2000), "top_k": 80, "rerank": "ransac-rir"}
 
         def heavy() -> None:
