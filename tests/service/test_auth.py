@@ -39,6 +39,7 @@ ALLOWED: dict[str, set[str]] = {
     "update_map": {"mapper", "admin"},
     "delete_map": {"admin"},
     "reload_map": {"admin"},
+    "reload_keys": {"admin"},
     "insert_keyframes": {"mapper", "admin"},
     "get_keyframe": {"mapper", "viewer", "admin"},
     "delete_keyframe": {"mapper", "admin"},
@@ -139,6 +140,8 @@ def _request(op: str, c: httpx.Client, admin: httpx.Client, ids: dict[str, int])
         return c.delete(f"/v1/maps/{name}")
     if op == "reload_map":  # auth-a is loaded: an allowed caller gets 409 from the handler
         return c.post("/v1/maps/auth-a/reload")
+    if op == "reload_keys":  # the file is unchanged: the same keys again
+        return c.post("/v1/keys/reload")
     if op == "insert_keyframes":
         body = {"keyframes": [{"T_map_sensor": EYE, "features": feats}]}
         return post_msgpack(c, "/v1/maps/auth-a/keyframes", body)
@@ -331,3 +334,55 @@ def test_refuses_to_start_without_keys(tmp_path: Path, keys_file: Path) -> None:
     bad.write_text(json.dumps({"keys": [{"role": "root", "key": "x" * 20}]}))
     out = _serve(tmp_path, "--keys-file", str(bad), env={})
     assert out.returncode == 2 and "role must be one of" in out.stderr
+
+
+def test_keys_change_without_a_restart(tmp_path: Path) -> None:
+    """SIGHUP and POST /v1/keys/reload re-read the keys file: an added key works, a
+    revoked one stops at once, and a broken file keeps the previous keys."""
+    import signal
+    import time
+
+    admin, viewer, added = ("key-admin-0123456789abcdef", "key-viewer-0123456789abcdef",
+                            "key-added-0123456789abcdef")  # fmt: skip
+
+    def entry(name: str, role: str, key: str) -> str:
+        return f'[[keys]]\nname = "{name}"\nrole = "{role}"\nkey = "{hash_key(key)}"\n'
+
+    keys = tmp_path / "keys.toml"
+    keys.write_text(entry("ops", "admin", admin) + entry("dash", "viewer", viewer))
+    srv = Server(tmp_path / "data", tmp_path / "server.log", env={"SGVLOC_KEYS_FILE": str(keys)})
+    srv.start()
+
+    def status(key: str) -> int:
+        h = {"Authorization": f"Bearer {key}"}
+        return httpx.get(f"{srv.url}/v1/config", headers=h, timeout=30).status_code
+
+    def reload() -> httpx.Response:
+        h = {"Authorization": f"Bearer {admin}"}
+        return httpx.post(f"{srv.url}/v1/keys/reload", headers=h, timeout=30)
+
+    try:
+        assert status(viewer) == 200 and status(added) == 401
+        keys.write_text(keys.read_text() + entry("new", "viewer", added))
+        srv.proc.send_signal(signal.SIGHUP)
+        deadline = time.monotonic() + 30
+        while status(added) != 200:
+            assert time.monotonic() < deadline, "SIGHUP did not load the added key"
+            time.sleep(0.1)
+        keys.write_text(entry("ops", "admin", admin) + entry("new", "viewer", added))
+        r = reload()
+        assert r.status_code == 200 and r.json() == {
+            "keys": 2,
+            "by_role": {"admin": 1, "viewer": 1},
+        }
+        assert status(viewer) == 401  # revoked: at once
+        keys.write_text("[[keys]\nbroken = ")
+        r = reload()
+        assert r.status_code == 422 and "previous keys stay" in r.text
+        srv.proc.send_signal(signal.SIGHUP)
+        time.sleep(0.5)
+        assert status(admin) == 200 and status(added) == 200 and status(viewer) == 401
+        assert srv.proc.poll() is None  # SIGHUP does not stop the service
+    finally:
+        srv.stop()
+    assert "keys file not reloaded" in srv.log()

@@ -51,6 +51,7 @@ ROUTE_ROLES: dict[str, frozenset[Role] | None | str] = {
     "get_map": frozenset({"mapper", "viewer", "admin"}),
     "update_map": frozenset({"mapper", "admin"}),
     "delete_map": frozenset({"admin"}),
+    "reload_keys": frozenset({"admin"}),
     "reload_map": frozenset({"admin"}),
     # keyframes
     "insert_keyframes": frozenset({"mapper", "admin"}),
@@ -271,6 +272,22 @@ async def authorize(request: Request) -> Principal:
             raise ApiError(403, "forbidden", f"this key may not use map {map_name!r}")
     request.state.principal = principal
     return principal
+
+
+def reload_keys(app: Any) -> KeyRing:
+    """Read the keys file again and swap the app's keys in one step (requests in flight
+    finish with the keys they were checked with; the next ones use the new set). A file
+    that cannot be used keeps the old keys: :class:`KeysError` says why (and is logged).
+    Revoked keys stop working at once."""
+    settings: Settings = app.state.settings
+    try:
+        ring = KeyRing.from_settings(settings)
+    except KeysError as exc:
+        log.error("keys file not reloaded, the previous keys stay in force: %s", exc)
+        raise
+    app.state.keyring = ring
+    log.info("keys reloaded: %d key(s)", len(ring.keys))
+    return ring
 
 
 def principal_of(request: Request) -> Principal:

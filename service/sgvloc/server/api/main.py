@@ -8,11 +8,14 @@ snapshot is saved.
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import importlib
 import logging
+import signal
 import threading
 import time
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 
 import anyio
@@ -27,7 +30,7 @@ from sgvloc.about import __version__
 from ..maps import MapManager
 from ..metrics import Metrics
 from ..settings import Settings
-from .auth import KeyRing
+from .auth import KeyRing, KeysError, reload_keys
 from .deps import Admission
 from .errors import install_error_handlers
 from .openapi import install_openapi
@@ -91,6 +94,25 @@ def _load_maps(manager: MapManager) -> None:
         log.exception("loading the maps failed")
 
 
+def _reload_keys_on_sighup(app: FastAPI) -> Callable[[], None]:
+    """SIGHUP re-reads the keys file (:func:`~sgvloc.server.api.auth.reload_keys`);
+    returns the function that removes the handler. Nothing where signals cannot be
+    handled (not the main thread, not Unix)."""
+    loop = asyncio.get_running_loop()
+
+    def reload() -> None:
+        if app.state.settings.dev:
+            return
+        with contextlib.suppress(KeysError):  # logged; the previous keys stay
+            reload_keys(app)
+
+    try:
+        loop.add_signal_handler(signal.SIGHUP, reload)
+    except (NotImplementedError, RuntimeError, ValueError, AttributeError):
+        return lambda: None
+    return lambda: loop.remove_signal_handler(signal.SIGHUP)
+
+
 @asynccontextmanager
 async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     settings: Settings = app.state.settings
@@ -108,9 +130,11 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     )
     loader = threading.Thread(target=_load_maps, args=(manager,), name="sgvloc-load", daemon=True)
     loader.start()
+    hup = _reload_keys_on_sighup(app)
     try:
         yield
     finally:
+        hup()
         manager.stop_loading()  # a start-up still loading maps ends after the current one
         await anyio.to_thread.run_sync(loader.join, settings.shutdown_timeout_s)
         await anyio.to_thread.run_sync(manager.close)

@@ -547,6 +547,13 @@ class LimitsOut(BaseModel):
     )
 
 
+class KeysReloaded(BaseModel):
+    """``POST /v1/keys/reload``: the keys now in force (counts, never keys)."""
+
+    keys: int
+    by_role: dict[str, int]
+
+
 class AuthOut(BaseModel):
     """How callers are authenticated (never the keys)."""
 

@@ -6,11 +6,12 @@ from fastapi import APIRouter, Depends, Request, Response
 
 from sgvloc.about import __version__
 
-from ..auth import KeyRing, authorize
+from ..auth import KeyRing, KeysError, authorize, reload_keys
 from ..body import encode
 from ..deps import SettingsDep
+from ..errors import ApiError
 from ..openapi import error_responses
-from ..schemas import AuthOut, ConfigOut, LimitsOut
+from ..schemas import AuthOut, ConfigOut, KeysReloaded, LimitsOut
 
 router = APIRouter(prefix="/v1", tags=["service"], dependencies=[Depends(authorize)])
 
@@ -53,3 +54,27 @@ async def get_config(request: Request, settings: SettingsDep) -> Response:
             snapshot_delay_s=s.snapshot_delay_s,
         ),
     )
+
+
+@router.post(
+    "/keys/reload",
+    response_model=KeysReloaded,
+    operation_id="reload_keys",
+    responses=error_responses(401, 403, 409, 422, common=False),
+)
+async def reload_keys_route(request: Request, settings: SettingsDep) -> Response:
+    """Read the keys file again (as SIGHUP does) and apply it at once: added keys work,
+    revoked keys stop working. A file that cannot be used is a 422 and the previous keys
+    stay in force. Admin keys only; 409 in development mode (there are no keys)."""
+    if settings.dev:
+        raise ApiError(409, "conflict", "development mode: authentication is off, no keys")
+    try:
+        ring = reload_keys(request.app)
+    except KeysError as exc:
+        raise ApiError(
+            422, "invalid_input", f"keys file not reloaded, the previous keys stay: {exc}"
+        ) from None
+    by_role: dict[str, int] = {}
+    for key in ring.keys:
+        by_role[key.principal.role] = by_role.get(key.principal.role, 0) + 1
+    return encode(request, KeysReloaded(keys=len(ring.keys), by_role=by_role))
