@@ -854,10 +854,10 @@ def main() -> None:
         import sys
 
         command = next((a for a in sys.argv[1:] if not a.startswith("-")), "")
-        print(
+        typer.echo(
             f"sgvloc {command}: needs the service extra (module {exc.name!r} is missing): "
             "pip install -e '.[service]' after the CPU build of torch (README, Install)",
-            file=sys.stderr,
+            err=True,
         )
         sys.exit(2)
 

@@ -243,9 +243,7 @@ class MapManager:
                 log.error("map %r could not be loaded: %s", name, why)
                 self.failed[name] = self._scrubbed(why, folder)
                 continue
-            with self._lock:
-                self._maps[name] = handle
-            self._on_change(name, handle.num_keyframes)
+            self._publish(handle)
             log.info(
                 "loaded map %r: %d keyframes, version %d, in %.2f s",
                 name,
@@ -372,15 +370,20 @@ class MapManager:
                 raise MapUnavailableError(
                     f"map {name!r} still cannot be loaded: {self.failed[name]}"
                 ) from None
-            with self._lock:
-                self._maps[name] = handle
+            self._publish(handle)
         finally:
             with self._lock:
                 self._reserved.discard(name)
-        self.failed.pop(name, None)
-        self._on_change(name, handle.num_keyframes)
         log.info("reloaded map %r: %d keyframes", name, handle.num_keyframes)
         return handle
+
+    def _publish(self, handle: MapHandle) -> None:
+        """Serve a map that was just created or loaded (under a reservation of its name,
+        or at start-up)."""
+        with self._lock:
+            self._maps[handle.name] = handle
+        self.failed.pop(handle.name, None)
+        self._on_change(handle.name, handle.num_keyframes)
 
     def stop_loading(self) -> None:
         """Make :meth:`load_all` stop after the map it is loading (shutdown)."""
@@ -496,13 +499,10 @@ class MapManager:
                 raise_if_full(exc)
                 raise
             handle = MapHandle(name, folder, record, store, localizer)
-            with self._lock:
-                self._maps[name] = handle
+            self._publish(handle)
         finally:
             with self._lock:
                 self._reserved.discard(name)
-        self.failed.pop(name, None)
-        self._on_change(name, 0)
         log.info("created map %r (encoder %r)", name, encoder.identity.name)
         return handle
 

@@ -9,7 +9,6 @@ errors (FastAPI's and pydantic's) become ``invalid_input``; anything unexpected 
 
 from __future__ import annotations
 
-import errno
 import logging
 from collections.abc import Sequence
 from typing import Any
@@ -32,6 +31,7 @@ from sgvloc.core.errors import (
 from sgvloc_client.wire import WireError
 
 from ..maps import MapUnavailableError
+from ..store import storage_full
 
 log = logging.getLogger(__name__)
 
@@ -101,13 +101,15 @@ def validation_message(errors: Sequence[dict[str, Any]]) -> tuple[str, str | Non
     return "; ".join(items) + more, first
 
 
-_ENGINE_CODES: list[tuple[type[SgvlocError], int, str]] = [
-    (StorageFullError, 507, "insufficient_storage"),
-    (MapUnavailableError, 503, "map_unavailable"),
-    (EncoderMismatchError, 409, "encoder_mismatch"),
-    (NotFoundError, 404, "not_found"),
-    (ConflictError, 409, "conflict"),
-    (InputError, 422, "invalid_input"),
+#: engine error -> status, code, and whether the answer carries Retry-After
+_ENGINE_CODES: list[tuple[type[SgvlocError], int, str, bool]] = [
+    (DeadlineExceeded, 503, "deadline_exceeded", True),
+    (StorageFullError, 507, "insufficient_storage", False),
+    (MapUnavailableError, 503, "map_unavailable", False),
+    (EncoderMismatchError, 409, "encoder_mismatch", False),
+    (NotFoundError, 404, "not_found", False),
+    (ConflictError, 409, "conflict", False),
+    (InputError, 422, "invalid_input", False),
 ]
 
 
@@ -119,14 +121,11 @@ async def _api_error(request: Request, exc: Exception) -> Response:
 async def _engine_error(request: Request, exc: Exception) -> Response:
     assert isinstance(exc, SgvlocError)
     field = getattr(exc, "field", None)
-    if isinstance(exc, DeadlineExceeded):
-        retry = str(request.app.state.settings.retry_after_s)
-        return error_response(
-            request, 503, "deadline_exceeded", str(exc), None, {"Retry-After": retry}
-        )
-    for cls, status, code in _ENGINE_CODES:
+    for cls, status, code, retry in _ENGINE_CODES:
         if isinstance(exc, cls):
-            return error_response(request, status, code, str(exc), field)
+            after = str(request.app.state.settings.retry_after_s)
+            headers = {"Retry-After": after} if retry else None
+            return error_response(request, status, code, str(exc), field, headers)
     log.error("unmapped engine error on %s %s: %r", request.method, request.url.path, exc)
     return error_response(request, 500, "internal", str(exc), field)
 
@@ -178,14 +177,10 @@ def _allowed_methods(request: Request) -> list[str]:
 
 
 async def _unexpected(request: Request, exc: Exception) -> Response:
-    if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
+    full = storage_full(exc)
+    if full is not None:
         log.error("%s %s: the disk is full: %s", request.method, request.url.path, exc)
-        return error_response(
-            request,
-            507,
-            "insufficient_storage",
-            "no space left on the service's disk; nothing was stored (free space, retry)",
-        )
+        return await _engine_error(request, full)
     log.exception("internal error on %s %s", request.method, request.url.path, exc_info=exc)
     # Starlette re-raises after this answer and the server then drops the connection:
     # say so, so that a keep-alive client opens a new one for its next request

@@ -10,6 +10,7 @@ from .base import (
     StoreClosedError,
     StoreError,
     raise_if_full,
+    storage_full,
     utc_now,
 )
 from .sqlite import DB_NAME, SqliteBackend, SqliteMapStore
@@ -26,5 +27,6 @@ __all__ = [
     "StoreClosedError",
     "StoreError",
     "raise_if_full",
+    "storage_full",
     "utc_now",
 ]

@@ -30,18 +30,27 @@ class StoreError(SgvlocError):
     """A map database is missing, damaged or from an unknown schema."""
 
 
-def raise_if_full(exc: BaseException) -> None:
-    """Raise :class:`~sgvloc.core.errors.StorageFullError` from ``exc`` if it says that
-    the disk is full (an OSError with ENOSPC/EDQUOT, or a database driver's "disk is full"
-    / "No space left on device"); call it where a failed write was rolled back."""
+def storage_full(exc: BaseException) -> StorageFullError | None:
+    """A :class:`~sgvloc.core.errors.StorageFullError` if ``exc`` says that the disk is
+    full (an OSError with ENOSPC/EDQUOT, or a database driver's "disk is full" / "No
+    space left on device"), else None."""
     text = str(exc)
     full = (isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT)) or (
         "disk is full" in text or "No space left on device" in text
     )
-    if full:
-        raise StorageFullError(
-            "no space left on the service's disk; nothing was stored (free space, retry)"
-        ) from exc
+    if not full:
+        return None
+    return StorageFullError(
+        "no space left on the service's disk; nothing was stored (free space, retry)"
+    )
+
+
+def raise_if_full(exc: BaseException) -> None:
+    """Raise :func:`storage_full`'s error from ``exc`` if the disk is full; call it where
+    a failed write was rolled back."""
+    full = storage_full(exc)
+    if full is not None:
+        raise full from exc
 
 
 def utc_now() -> str:
