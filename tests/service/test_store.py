@@ -16,7 +16,7 @@ from sgvloc.core.encoders import EncoderSpec
 from sgvloc.core.errors import ConflictError, InputError, NotFoundError
 from sgvloc.core.retrieval import FaissIndex
 from sgvloc.server.maps import FeaturesIn, KeyframeIn, MapManager
-from sgvloc.server.store import SqliteMapStore
+from sgvloc.server.store import KeyframeFilter, SqliteMapStore
 
 SPEC = EncoderSpec(kind="precomputed", name="egonn", global_dim=16, local_dim=8)
 
@@ -225,3 +225,36 @@ def test_store_round_trip(tmp_path: Path) -> None:
     with sqlite3.connect(store.path) as conn:
         assert conn.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
     store.close()
+
+
+def test_schema_1_is_migrated_on_open(tmp_path: Path) -> None:
+    """A map stored before positions had columns (schema 1) is migrated when loaded:
+    its extent and bounding-box filters then work, nothing else changes."""
+    rng = np.random.default_rng(5)
+    m = _manager(tmp_path)
+    m.create("old", SPEC)
+    ids = m.insert("old", _items(rng, 4, "k")).ids
+    m.close()
+    db = tmp_path / "maps" / "old" / "map.sqlite"
+    with sqlite3.connect(db) as conn:  # back to schema 1, as earlier releases wrote it
+        for column in ("x", "y", "z"):
+            conn.execute(f"ALTER TABLE keyframes DROP COLUMN {column}")
+        conn.execute("UPDATE meta SET value = '1' WHERE key = 'schema_version'")
+
+    m = _manager(tmp_path)
+    assert m.failed == {} and m.get("old").version == 1
+    store = m.get("old").store
+    assert store.extent() == ([0.0, 0.0, 0.0], [3.0, 0.0, 0.0])
+    inside = store.select(KeyframeFilter(bbox=(0.5, -1.0, 2.5, 1.0)))
+    assert [r.id for r in inside] == ids[1:3]
+    m.close()
+    with sqlite3.connect(db) as conn:
+        assert conn.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone() == (
+            "2",
+        )
+
+    with sqlite3.connect(db) as conn:  # a schema from the future is refused, not guessed at
+        conn.execute("UPDATE meta SET value = '99' WHERE key = 'schema_version'")
+    m = _manager(tmp_path)
+    assert "unknown schema version '99'" in m.failed["old"]
+    m.close()

@@ -199,12 +199,34 @@ class Localizer:
         return self.add_keyframes([self.make_keyframe(T_map_sensor, **kwargs)])[0]
 
     def remove_keyframe(self, keyframe_id: int) -> None:
+        self.remove_keyframes([keyframe_id])
+
+    def remove_keyframes(self, keyframe_ids: list[int]) -> None:
+        """Remove keyframes in one step (one version change); an unknown id raises
+        :class:`NotFoundError` and removes nothing."""
+        ids = [int(i) for i in keyframe_ids]
+        if not ids:
+            return
         with self._lock.write():
-            self.keyframe(keyframe_id)
-            self.index.remove(np.array([keyframe_id], dtype=np.int64))
-            del self._keyframes[int(keyframe_id)]
-            self._grid.remove(keyframe_id)
+            for i in ids:
+                self.keyframe(i)
+            self.index.remove(np.asarray(ids, dtype=np.int64))
+            for i in ids:
+                del self._keyframes[i]
+                self._grid.remove(i)
             self.version += 1
+
+    def memory_bytes(self) -> int:
+        """Bytes held by the keyframes' arrays (features, clouds, poses) and the index's
+        vectors: the map's share of the process's memory, roughly."""
+        with self._lock.read():
+            total = self.index.memory_bytes()
+            for kf in self._keyframes.values():
+                f = kf.features
+                total += kf.T_map_sensor.nbytes + f.global_descriptor.nbytes
+                total += f.keypoints.nbytes + f.local_features.nbytes
+                total += 0 if kf.cloud is None else kf.cloud.nbytes
+        return total
 
     def restore(
         self, keyframes: list[Keyframe], version: int, index: FaissIndex | None = None

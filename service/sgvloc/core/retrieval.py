@@ -98,6 +98,12 @@ class FaissIndex:
         with self._lock.read():
             return np.sort(self._live_ids())
 
+    def memory_bytes(self) -> int:
+        """Bytes of the stored vectors and ids (graph links of HNSW included, roughly)."""
+        n = int(self._index.ntotal)
+        links = 2 * self.config.hnsw_m * 4 if self.kind == "hnsw" else 0
+        return n * (self.dim * 4 + 8 + links)
+
     def _all_ids(self) -> np.ndarray:
         if self._is_idmap():
             return faiss.vector_to_array(self._index.id_map).astype(np.int64)

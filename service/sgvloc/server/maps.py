@@ -29,9 +29,9 @@ import time
 import uuid
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import numpy as np
 from pydantic import ValidationError
@@ -52,9 +52,12 @@ from sgvloc.core.pose import check_rigid
 from sgvloc.core.prior import Prior
 from sgvloc.core.retrieval import FaissIndex
 
+from .archive import ArchiveError, read_archive, write_archive
 from .store import (
     INDEX_NAME,
+    KeyframeFilter,
     KeyframeRow,
+    KeyframeSummary,
     MapRecord,
     MapStore,
     SqliteBackend,
@@ -146,6 +149,17 @@ def _merge(base: dict[str, Any], patch: dict[str, Any]) -> dict[str, Any]:
         else:
             out[key] = value
     return out
+
+
+def _folder_bytes(folder: Path) -> int:
+    """Bytes of the files under ``folder`` (files that vanish meanwhile count 0)."""
+    total = 0
+    for p in folder.rglob("*"):
+        try:
+            total += p.stat().st_size if p.is_file() else 0
+        except OSError:
+            pass
+    return total
 
 
 class MapUnavailableError(SgvlocError):
@@ -426,6 +440,30 @@ class MapManager:
             raise NotFoundError(f"map {name!r} does not exist")
         return handle
 
+    @staticmethod
+    def _check_name(name: str) -> None:
+        if not MAP_NAME_RE.fullmatch(name):
+            raise field_error(
+                InputError(
+                    f"map name {name!r} is invalid: use 1-64 letters, digits, '_', '.' or '-', "
+                    "starting with a letter or digit"
+                ),
+                "name",
+            )
+
+    def _reserve(self, name: str) -> None:
+        """Reserve a new map's name while it is built (ConflictError if taken)."""
+        with self._lock:
+            if name in self._maps or name in self._reserved:
+                raise ConflictError(f"map {name!r} exists already")
+            if (self.maps_dir / name).exists():
+                why = self.failed.get(name, "unknown reason")
+                raise ConflictError(
+                    f"a folder for map {name!r} exists but could not be loaded ({why}); "
+                    "remove it from the data directory first"
+                )
+            self._reserved.add(name)
+
     def create(
         self,
         name: str,
@@ -440,26 +478,10 @@ class MapManager:
         ``calibration``: the confidence model (default: the one shipped for the encoder's
         kind), recorded with the map so that its answers do not change with an upgrade.
         """
-        if not MAP_NAME_RE.fullmatch(name):
-            raise field_error(
-                InputError(
-                    f"map name {name!r} is invalid: use 1-64 letters, digits, '_', '.' or '-', "
-                    "starting with a letter or digit"
-                ),
-                "name",
-            )
+        self._check_name(name)
         encoder_spec = encoder_spec or EncoderSpec()
         localizer_config = localizer_config or LocalizerConfig()
-        with self._lock:
-            if name in self._maps or name in self._reserved:
-                raise ConflictError(f"map {name!r} exists already")
-            if (self.maps_dir / name).exists():
-                why = self.failed.get(name, "unknown reason")
-                raise ConflictError(
-                    f"a folder for map {name!r} exists but could not be loaded ({why}); "
-                    "remove it from the data directory first"
-                )
-            self._reserved.add(name)
+        self._reserve(name)
         try:
             with at_field("encoder"):
                 encoder = make_encoder(encoder_spec)
@@ -729,6 +751,162 @@ class MapManager:
             self._mark_unsaved(handle, 1)
         self._on_change(name, handle.num_keyframes)
         return version
+
+    def list_keyframes(
+        self, name: str, where: KeyframeFilter, *, after_id: int = 0, limit: int = 1000
+    ) -> list[KeyframeSummary]:
+        """Keyframes matching ``where`` with ``id > after_id``, by id (at most ``limit``)."""
+        handle = self.get(name)
+        try:
+            return handle.store.select(where, after_id=after_id, limit=limit)
+        except StoreClosedError:
+            raise NotFoundError(f"map {name!r} does not exist") from None
+
+    def delete_keyframes(self, name: str, where: KeyframeFilter) -> tuple[int, int]:
+        """Delete every keyframe matching ``where`` in one transaction (one version
+        step; none when nothing matches). Returns ``(deleted, map version)``."""
+        handle = self.get(name)
+        with handle.write_lock:
+            if handle.closed:
+                raise NotFoundError(f"map {name!r} does not exist")
+            ids = handle.store.matching_ids(where)
+            if not ids:
+                return 0, handle.version
+            version = handle.store.delete(ids)
+            handle.localizer.remove_keyframes(ids)
+            handle.localizer.version = version
+            self._mark_unsaved(handle, len(ids))
+        self._on_change(name, handle.num_keyframes)
+        log.info("map %r: deleted %d keyframes (version %d)", name, len(ids), version)
+        return len(ids), version
+
+    def stats(self, name: str) -> dict[str, Any]:
+        """Size and shape of a map: keyframes, extent, disk and memory use, index kind,
+        last write."""
+        handle = self.get(name)
+        try:
+            extent = handle.store.extent()
+            last_write = handle.store.last_write()
+        except StoreClosedError:
+            raise NotFoundError(f"map {name!r} does not exist") from None
+        disk = _folder_bytes(handle.path)
+        return {
+            "map": name,
+            "version": handle.version,
+            "keyframes": handle.num_keyframes,
+            "extent": None if extent is None else {"min": extent[0], "max": extent[1]},
+            "disk_bytes": disk,
+            "memory_bytes": handle.localizer.memory_bytes(),
+            "index_kind": handle.localizer.index.kind,
+            "created_at": handle.record.created_at,
+            "last_write": last_write,
+        }
+
+    # -- archives -----------------------------------------------------------------------
+
+    @contextmanager
+    def export_archive(self, name: str) -> Iterator[Iterator[bytes]]:
+        """The map as an archive (:mod:`sgvloc.server.archive`), a stream of byte blocks
+        read from one consistent state of the store; writers are not blocked."""
+        handle = self.get(name)
+        try:
+            with handle.store.snapshot() as (version, count, rows):
+                yield write_archive(handle.record, version, count, rows)
+        except StoreClosedError:
+            raise NotFoundError(f"map {name!r} does not exist") from None
+
+    def import_archive(
+        self,
+        fileobj: IO[bytes],
+        name: str | None = None,
+        *,
+        fix_spec: Callable[[EncoderSpec], EncoderSpec] | None = None,
+        check_name: Callable[[str], None] | None = None,
+    ) -> MapHandle:
+        """Create a map from an archive, under ``name`` or the archived name.
+
+        Ids, keys, metadata, creation times, version, settings and calibration are kept.
+        The archive's encoder must build here with the same fingerprint (else
+        :class:`EncoderMismatchError`); ``fix_spec`` may adjust its spec first (the
+        service confines model paths); ``check_name`` may refuse the final name (by
+        raising) before anything is built. A damaged or foreign archive raises
+        :class:`~sgvloc.server.archive.ArchiveError` and leaves nothing behind.
+        """
+        header, chunks = read_archive(fileobj)
+        record = header.record
+        name = name or record.name
+        self._check_name(name)
+        if check_name is not None:
+            check_name(name)
+        spec = fix_spec(record.encoder_spec) if fix_spec else record.encoder_spec
+        with at_field("encoder"):
+            encoder = make_encoder(spec)
+        if encoder.identity.fingerprint != record.encoder_fingerprint:
+            raise EncoderMismatchError(
+                f"the archive's map was built with encoder {encoder.identity.name!r} "
+                f"fingerprint {record.encoder_fingerprint}, but its spec builds "
+                f"{encoder.identity.fingerprint} here (other weights or encoder code): its "
+                "features cannot be used with this server"
+            )
+        record = replace(record, name=name, encoder_spec=spec)
+        self._reserve(name)
+        try:
+            self.maps_dir.mkdir(parents=True, exist_ok=True)
+            tmp = self.maps_dir / f"{_TMP_PREFIX}{name}-{uuid.uuid4().hex[:8]}"
+            tmp.mkdir()
+            folder = self.maps_dir / name
+            try:
+                store = self.backend.create(tmp, record)
+                try:
+                    for rows in chunks:
+                        for row in rows:
+                            self._check_archived(encoder, row)
+                        try:
+                            store.insert_exact(rows, header.version)
+                        except self.backend.errors as exc:
+                            raise_if_full(exc)
+                            raise ArchiveError(f"the archive's keyframes clash: {exc}") from None
+                finally:
+                    store.close()
+                tmp.rename(folder)
+                handle = self._load(folder)
+            except BaseException as exc:
+                for leftover in (tmp, folder):
+                    if leftover.exists():
+                        shutil.rmtree(leftover, ignore_errors=True)
+                raise_if_full(exc)
+                raise
+            self._publish(handle)
+        finally:
+            with self._lock:
+                self._reserved.discard(name)
+        log.info(
+            "imported map %r: %d keyframes, version %d (exported by sgvloc %s)",
+            name,
+            handle.num_keyframes,
+            handle.version,
+            header.sgvloc_version,
+        )
+        return handle
+
+    @staticmethod
+    def _check_archived(encoder: Encoder, row: KeyframeRow) -> None:
+        """An archived keyframe as strictly as an inserted one (ArchiveError if not)."""
+        try:
+            if row.id <= 0 or not (row.key is None or isinstance(row.key, str)):
+                raise InputError("bad id or key")
+            if not isinstance(row.metadata, dict):
+                raise InputError("metadata is not an object")
+            check_rigid(row.T_map_sensor, "T_map_sensor")
+            feats = Features.validated(
+                row.global_descriptor, row.keypoints, row.local_features, encoder.identity
+            )
+            g, d = feats.global_descriptor.shape[0], feats.local_features.shape[1]
+            if g != encoder.global_dim or (feats.num_keypoints and d != encoder.local_dim):
+                raise InputError(f"features of dimensions {g}/{d}, the encoder's differ")
+            encoder.check(feats)
+        except SgvlocError as exc:
+            raise ArchiveError(f"archived keyframe {row.id} is invalid: {exc}") from None
 
     # -- localization -------------------------------------------------------------------
 

@@ -3,7 +3,9 @@
 
 from .base import (
     INDEX_NAME,
+    KeyframeFilter,
     KeyframeRow,
+    KeyframeSummary,
     MapRecord,
     MapStore,
     StoreBackend,
@@ -18,7 +20,9 @@ from .sqlite import DB_NAME, SqliteBackend, SqliteMapStore
 __all__ = [
     "DB_NAME",
     "INDEX_NAME",
+    "KeyframeFilter",
     "KeyframeRow",
+    "KeyframeSummary",
     "MapRecord",
     "MapStore",
     "SqliteBackend",

@@ -11,6 +11,7 @@ import errno
 import io
 from abc import ABC, abstractmethod
 from collections.abc import Iterator
+from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -106,6 +107,42 @@ class KeyframeRow:
     created_at: str = ""
 
 
+@dataclass(frozen=True)
+class KeyframeFilter:
+    """Which keyframes a listing or a bulk delete means; every given field must hold.
+
+    ``bbox``: ``(x_min, y_min, x_max, y_max)`` of the keyframe position in map
+    coordinates (inclusive); ``time_min``/``time_max``: the ``timestamp`` of its
+    metadata (seconds, inclusive); ``sequence``: its metadata ``sequence`` (compared as
+    text); ``key_prefix``: the start of its key (keyframes without a key never match).
+    """
+
+    key_prefix: str | None = None
+    bbox: tuple[float, float, float, float] | None = None
+    time_min: float | None = None
+    time_max: float | None = None
+    sequence: str | None = None
+
+    @property
+    def empty(self) -> bool:
+        """True when no field is given: the filter matches every keyframe."""
+        return all(
+            v is None
+            for v in (self.key_prefix, self.bbox, self.time_min, self.time_max, self.sequence)
+        )
+
+
+@dataclass(frozen=True)
+class KeyframeSummary:
+    """A keyframe without its features: what a listing returns."""
+
+    id: int
+    key: str | None
+    T_map_sensor: np.ndarray  # [4, 4] float64
+    metadata: dict[str, Any]
+    created_at: str
+
+
 class StoreClosedError(StoreError):
     """The store was closed meanwhile (its map is being deleted)."""
 
@@ -156,6 +193,39 @@ class MapStore(ABC):
     @abstractmethod
     def iter_keyframes(self, chunk: int = 256) -> Iterator[KeyframeRow]:
         """Every keyframe in id order."""
+
+    @abstractmethod
+    def select(
+        self, where: KeyframeFilter, *, after_id: int = 0, limit: int = 1000
+    ) -> list[KeyframeSummary]:
+        """Up to ``limit`` keyframes matching ``where`` with ``id > after_id``, by id."""
+
+    @abstractmethod
+    def matching_ids(self, where: KeyframeFilter) -> list[int]:
+        """The ids of every keyframe matching ``where``, ascending."""
+
+    @abstractmethod
+    def extent(self) -> tuple[list[float], list[float]] | None:
+        """The keyframe positions' bounding box ``(min xyz, max xyz)``; None when empty."""
+
+    @abstractmethod
+    def last_write(self) -> str | None:
+        """When keyframes were last inserted or deleted (ISO 8601 UTC); None if never
+        (or before the store recorded it)."""
+
+    @abstractmethod
+    def disk_bytes(self) -> int:
+        """Bytes the store takes on disk."""
+
+    @abstractmethod
+    def snapshot(self) -> AbstractContextManager[tuple[int, int, Iterator[KeyframeRow]]]:
+        """A consistent read of the whole map without blocking writers: ``(version,
+        count, keyframes in id order)``, valid inside the ``with`` block."""
+
+    @abstractmethod
+    def insert_exact(self, rows: list[KeyframeRow], version: int) -> None:
+        """Insert rows keeping their ``id`` and ``created_at`` and set the version, in
+        one transaction (to fill a new store from an archive)."""
 
     @abstractmethod
     def insert(self, rows: list[KeyframeRow]) -> tuple[list[int], int]:

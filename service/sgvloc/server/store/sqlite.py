@@ -14,7 +14,10 @@ request, so it is paid once per batch, not per keyframe.
 
 Arrays are stored as ``.npy`` blobs (dtype and shape in the header, no pickle). Keyframe
 ids are ``INTEGER PRIMARY KEY AUTOINCREMENT``: an id is never reused after a delete, so a
-client holding an old id can never address a different keyframe.
+client holding an old id can never address a different keyframe. The position (x, y, z of
+the pose) is kept in columns too, for bounding-box filters and the map's extent.
+
+Schema versions: 1 (no position columns) is migrated to 2 when the map is opened.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ import logging
 import sqlite3
 import threading
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -34,7 +38,9 @@ from sgvloc.core.encoders import EncoderSpec
 from sgvloc.core.errors import NotFoundError
 
 from .base import (
+    KeyframeFilter,
     KeyframeRow,
+    KeyframeSummary,
     MapRecord,
     MapStore,
     StoreBackend,
@@ -49,7 +55,7 @@ from .base import (
 log = logging.getLogger(__name__)
 
 DB_NAME = "map.sqlite"
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (
@@ -65,9 +71,61 @@ CREATE TABLE IF NOT EXISTS keyframes (
     local_features    BLOB NOT NULL,
     cloud             BLOB,
     metadata          TEXT NOT NULL,
-    created_at        TEXT NOT NULL
+    created_at        TEXT NOT NULL,
+    x                 REAL,
+    y                 REAL,
+    z                 REAL
 );
 """
+
+
+def _migrate_1_to_2(conn: sqlite3.Connection) -> None:
+    """Schema 1 -> 2: position columns, filled from the stored poses (one transaction)."""
+    conn.execute("BEGIN IMMEDIATE")
+    try:
+        for column in ("x", "y", "z"):
+            conn.execute(f"ALTER TABLE keyframes ADD COLUMN {column} REAL")
+        rows = conn.execute("SELECT id, T_map_sensor FROM keyframes").fetchall()
+        conn.executemany(
+            "UPDATE keyframes SET x = ?, y = ?, z = ? WHERE id = ?",
+            [(*_position(blob_to_array(blob)), i) for i, blob in rows],
+        )
+        conn.execute("UPDATE meta SET value = '2' WHERE key = 'schema_version'")
+        conn.execute("COMMIT")
+    except BaseException:
+        if conn.in_transaction:
+            conn.execute("ROLLBACK")
+        raise
+
+
+_MIGRATIONS = {1: _migrate_1_to_2}  # from version -> the step to the next
+
+
+def _position(T: np.ndarray) -> tuple[float, float, float]:
+    x, y, z = np.asarray(T, dtype=np.float64)[:3, 3]
+    return float(x), float(y), float(z)
+
+
+def _where(f: KeyframeFilter) -> tuple[str, list[object]]:
+    """SQL conditions (joined with AND, starting with AND) and their parameters."""
+    sql, args = [], []
+    if f.key_prefix is not None:
+        sql.append("substr(key, 1, ?) = ?")
+        args += [len(f.key_prefix), f.key_prefix]
+    if f.bbox is not None:
+        x0, y0, x1, y1 = f.bbox
+        sql.append("x BETWEEN ? AND ? AND y BETWEEN ? AND ?")
+        args += [x0, x1, y0, y1]
+    if f.time_min is not None:
+        sql.append("json_extract(metadata, '$.timestamp') >= ?")
+        args.append(f.time_min)
+    if f.time_max is not None:
+        sql.append("json_extract(metadata, '$.timestamp') <= ?")
+        args.append(f.time_max)
+    if f.sequence is not None:
+        sql.append("CAST(json_extract(metadata, '$.sequence') AS TEXT) = ?")
+        args.append(f.sequence)
+    return "".join(f" AND {c}" for c in sql), args
 
 
 class SqliteMapStore(MapStore):
@@ -107,8 +165,10 @@ class SqliteMapStore(MapStore):
             "keep_clouds": json.dumps(record.keep_clouds),
             "created_at": record.created_at,
             "version": "0",
-            "settings_version": "0",
+            "settings_version": str(record.settings_version),
         }
+        if record.settings_updated_at is not None:
+            meta["settings_updated_at"] = record.settings_updated_at
         if record.calibration is not None:
             meta["calibration"] = json.dumps(record.calibration.to_dict())
         conn.executescript(_SCHEMA)
@@ -128,6 +188,15 @@ class SqliteMapStore(MapStore):
         except sqlite3.DatabaseError as exc:
             raise StoreError(f"{path}: cannot read map database: {exc}") from None
         schema = rows.get("schema_version")
+        try:
+            while schema is not None and schema.isdigit() and int(schema) in _MIGRATIONS:
+                log.info("%s: migrating the map database from schema %s", path, schema)
+                _MIGRATIONS[int(schema)](conn)
+                schema = str(int(schema) + 1)
+        except sqlite3.Error as exc:
+            conn.close()
+            raise_if_full(exc)
+            raise StoreError(f"{path}: migrating schema {schema} failed: {exc}") from None
         if schema != str(SCHEMA_VERSION):
             conn.close()
             raise StoreError(f"{path}: unknown schema version {schema!r}")
@@ -268,6 +337,77 @@ class SqliteMapStore(MapStore):
                 yield self._row(r)
             last = rows[-1][0]
 
+    def select(
+        self, where: KeyframeFilter, *, after_id: int = 0, limit: int = 1000
+    ) -> list[KeyframeSummary]:
+        """Up to ``limit`` keyframes matching ``where`` with ``id > after_id``, by id."""
+        cond, args = _where(where)
+        with self._lock:
+            rows = self._conn.execute(
+                "SELECT id, key, T_map_sensor, metadata, created_at FROM keyframes "
+                f"WHERE id > ?{cond} ORDER BY id LIMIT ?",
+                [int(after_id), *args, int(limit)],
+            ).fetchall()
+        return [
+            KeyframeSummary(int(r[0]), r[1], blob_to_array(r[2]), json.loads(r[3]), r[4])
+            for r in rows
+        ]
+
+    def matching_ids(self, where: KeyframeFilter) -> list[int]:
+        cond, args = _where(where)
+        with self._lock:
+            return [
+                r[0]
+                for r in self._conn.execute(
+                    f"SELECT id FROM keyframes WHERE 1{cond} ORDER BY id", args
+                )
+            ]
+
+    def extent(self) -> tuple[list[float], list[float]] | None:
+        with self._lock:
+            r = self._conn.execute(
+                "SELECT min(x), min(y), min(z), max(x), max(y), max(z) FROM keyframes"
+            ).fetchone()
+        if r[0] is None:
+            return None
+        return [float(v) for v in r[:3]], [float(v) for v in r[3:]]
+
+    @contextmanager
+    def snapshot(self) -> Iterator[tuple[int, int, Iterator[KeyframeRow]]]:
+        """A read transaction on a second connection: WAL mode lets it see one state of
+        the map while writers go on."""
+        conn = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
+        try:
+            conn.execute("BEGIN")
+            version = int(
+                conn.execute("SELECT value FROM meta WHERE key = 'version'").fetchone()[0]
+            )
+            count = int(conn.execute("SELECT COUNT(*) FROM keyframes").fetchone()[0])
+
+            def rows() -> Iterator[KeyframeRow]:
+                last = 0
+                while True:
+                    chunk = conn.execute(
+                        f"SELECT {self._COLUMNS} FROM keyframes WHERE id > ? ORDER BY id LIMIT 256",
+                        (last,),
+                    ).fetchall()
+                    if not chunk:
+                        return
+                    yield from (self._row(r) for r in chunk)
+                    last = chunk[-1][0]
+
+            yield version, count, rows()
+        finally:
+            conn.close()
+
+    def last_write(self) -> str | None:
+        return self._meta().get("updated_at")
+
+    def disk_bytes(self) -> int:
+        """The database with its write-ahead log and shared-memory file."""
+        files = [self.path, *(self.path.with_name(self.path.name + s) for s in ("-wal", "-shm"))]
+        return sum(p.stat().st_size for p in files if p.exists())
+
     # -- keyframes: writing -------------------------------------------------------------
 
     def insert(self, rows: list[KeyframeRow]) -> tuple[list[int], int]:
@@ -284,19 +424,8 @@ class SqliteMapStore(MapStore):
                 ids = []
                 for row in rows:
                     cur = conn.execute(
-                        "INSERT INTO keyframes (key, T_map_sensor, global_descriptor, keypoints,"
-                        " local_features, cloud, metadata, created_at)"
-                        " VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
-                        (
-                            row.key,
-                            array_to_blob(np.asarray(row.T_map_sensor, dtype=np.float64)),
-                            array_to_blob(row.global_descriptor),
-                            array_to_blob(row.keypoints),
-                            array_to_blob(row.local_features),
-                            None if row.cloud is None else array_to_blob(row.cloud),
-                            json.dumps(row.metadata),
-                            now,
-                        ),
+                        f"INSERT INTO keyframes ({self._INSERT_COLUMNS}) VALUES ({self._MARKS})",
+                        self._values(row, None, now),
                     )
                     ids.append(int(cur.lastrowid))
                 version = self._bump_version(conn)
@@ -337,9 +466,53 @@ class SqliteMapStore(MapStore):
                 raise
         return version
 
+    _INSERT_COLUMNS = (
+        "id, key, T_map_sensor, global_descriptor, keypoints, local_features, cloud, metadata, "
+        "created_at, x, y, z"
+    )
+    _MARKS = ",".join("?" * 12)
+
+    @staticmethod
+    def _values(row: KeyframeRow, keyframe_id: int | None, created_at: str) -> tuple:
+        T = np.asarray(row.T_map_sensor, dtype=np.float64)
+        return (
+            keyframe_id,
+            row.key,
+            array_to_blob(T),
+            array_to_blob(row.global_descriptor),
+            array_to_blob(row.keypoints),
+            array_to_blob(row.local_features),
+            None if row.cloud is None else array_to_blob(row.cloud),
+            json.dumps(row.metadata),
+            created_at,
+            *_position(T),
+        )
+
+    def insert_exact(self, rows: list[KeyframeRow], version: int) -> None:
+        """Insert rows keeping their ids and ``created_at``, and set the version (one
+        transaction). For filling a new store from an archive."""
+        with self._lock:
+            conn = self._conn
+            conn.execute("BEGIN IMMEDIATE")
+            try:
+                conn.executemany(
+                    f"INSERT INTO keyframes ({self._INSERT_COLUMNS}) VALUES ({self._MARKS})",
+                    [self._values(row, int(row.id), row.created_at) for row in rows],
+                )
+                conn.execute("UPDATE meta SET value = ? WHERE key = 'version'", (str(version),))
+                conn.execute("COMMIT")
+            except BaseException as exc:
+                if conn.in_transaction:
+                    conn.execute("ROLLBACK")
+                raise_if_full(exc)
+                raise
+
     @staticmethod
     def _bump_version(conn: sqlite3.Connection) -> int:
         conn.execute("UPDATE meta SET value = CAST(value AS INTEGER) + 1 WHERE key = 'version'")
+        conn.execute(
+            "INSERT OR REPLACE INTO meta (key, value) VALUES ('updated_at', ?)", (utc_now(),)
+        )
         return int(conn.execute("SELECT value FROM meta WHERE key = 'version'").fetchone()[0])
 
 

@@ -1,0 +1,311 @@
+"""Map archives: one file that moves a map between servers, exactly.
+
+An archive is a tar file, written and read as a stream (``tarfile`` ``w|``/``r|``), so
+neither side ever holds a whole map in memory::
+
+    manifest.json            format, format version, the map's settings, encoder identity,
+                             calibration, version and keyframe count (always first)
+    keyframes/000000.npz     up to CHUNK keyframes: ids, poses, descriptors, keypoints,
+    keyframes/000001.npz     local features, clouds (ragged arrays with counts) and a
+    ...                      JSON array of key, metadata and created_at per keyframe
+    SHA256SUMS               the SHA-256 of every member above (always last)
+
+Arrays are ``.npy`` inside ``.npz`` (no pickle). Importing keeps keyframe ids, keys,
+metadata, creation times, the map version and its settings, so the imported map gives
+the same answers. A damaged, truncated or foreign archive is refused with
+:class:`ArchiveError` naming what is wrong, and leaves nothing behind (the map manager
+builds the map aside and moves it into place last).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import tarfile
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from typing import IO, Any
+
+import numpy as np
+
+from sgvloc.about import __version__
+from sgvloc.core.confidence import Calibration
+from sgvloc.core.config import LocalizerConfig
+from sgvloc.core.encoders import EncoderSpec
+from sgvloc.core.errors import InputError
+
+from .store import KeyframeRow, MapRecord, utc_now
+
+FORMAT = "sgvloc-map-archive"
+FORMAT_VERSION = 1
+CHUNK = 256  # keyframes per member
+MANIFEST = "manifest.json"
+SUMS = "SHA256SUMS"
+MAX_MEMBER_BYTES = 1 << 30  # no honest chunk comes near this; a bigger one is refused
+
+
+class ArchiveError(InputError):
+    """The file is not a usable sgvloc map archive (damaged, truncated, foreign)."""
+
+
+# -- writing ----------------------------------------------------------------------------
+
+
+def _manifest(record: MapRecord, version: int, count: int) -> dict[str, Any]:
+    return {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "sgvloc_version": __version__,
+        "exported_at": utc_now(),
+        "map": {
+            "name": record.name,
+            "encoder_spec": record.encoder_spec.model_dump(mode="json"),
+            "encoder_fingerprint": record.encoder_fingerprint,
+            "localizer_config": record.localizer_config.model_dump(mode="json"),
+            "keep_clouds": record.keep_clouds,
+            "created_at": record.created_at,
+            "calibration": None if record.calibration is None else record.calibration.to_dict(),
+            "settings_version": record.settings_version,
+            "settings_updated_at": record.settings_updated_at,
+        },
+        "version": int(version),
+        "keyframes": int(count),
+        "chunk": CHUNK,
+    }
+
+
+def _pack_chunk(rows: list[KeyframeRow]) -> bytes:
+    clouds = [r.cloud for r in rows if r.cloud is not None]
+    arrays = {
+        "ids": np.array([r.id for r in rows], dtype=np.int64),
+        "T_map_sensor": np.stack([np.asarray(r.T_map_sensor, np.float64) for r in rows]),
+        "global_descriptor": np.stack([r.global_descriptor for r in rows]),
+        "keypoint_counts": np.array([len(r.keypoints) for r in rows], dtype=np.int64),
+        "keypoints": np.concatenate([r.keypoints for r in rows]),
+        "local_features": np.concatenate([r.local_features for r in rows]),
+        "cloud_counts": np.array(
+            [-1 if r.cloud is None else len(r.cloud) for r in rows], dtype=np.int64
+        ),
+        "clouds": np.concatenate(clouds) if clouds else np.zeros((0, 3), np.float32),
+        "records": np.frombuffer(
+            json.dumps(
+                [{"key": r.key, "metadata": r.metadata, "created_at": r.created_at} for r in rows]
+            ).encode(),
+            dtype=np.uint8,
+        ),
+    }
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    return buf.getvalue()
+
+
+class _Sink:
+    """A write-only file object that hands out what was written since the last call."""
+
+    def __init__(self) -> None:
+        self._parts: list[bytes] = []
+
+    def write(self, data: bytes) -> int:
+        self._parts.append(bytes(data))
+        return len(data)
+
+    def take(self) -> bytes:
+        out, self._parts = b"".join(self._parts), []
+        return out
+
+
+def write_archive(
+    record: MapRecord, version: int, count: int, rows: Iterable[KeyframeRow]
+) -> Iterator[bytes]:
+    """The archive of a map as a stream of byte blocks (one per member, roughly).
+
+    ``rows``: every keyframe, in id order (read lazily: the archive is never whole in
+    memory); ``count`` must equal their number (checked).
+    """
+    sink = _Sink()
+    sums: list[tuple[str, str]] = []
+    with tarfile.open(fileobj=sink, mode="w|", format=tarfile.PAX_FORMAT) as tar:  # type: ignore[call-overload]
+
+        def add(name: str, data: bytes) -> bytes:
+            info = tarfile.TarInfo(name)
+            info.size, info.mode = len(data), 0o644
+            tar.addfile(info, io.BytesIO(data))
+            sums.append((hashlib.sha256(data).hexdigest(), name))
+            return sink.take()
+
+        yield add(MANIFEST, json.dumps(_manifest(record, version, count), indent=1).encode())
+        chunk: list[KeyframeRow] = []
+        written = 0
+        for row in rows:
+            chunk.append(row)
+            if len(chunk) == CHUNK:
+                yield add(f"keyframes/{written // CHUNK:06d}.npz", _pack_chunk(chunk))
+                written += len(chunk)
+                chunk = []
+        if chunk:
+            yield add(f"keyframes/{written // CHUNK:06d}.npz", _pack_chunk(chunk))
+            written += len(chunk)
+        if written != count:
+            raise RuntimeError(f"the map changed while it was exported ({written} != {count})")
+        yield add(SUMS, "".join(f"{h}  {n}\n" for h, n in sums).encode())
+    yield sink.take()
+
+
+# -- reading ----------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ArchiveHeader:
+    """What the manifest says: the map's record (under its archived name), its version
+    and keyframe count."""
+
+    record: MapRecord
+    version: int
+    keyframes: int
+    sgvloc_version: str
+
+
+def _header(manifest: dict[str, Any]) -> ArchiveHeader:
+    if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
+        raise ArchiveError(f"not an sgvloc map archive ({MANIFEST} names no {FORMAT!r} format)")
+    fv = manifest.get("format_version")
+    if fv != FORMAT_VERSION:
+        raise ArchiveError(
+            f"archive format version {fv!r} is not supported (this sgvloc reads "
+            f"{FORMAT_VERSION}); export it again with a matching sgvloc"
+        )
+    try:
+        m = manifest["map"]
+        record = MapRecord(
+            name=str(m["name"]),
+            encoder_spec=EncoderSpec.model_validate(m["encoder_spec"]),
+            localizer_config=LocalizerConfig.model_validate(m["localizer_config"]),
+            encoder_fingerprint=str(m["encoder_fingerprint"]),
+            keep_clouds=bool(m["keep_clouds"]),
+            created_at=str(m["created_at"]),
+            calibration=None
+            if m.get("calibration") is None
+            else Calibration.from_dict(m["calibration"]),
+            settings_version=int(m.get("settings_version", 0)),
+            settings_updated_at=m.get("settings_updated_at"),
+        )
+        version, count = int(manifest["version"]), int(manifest["keyframes"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ArchiveError(f"the archive's manifest is damaged: {exc}") from None
+    if version < 0 or count < 0:
+        raise ArchiveError("the archive's manifest is damaged: negative version or count")
+    return ArchiveHeader(record, version, count, str(manifest.get("sgvloc_version", "?")))
+
+
+def _unpack_chunk(data: bytes, name: str) -> list[KeyframeRow]:
+    try:
+        with np.load(io.BytesIO(data), allow_pickle=False) as z:
+            a = {k: z[k] for k in z.files}
+        records = json.loads(a["records"].tobytes())
+        ids, T, g = a["ids"], a["T_map_sensor"], a["global_descriptor"]
+        kc, cc = a["keypoint_counts"], a["cloud_counts"]
+        n = len(ids)
+        if not (
+            len(records) == n == len(T) == len(g) == len(kc) == len(cc)
+            and T.shape[1:] == (4, 4)
+            and int(kc.sum()) == len(a["keypoints"]) == len(a["local_features"])
+            and int(cc[cc > 0].sum()) == len(a["clouds"])
+            and (kc >= 0).all()
+        ):
+            raise ValueError("array lengths disagree")
+        kp_at = np.concatenate([[0], np.cumsum(kc)])
+        cl_at = np.concatenate([[0], np.cumsum(np.maximum(cc, 0))])
+        rows = []
+        for i in range(n):
+            rec = records[i]
+            cloud = None if cc[i] < 0 else a["clouds"][cl_at[i] : cl_at[i + 1]]
+            rows.append(
+                KeyframeRow(
+                    id=int(ids[i]),
+                    key=rec["key"],
+                    T_map_sensor=T[i].astype(np.float64),
+                    global_descriptor=g[i],
+                    keypoints=a["keypoints"][kp_at[i] : kp_at[i + 1]],
+                    local_features=a["local_features"][kp_at[i] : kp_at[i + 1]],
+                    cloud=cloud,
+                    metadata=rec["metadata"],
+                    created_at=str(rec["created_at"]),
+                )
+            )
+        return rows
+    except ArchiveError:
+        raise
+    except Exception as exc:  # any malformation of one member: name it
+        raise ArchiveError(f"archive member {name} is damaged: {exc}") from None
+
+
+def read_archive(fileobj: IO[bytes]) -> tuple[ArchiveHeader, Iterator[list[KeyframeRow]]]:
+    """The header of an archive and an iterator over its keyframes, a chunk at a time.
+
+    The iterator checks every member's SHA-256 against ``SHA256SUMS`` (the last member)
+    and raises :class:`ArchiveError` at the end if any differs, if a member is missing
+    or extra, or if the keyframe count disagrees with the manifest: a caller must only
+    keep what it built once the iterator is exhausted without error.
+    """
+    try:
+        tar = tarfile.open(fileobj=fileobj, mode="r|")  # type: ignore[call-overload]
+    except tarfile.TarError as exc:
+        raise ArchiveError(f"not an sgvloc map archive (not a tar file: {exc})") from None
+
+    def members() -> Iterator[tuple[str, bytes]]:
+        try:
+            for info in tar:
+                if not info.isfile():
+                    raise ArchiveError(f"archive member {info.name} is not a file")
+                if info.size > MAX_MEMBER_BYTES:
+                    raise ArchiveError(f"archive member {info.name} is too large ({info.size} B)")
+                f = tar.extractfile(info)
+                assert f is not None
+                data = f.read()
+                if len(data) != info.size:
+                    raise ArchiveError(f"the archive is truncated (in {info.name})")
+                yield info.name, data
+        except (tarfile.TarError, EOFError, OSError) as exc:
+            raise ArchiveError(f"the archive is damaged or truncated: {exc}") from None
+
+    stream = members()
+    first = next(stream, None)
+    if first is None or first[0] != MANIFEST:
+        raise ArchiveError(f"not an sgvloc map archive (its first member is not {MANIFEST})")
+    try:
+        manifest = json.loads(first[1])
+    except ValueError:
+        raise ArchiveError(f"the archive's {MANIFEST} is not JSON") from None
+    header = _header(manifest)
+    sums = {MANIFEST: hashlib.sha256(first[1]).hexdigest()}
+
+    def chunks() -> Iterator[list[KeyframeRow]]:
+        seen = 0
+        listed: dict[str, str] | None = None
+        for name, data in stream:
+            if listed is not None:
+                raise ArchiveError(f"archive member {name} follows {SUMS}")
+            if name == SUMS:
+                listed = {}
+                for line in data.decode(errors="replace").splitlines():
+                    digest, _, member = line.partition("  ")
+                    listed[member] = digest
+                continue
+            if not name.startswith("keyframes/") or name in sums:
+                raise ArchiveError(f"unexpected archive member {name}")
+            sums[name] = hashlib.sha256(data).hexdigest()
+            rows = _unpack_chunk(data, name)
+            seen += len(rows)
+            yield rows
+        if listed is None:
+            raise ArchiveError(f"the archive is truncated (no {SUMS})")
+        if listed != sums:
+            bad = sorted(n for n in set(listed) | set(sums) if listed.get(n) != sums.get(n))
+            raise ArchiveError(f"checksum mismatch: {', '.join(bad[:5])} (the archive is damaged)")
+        if seen != header.keyframes:
+            raise ArchiveError(
+                f"the archive holds {seen} keyframes, its manifest says {header.keyframes}"
+            )
+
+    return header, chunks()

@@ -1,0 +1,159 @@
+"""Map archives through the map manager: exact round trip, and refusal of damaged,
+truncated and foreign archives without leaving anything behind."""
+
+from __future__ import annotations
+
+import io
+import tarfile
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+from svc_helpers import random_features
+from test_store import SPEC, _items, _manager
+
+from sgvloc.core.errors import ConflictError, EncoderMismatchError, NotFoundError
+from sgvloc.server import archive
+from sgvloc.server.archive import ArchiveError
+from sgvloc.server.maps import FeaturesIn, MapManager
+
+
+def _export(m: MapManager, name: str) -> bytes:
+    with m.export_archive(name) as blocks:
+        return b"".join(blocks)
+
+
+def _answer(m: MapManager, name: str, q: FeaturesIn) -> tuple:
+    r = m.localize(name, features=q, top_k=10, rerank="sgv", min_confidence=0.0)
+    return (
+        r.map_version,
+        [(c.keyframe_id, round(c.similarity, 6)) for c in r.retrieved],
+        [(c.keyframe_id, round(c.score, 6)) for c in r.reranked],
+        r.keyframe_id,
+        None if r.T_map_sensor_estimate is None else np.round(r.T_map_sensor_estimate, 9).tolist(),
+        round(r.confidence, 9),
+    )
+
+
+@pytest.fixture
+def source(tmp_path: Path) -> MapManager:
+    rng = np.random.default_rng(11)
+    m = _manager(tmp_path / "a")
+    m.create("src", SPEC)
+    ids = m.insert("src", _items(rng, 300, "k")).ids  # two archive chunks
+    m.delete_keyframe("src", ids[5])
+    m.insert("src", _items(rng, 3))  # keyless ones too
+    m.update_settings("src", {"top_k": 7})
+    yield m
+    m.close()
+
+
+def test_round_trip_is_exact(source: MapManager, tmp_path: Path) -> None:
+    data = _export(source, "src")
+    dest = _manager(tmp_path / "b")
+    h = dest.import_archive(io.BytesIO(data))
+    assert h.name == "src"
+    dest.import_archive(io.BytesIO(data), "copy")
+    a, b = source.get("src"), dest.get("copy")
+    assert (b.version, b.num_keyframes) == (a.version, a.num_keyframes) == (3, 302)
+    assert b.record == replace(a.record, name="copy")
+    assert b.record.settings_version == 1 and b.record.localizer_config.top_k == 7
+    rows_a, rows_b = list(a.store.iter_keyframes()), list(b.store.iter_keyframes())
+    assert [r.id for r in rows_a] == [r.id for r in rows_b]
+    for x, y in zip(rows_a, rows_b, strict=True):
+        assert (x.key, x.metadata, x.created_at) == (y.key, y.metadata, y.created_at)
+        for f in ("T_map_sensor", "global_descriptor", "keypoints", "local_features"):
+            np.testing.assert_array_equal(getattr(x, f), getattr(y, f))
+    rng = np.random.default_rng(3)
+    for _ in range(5):
+        f = random_features(rng)
+        q = FeaturesIn(f["global_descriptor"], f["keypoints"], f["local_features"])
+        assert _answer(source, "src", q) == _answer(dest, "copy", q)
+    # the import survives a restart like any map
+    dest.close()
+    again = _manager(tmp_path / "b")
+    assert again.get("copy").num_keyframes == 302 and again.failed == {}
+    with pytest.raises(ConflictError):
+        again.import_archive(io.BytesIO(data), "copy")
+    again.close()
+
+
+def _members(data: bytes) -> list[tuple[str, bytes]]:
+    with tarfile.open(fileobj=io.BytesIO(data)) as tar:
+        return [(i.name, tar.extractfile(i).read()) for i in tar]
+
+
+def _tar(members: list[tuple[str, bytes]]) -> bytes:
+    buf = io.BytesIO()
+    with tarfile.open(fileobj=buf, mode="w") as tar:
+        for name, data in members:
+            info = tarfile.TarInfo(name)
+            info.size = len(data)
+            tar.addfile(info, io.BytesIO(data))
+    return buf.getvalue()
+
+
+def _refused(m: MapManager, data: bytes, match: str, error=ArchiveError) -> None:
+    with pytest.raises(error, match=match):
+        m.import_archive(io.BytesIO(data), "imported")
+    assert [p.name for p in m.maps_dir.iterdir()] == []  # nothing left behind
+    with pytest.raises(NotFoundError):
+        m.get("imported")
+
+
+def test_damaged_truncated_and_foreign_archives_are_refused(
+    source: MapManager, tmp_path: Path
+) -> None:
+    data = _export(source, "src")
+    m = _manager(tmp_path / "c")
+    members = _members(data)
+    assert [n for n, _ in members] == [
+        "manifest.json",
+        "keyframes/000000.npz",
+        "keyframes/000001.npz",
+        "SHA256SUMS",
+    ]
+    # one flipped byte inside the features of a chunk
+    name, chunk = members[2]
+    flipped = (
+        chunk[: len(chunk) // 2]
+        + bytes([chunk[len(chunk) // 2] ^ 1])
+        + chunk[len(chunk) // 2 + 1 :]
+    )
+    _refused(m, _tar([*members[:2], (name, flipped), members[3]]), "damaged")
+    _refused(m, data[: len(data) // 2], "truncated|damaged")
+    _refused(m, _tar(members[:3]), "no SHA256SUMS")
+    _refused(m, b"\x00" * 4096, "not an sgvloc map archive")
+    _refused(m, b"plain text, not a tar file at all", "not an sgvloc map archive")
+    _refused(m, _tar([("README", b"hi"), *members]), "first member is not manifest.json")
+    _refused(
+        m,
+        _tar([("manifest.json", b'{"format": "zip", "format_version": 1}'), *members[1:]]),
+        "not an sgvloc map archive",
+    )
+    _refused(
+        m,
+        _tar(
+            [
+                (
+                    "manifest.json",
+                    members[0][1].replace(b'"format_version": 1', b'"format_version": 9'),
+                ),
+                *members[1:],
+            ]
+        ),
+        "format version 9 is not supported",
+    )
+    assert m.import_archive(io.BytesIO(data), "imported").num_keyframes == 302  # name free
+    m.close()
+
+
+def test_an_archive_of_another_encoder_is_refused(source: MapManager, tmp_path: Path) -> None:
+    h = source.get("src")
+    with h.store.snapshot() as (version, count, rows):
+        foreign = replace(h.record, encoder_fingerprint="0" * 16)
+        data = b"".join(archive.write_archive(foreign, version, count, rows))
+    m = _manager(tmp_path / "d")
+    _refused(m, data, "fingerprint", EncoderMismatchError)
+    m.close()
