@@ -1,0 +1,283 @@
+"""The status page (/ui) in a real headless browser (Debian's chromium) against a real
+service with authentication on: it lists the maps, draws a map's keyframes and recent
+localizations, refuses without a valid key, fetches nothing from elsewhere, and a
+screenshot of it is saved as an artefact of the run.
+
+The screenshot goes to ``$SGVLOC_ARTEFACTS/status-page.png`` when that variable is set
+(``SGVLOC_ARTEFACTS=docs`` rewrites the one shown in README.md), else to the test's
+temporary directory.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import subprocess
+import tempfile
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+from conftest import Server
+from svc_helpers import PRECOMPUTED, post_msgpack, random_features, rotation_z
+
+from sgvloc.server.keys import hash_key
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+KEYS = {
+    "viewer": "ui-viewer-key-0123456789abcdef",
+    "admin": "ui-admin-key-0123456789abcdef",
+    "vehicle": "ui-vehicle-key-0123456789abcdef",
+}
+MAP = "campus-loop"
+KEYFRAMES = 1100  # more than one page of the keyframe listing (1000)
+BATCH = 100
+
+
+def chromium(url: str, *args: str) -> str:
+    """Run headless chromium on ``url`` with ``args`` (``--dump-dom``, ``--screenshot``);
+    it can reach 127.0.0.1 and nothing else. Returns its standard output."""
+    if CHROMIUM is None:
+        pytest.fail("Debian's chromium is not installed (README, Install)")
+    with tempfile.TemporaryDirectory() as profile:
+        run = subprocess.run(
+            [
+                CHROMIUM,
+                "--headless",
+                "--no-sandbox",
+                "--disable-gpu",
+                "--disable-quic",
+                "--no-first-run",
+                "--disable-background-networking",
+                "--disable-component-update",
+                "--disable-sync",
+                f"--user-data-dir={profile}",
+                "--host-resolver-rules=MAP * ~NOTFOUND, EXCLUDE 127.0.0.1",
+                "--virtual-time-budget=20000",
+                *args,
+                url,
+            ],
+            capture_output=True,
+            text=True,
+            timeout=180,
+        )
+    assert run.returncode == 0, run.stderr[-2000:]
+    return run.stdout
+
+
+def render(url: str) -> str:
+    """The DOM of ``url`` after its scripts ran (and a few refreshes went by)."""
+    return chromium(url, "--dump-dom")
+
+
+# -- a service with keys and a map ----------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def ui_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
+    root = tmp_path_factory.mktemp("ui")
+    keys = root / "keys.json"
+    entries = [
+        {"name": role, "role": role, "key": hash_key(key) if role == "viewer" else key}
+        for role, key in KEYS.items()
+    ]
+    keys.write_text(json.dumps({"keys": entries}))
+    srv = Server(
+        data_dir=root / "data",
+        log_path=root / "server.log",
+        env={"SGVLOC_KEYS_FILE": str(keys), "SGVLOC_MAX_BATCH": str(BATCH)},
+    )
+    srv.start()
+    try:
+        yield srv
+    finally:
+        srv.stop()
+
+
+def loop_poses(n: int) -> list[np.ndarray]:
+    """``n`` sensor poses along a closed drive around a block (about 160 m x 90 m),
+    heading along the path."""
+    t = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
+    x = 70 * np.cos(t) + 12 * np.cos(3 * t)
+    y = 40 * np.sin(t) - 8 * np.sin(2 * t)
+    poses = []
+    for i in range(n):
+        T = rotation_z(np.arctan2(y[(i + 1) % n] - y[i], x[(i + 1) % n] - x[i]))
+        T[:3, 3] = [x[i], y[i], 0.0]
+        poses.append(T)
+    return poses
+
+
+@dataclass
+class UiMap:
+    name: str
+    keyframes: int
+    localized: int  # answers with localized true
+    answers: int  # localize answers in all
+
+
+def _moved(feats: dict[str, np.ndarray], T_kf_query: np.ndarray) -> dict[str, np.ndarray]:
+    """The keyframe's features as seen by a sensor at ``T_kf_query`` from it."""
+    R, t = T_kf_query[:3, :3], T_kf_query[:3, 3]
+    out = dict(feats)
+    out["keypoints"] = ((feats["keypoints"] - t) @ R).astype(np.float32)
+    return out
+
+
+@pytest.fixture(scope="module")
+def ui_map(ui_server: Server) -> UiMap:
+    """Map ``campus-loop`` (precomputed features) with :data:`KEYFRAMES` keyframes and a
+    few localizations: revisits of some keyframes and some scans from nowhere."""
+    rng = np.random.default_rng(7)
+    poses = loop_poses(KEYFRAMES)
+    feats = [random_features(rng) for _ in poses]
+    admin = {"Authorization": f"Bearer {KEYS['admin']}"}
+    with httpx.Client(base_url=ui_server.url, timeout=120, headers=admin) as c:
+        r = c.post("/v1/maps", json={"name": MAP, "encoder": PRECOMPUTED})
+        assert r.status_code == 201, r.text
+        for start in range(0, KEYFRAMES, BATCH):
+            batch = [
+                {"key": f"loop/{i:05d}", "T_map_sensor": poses[i], "features": feats[i]}
+                for i in range(start, min(start + BATCH, KEYFRAMES))
+            ]
+            r = post_msgpack(c, f"/v1/maps/{MAP}/keyframes", {"keyframes": batch})
+            assert r.status_code == 201, r.text
+        localized = answers = 0
+        offset = rotation_z(np.radians(4.0))
+        offset[:3, 3] = [1.5, 0.3, 0.0]
+        queries = [_moved(feats[i], offset) for i in range(40, KEYFRAMES, 120)]
+        queries += [random_features(rng) for _ in range(3)]
+        for q in queries:
+            r = post_msgpack(c, f"/v1/maps/{MAP}/localize", {"features": q})
+            assert r.status_code == 200, r.text
+            answers += 1
+            localized += r.json()["localized"]
+    return UiMap(MAP, KEYFRAMES, localized, answers)
+
+
+def _count(dom: str, pattern: str) -> int:
+    return len(re.findall(pattern, dom))
+
+
+# -- the page ---------------------------------------------------------------------------------
+
+
+def test_page_and_assets_need_no_key_and_carry_a_strict_policy(ui_server: Server) -> None:
+    for path, kind in (
+        ("/ui", "text/html"),
+        ("/ui/ui.js", "text/javascript"),
+        ("/ui/ui.css", "text/css"),
+    ):
+        r = httpx.get(f"{ui_server.url}{path}")
+        assert r.status_code == 200, (path, r.text)
+        assert r.headers["content-type"].startswith(kind)
+        csp = r.headers["content-security-policy"]
+        assert "default-src 'self'" in csp and "script-src 'self'" in csp
+        assert "unsafe-inline" not in csp and "unsafe-eval" not in csp
+        assert r.headers["x-content-type-options"] == "nosniff"
+    assert httpx.get(f"{ui_server.url}/ui/keys.json").status_code == 404
+    assert httpx.get(f"{ui_server.url}/ui/..%2Fsettings.py").status_code == 404
+    # the data behind it is not open
+    assert httpx.get(f"{ui_server.url}/v1/maps").status_code == 401
+
+
+def test_page_references_nothing_outside_the_service(ui_server: Server) -> None:
+    html = httpx.get(f"{ui_server.url}/ui").text
+    js = httpx.get(f"{ui_server.url}/ui/ui.js").text
+    css = httpx.get(f"{ui_server.url}/ui/ui.css").text
+    svg_ns = "http://www.w3.org/2000/svg"  # a namespace name, never fetched
+    for text in (html, js, css):
+        assert not re.search(r"https?://", text.replace(svg_ns, "")), text[:300]
+    assert not re.search(r"""(src|href|action)=["']?(https?:)?//""", html)
+    for ref in re.findall(r"""(?:src|href)=["']([^"']+)""", html):
+        assert ref.startswith("ui/"), ref  # relative to /ui: the service's own files
+    assert not re.search(r"<script(?![^>]*\ssrc=)", html)  # no inline script
+    assert not re.search(r"\son[a-z]+=", html)  # no inline event handlers
+    assert "style=" not in html
+    assert "url(" not in css and "@import" not in css
+    # the key lives in sessionStorage only
+    code = "\n".join(line.split("//")[0] for line in js.splitlines())  # without comments
+    assert "sessionStorage." in code
+    assert "localStorage" not in code and "cookie" not in code
+
+
+def test_page_lists_the_map_and_draws_its_keyframes_and_localizations(
+    ui_server: Server, ui_map: UiMap
+) -> None:
+    dom = render(f"{ui_server.url}/ui#key={KEYS['viewer']}")
+    assert _count(dom, r'class="map-row[^"]*" data-map="campus-loop"') == 1, dom[:3000]
+    assert _count(dom, r'class="map-row') == 1
+    # every keyframe drawn (two pages of the listing), and the recent answers on top
+    assert _count(dom, r'<circle class="kf"') == ui_map.keyframes, dom[:3000]
+    locs = _count(dom, r'<circle class="loc ')
+    assert 1 <= locs <= ui_map.answers
+    assert _count(dom, r'<circle class="loc localized"') == ui_map.localized >= 1
+    assert _count(dom, r'class="loc-row"') == min(10, ui_map.answers)
+    # live counters from /metrics, read with the viewer key
+    localized = re.search(r'id="c-localized">([^<]*)<', dom).group(1)
+    not_localized = re.search(r'id="c-not-localized">([^<]*)<', dom).group(1)
+    assert int(localized.replace(",", "")) == ui_map.localized
+    assert int(not_localized.replace(",", "")) == ui_map.answers - ui_map.localized
+    assert re.search(r'id="version"[^>]*>version \S+<', dom)
+    # the key form is hidden and the key is nowhere in the page
+    assert re.search(r'<section id="auth" hidden', dom)
+    assert KEYS["viewer"] not in dom
+
+
+def test_page_without_a_key_shows_the_key_form_and_no_data(
+    ui_server: Server, ui_map: UiMap
+) -> None:
+    dom = render(f"{ui_server.url}/ui")
+    assert '<section id="auth">' in dom and 'id="key-form"' in dom, dom[:3000]
+    assert "Enter an API key" in dom
+    assert "map-row" not in dom and '<circle class="kf"' not in dom
+    assert ui_map.name not in dom
+
+
+@pytest.mark.parametrize(
+    ("key", "says"),
+    [("not-a-configured-key-0123456789", "(401)"), (KEYS["vehicle"], "(403)")],
+    ids=["unknown", "vehicle"],
+)
+def test_page_with_a_refused_key_says_so_and_shows_no_data(
+    ui_server: Server, ui_map: UiMap, key: str, says: str
+) -> None:
+    dom = render(f"{ui_server.url}/ui#key={key}")
+    message = re.search(r'<p id="auth-message"[^>]*>([^<]*)<', dom)
+    assert message and says in message.group(1) and "refused" in dom, dom[:3000]
+    assert '<section id="auth">' in dom
+    assert "map-row" not in dom and '<circle class="kf"' not in dom
+    assert ui_map.name not in dom
+
+
+def test_screenshot_of_the_status_page(
+    ui_server: Server, ui_map: UiMap, tmp_path_factory: pytest.TempPathFactory
+) -> None:
+    from PIL import Image
+
+    folder = Path(os.environ.get("SGVLOC_ARTEFACTS") or tmp_path_factory.mktemp("artefacts"))
+    folder.mkdir(parents=True, exist_ok=True)
+    png = folder / "status-page.png"
+    png.unlink(missing_ok=True)
+    chromium(
+        f"{ui_server.url}/ui#key={KEYS['viewer']}",
+        f"--screenshot={png}",
+        "--window-size=1280,800",
+        "--hide-scrollbars",
+    )
+    assert png.is_file(), f"no screenshot at {png}"
+    with Image.open(png) as image:
+        assert image.size == (1280, 800)
+        rgb = image.convert("RGB")
+        colours = rgb.getcolors(maxcolors=1 << 20)
+    assert colours is not None and len(colours) >= 32, f"{png}: a blank page?"
+    most = max(n for n, _ in colours)
+    assert most < 0.9 * 1280 * 800, f"{png}: one colour covers the page"
+    # the keyframes are drawn: pixels near their blue (#3b5b92, blended on white)
+    blue = sum(n for n, (r, g, b) in colours if b > r + 40 and b > g + 20 and r < 170)
+    assert blue >= 500, f"{png}: no keyframes drawn?"
