@@ -33,6 +33,7 @@ KEYS = {
     "viewer": "ui-viewer-key-0123456789abcdef",
     "admin": "ui-admin-key-0123456789abcdef",
     "vehicle": "ui-vehicle-key-0123456789abcdef",
+    "mapper": "ui-mapper-key-0123456789abcdef",
 }
 MAP = "campus-loop"
 KEYFRAMES = 1100  # more than one page of the keyframe listing (1000)
@@ -227,6 +228,17 @@ def test_page_lists_the_map_and_draws_its_keyframes_and_localizations(
     # the key form is hidden and the key is nowhere in the page
     assert re.search(r'<section id="auth" hidden', dom)
     assert KEYS["viewer"] not in dom
+
+
+def test_page_with_a_mapper_key_shows_the_maps_without_counters(
+    ui_server: Server, ui_map: UiMap
+) -> None:
+    dom = render(f"{ui_server.url}/ui#key={KEYS['mapper']}")
+    assert _count(dom, r'class="map-row') == 1, dom[:3000]
+    assert _count(dom, r'<circle class="kf"') == ui_map.keyframes
+    # /metrics and /v1/config are for viewers and admins: no counters, no version
+    assert re.search(r'id="c-localized">–<', dom)
+    assert re.search(r'id="version"[^>]*><', dom)
 
 
 def test_page_without_a_key_shows_the_key_form_and_no_data(
