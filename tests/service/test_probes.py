@@ -51,14 +51,14 @@ def test_metrics_after_traffic(client: httpx.Client, balm_map: BalmMap) -> None:
     route404 = '{method="GET",route="/v1/maps/{map}",status="404"}'
     assert _value(text, f"sgvloc_http_requests_total{route404}") >= 1
     verdict = "localized" if localized else "not_localized"
-    key = f'sgvloc_localize_total{{verdict="{verdict}"}}'
+    key = f'sgvloc_localize_total{{map="balm",verdict="{verdict}"}}'
     assert _value(text, key) == _value(before, key) + 1
-    key = f'sgvloc_localize_reason_total{{reason="{reason}"}}'
+    key = f'sgvloc_localize_reason_total{{map="balm",reason="{reason}"}}'
     assert _value(text, key) == _value(before, key) + 1
     key = "sgvloc_localize_confidence_count"
     assert _value(text, key) == _value(before, key) + 1
     for stage in ("encode", "retrieve", "rerank", "pose", "verify"):
-        key = f'sgvloc_stage_duration_seconds_count{{stage="{stage}"}}'
+        key = f'sgvloc_stage_duration_seconds_count{{map="balm",stage="{stage}"}}'
         assert _value(text, key) == _value(before, key) + 1
     assert _value(text, 'sgvloc_map_keyframes{map="balm"}') == len(balm_map.ids)
     assert np.isfinite(_value(text, "sgvloc_rerank_top1_changed_total"))

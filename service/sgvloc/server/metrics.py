@@ -1,9 +1,16 @@
-"""Prometheus metrics of one service process (its own registry, see docs/API.md).
+"""Prometheus metrics of one service process (its own registry, see docs/API.md and
+docs/OPERATIONS.md, "Monitoring").
 
 One process per container (threads for CPU work), so no multiprocess mode is needed.
+Label values stay few: ``map`` only ever names a loaded map (a deleted map's series are
+removed), ``key_name`` the configured name of an API key (``development`` in development
+mode, ``anonymous`` on open routes), never a key.
 """
 
 from __future__ import annotations
+
+import threading
+from collections.abc import Callable, Iterable, Iterator
 
 from prometheus_client import (
     CONTENT_TYPE_LATEST,
@@ -13,13 +20,43 @@ from prometheus_client import (
     Histogram,
     generate_latest,
 )
+from prometheus_client.core import GaugeMetricFamily
+from prometheus_client.registry import Collector
 
 from sgvloc.core.confidence import VERDICT_CODES
 from sgvloc.core.localizer import LocalizationResult
 
 _HTTP_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0, 60.0)
 _STAGE_BUCKETS = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0)
+_WAIT_BUCKETS = (0.001, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0)
 STAGES = ("encode", "retrieve", "rerank", "pose", "verify")
+VERDICTS = ("localized", "not_localized")
+
+#: ``(name, keyframes, version)`` of every loaded map, read at each scrape
+MapSizes = Callable[[], Iterable[tuple[str, int, int]]]
+
+
+class _MapGauges(Collector):
+    """``sgvloc_map_keyframes{map}`` and ``sgvloc_map_version{map}``, read from the
+    loaded maps at scrape time (so they always match what is served)."""
+
+    def __init__(self, sizes: MapSizes) -> None:
+        self.sizes = sizes
+
+    def collect(self) -> Iterator[GaugeMetricFamily]:
+        keyframes = GaugeMetricFamily(
+            "sgvloc_map_keyframes", "Keyframes per loaded map", labels=["map"]
+        )
+        version = GaugeMetricFamily(
+            "sgvloc_map_version",
+            "Keyframe version per loaded map (+1 per insert batch or keyframe delete)",
+            labels=["map"],
+        )
+        for name, count, ver in self.sizes():
+            keyframes.add_metric([name], count)
+            version.add_metric([name], ver)
+        yield keyframes
+        yield version
 
 
 class Metrics:
@@ -43,18 +80,24 @@ class Metrics:
         )
         self.stage_duration = Histogram(
             "sgvloc_stage_duration_seconds",
-            "Localization stage duration (encode, retrieve, rerank, pose)",
-            ["stage"],
+            "Localization stage duration per map (encode, retrieve, rerank, pose, verify)",
+            ["map", "stage"],
             buckets=_STAGE_BUCKETS,
             registry=r,
         )
         self.localize_total = Counter(
-            "sgvloc_localize", "Localizations by verdict", ["verdict"], registry=r
+            "sgvloc_localize", "Localizations per map by verdict", ["map", "verdict"], registry=r
         )
         self.localize_reason = Counter(
             "sgvloc_localize_reason",
-            "Localizations by verdict code (localized, low_confidence, outside_prior, ...)",
-            ["reason"],
+            "Localizations per map by verdict code (localized, low_confidence, ...)",
+            ["map", "reason"],
+            registry=r,
+        )
+        self.localize_by_key = Counter(
+            "sgvloc_localize_by_key",
+            "Localizations by the caller's API key name and verdict",
+            ["key_name", "verdict"],
             registry=r,
         )
         self.confidence = Histogram(
@@ -68,38 +111,71 @@ class Metrics:
             "Localizations where re-ranking put another keyframe first",
             registry=r,
         )
-        self.map_keyframes = Gauge(
-            "sgvloc_map_keyframes", "Keyframes per loaded map", ["map"], registry=r
+        self.localize_inflight = Gauge(
+            "sgvloc_localize_inflight",
+            "Localize requests admitted and not answered yet (max_inflight_localize bounds it)",
+            registry=r,
         )
-        for verdict in ("localized", "not_localized"):  # present from the start, at 0
-            self.localize_total.labels(verdict)
-        for code in VERDICT_CODES:
-            self.localize_reason.labels(code)
-        for stage in STAGES:
-            self.stage_duration.labels(stage)
+        self.queue_waiting = Gauge(
+            "sgvloc_queue_waiting",
+            "Requests waiting for a free worker thread now",
+            registry=r,
+        )
+        self.queue_wait = Histogram(
+            "sgvloc_queue_wait_seconds",
+            "Time requests waited for a free worker thread (also those that timed out)",
+            buckets=_WAIT_BUCKETS,
+            registry=r,
+        )
+        self._lock = threading.Lock()
+        self._maps: set[str] = set()  # maps with per-map series
 
-    def observe_localization(self, result: LocalizationResult) -> None:
-        """Record one localization: stage timings, verdict, top-1 change."""
+    def watch_maps(self, sizes: MapSizes) -> None:
+        """Export the map gauges, read from ``sizes`` at every scrape."""
+        self.registry.register(_MapGauges(sizes))
+
+    def set_map_keyframes(self, name: str, keyframes: int | None) -> None:
+        """The map manager's ``on_change``: a map loaded or changed gets its per-map series
+        (at 0 from the start); a deleted one (``keyframes`` None) loses them. The map
+        gauges themselves are read at scrape time (:meth:`watch_maps`)."""
+        with self._lock:
+            if keyframes is None:
+                if name in self._maps:
+                    self._maps.discard(name)
+                    for labels, metric in self._per_map(name):
+                        metric.remove(*labels)
+            elif name not in self._maps:
+                self._maps.add(name)
+                for labels, metric in self._per_map(name):
+                    metric.labels(*labels)
+
+    def _per_map(self, name: str) -> Iterator[tuple[tuple[str, str], Counter | Histogram]]:
         for stage in STAGES:
-            ms = result.timings_ms.get(stage)
-            if ms is not None:
-                self.stage_duration.labels(stage).observe(ms / 1e3)
-        self.localize_total.labels("localized" if result.localized else "not_localized").inc()
-        self.localize_reason.labels(result.verdict).inc()
+            yield (name, stage), self.stage_duration
+        for verdict in VERDICTS:
+            yield (name, verdict), self.localize_total
+        for code in VERDICT_CODES:
+            yield (name, code), self.localize_reason
+
+    def observe_localization(
+        self, result: LocalizationResult, map_name: str, key_name: str
+    ) -> None:
+        """Record one localization: stage timings and verdict (per map, unless the map was
+        deleted meanwhile), verdict per key name, confidence, top-1 change."""
+        verdict = VERDICTS[0] if result.localized else VERDICTS[1]
+        with self._lock:
+            if map_name in self._maps:
+                for stage in STAGES:
+                    ms = result.timings_ms.get(stage)
+                    if ms is not None:
+                        self.stage_duration.labels(map_name, stage).observe(ms / 1e3)
+                self.localize_total.labels(map_name, verdict).inc()
+                self.localize_reason.labels(map_name, result.verdict).inc()
+        self.localize_by_key.labels(key_name, verdict).inc()
         if result.T_map_sensor_estimate is not None:
             self.confidence.observe(result.confidence)
         if result.top1_changed:
             self.top1_changed.inc()
-
-    def set_map_keyframes(self, name: str, count: int | None) -> None:
-        """Set a map's keyframe gauge; ``None`` removes the map's series."""
-        if count is None:
-            try:
-                self.map_keyframes.remove(name)
-            except KeyError:
-                pass
-        else:
-            self.map_keyframes.labels(name).set(count)
 
     def render(self) -> tuple[bytes, str]:
         """The exposition text and its content type."""

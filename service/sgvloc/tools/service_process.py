@@ -34,8 +34,9 @@ class ServiceProcess:
     """``python -m sgvloc.cli serve --dev`` on 127.0.0.1 as a subprocess (a context manager).
 
     ``SGVLOC_*`` variables of the caller's environment are dropped, so the service runs
-    with its defaults plus ``env``. Output goes to ``log_path``. :meth:`stop` sends SIGTERM
-    (graceful: snapshots saved) and waits; SIGKILL if it does not exit in ``stop_timeout_s``.
+    with its defaults plus ``env`` (with ``dev=False``, ``env`` names the keys file).
+    Output goes to ``log_path``. :meth:`stop` sends SIGTERM (graceful: snapshots saved)
+    and waits; SIGKILL if it does not exit in ``stop_timeout_s``.
     """
 
     def __init__(
@@ -46,12 +47,14 @@ class ServiceProcess:
         workers: int = 2,
         env: dict[str, str] | None = None,
         stop_timeout_s: float = 120.0,
+        dev: bool = True,
     ) -> None:
         self.data_dir = Path(data_dir)
         self.log_path = Path(log_path)
         self.workers = workers
         self.env = dict(env or {})
         self.stop_timeout_s = stop_timeout_s
+        self.dev = dev
         self.port = free_port()
         self.proc: subprocess.Popen | None = None
         self.pids: list[int] = []  # every process started (a restart starts a new one)
@@ -68,7 +71,8 @@ class ServiceProcess:
         """Start and wait until ``/readyz`` answers 200; returns the seconds that took."""
         env = {k: v for k, v in os.environ.items() if not k.startswith("SGVLOC_")}
         env.update({"SGVLOC_LOG_LEVEL": "warning", **self.env})
-        cmd = [sys.executable, "-m", "sgvloc.cli", "serve", "--dev", "--host", "127.0.0.1"]
+        cmd = [sys.executable, "-m", "sgvloc.cli", "serve", "--host", "127.0.0.1"]
+        cmd += ["--dev"] if self.dev else []
         cmd += ["--port", str(self.port), "--data-dir", str(self.data_dir)]
         cmd += ["--workers", str(self.workers)]
         t0 = time.monotonic()

@@ -56,10 +56,12 @@ class Worker:
         limiter: anyio.CapacityLimiter,
         threads: anyio.CapacityLimiter,
         settings: Settings,
+        metrics: Metrics,
     ) -> None:
         self._limiter = limiter
         self._settings = settings
         self._threads = threads
+        self._metrics = metrics
 
     async def run(self, fn: Callable[[], T], *, deadline_at: float | None = None) -> T:
         """Run ``fn`` on a worker thread. With ``deadline_at`` (``time.monotonic()``
@@ -69,9 +71,15 @@ class Worker:
         if deadline_at is not None:
             timeout = max(0.0, min(timeout, deadline_at - time.monotonic()))
         acquired = False
-        with anyio.move_on_after(timeout):
-            await self._limiter.acquire()
-            acquired = True
+        waited_from = time.monotonic()
+        self._metrics.queue_waiting.inc()
+        try:
+            with anyio.move_on_after(timeout):
+                await self._limiter.acquire()
+                acquired = True
+        finally:  # also when the client went away while waiting
+            self._metrics.queue_waiting.dec()
+            self._metrics.queue_wait.observe(time.monotonic() - waited_from)
         if not acquired:
             raise busy(
                 503,
@@ -97,7 +105,7 @@ class Worker:
 
 async def get_worker(request: Request) -> Worker:
     state = request.app.state
-    return Worker(state.cpu_limiter, state.thread_limiter, state.settings)
+    return Worker(state.cpu_limiter, state.thread_limiter, state.settings, state.metrics)
 
 
 class Admission:

@@ -30,6 +30,7 @@ from sgvloc.core.errors import (
 )
 from sgvloc_client.wire import WireError
 
+from ..logs import REQUEST_ID_HEADER, current_request_id
 from ..maps import MapUnavailableError
 from ..store import storage_full
 
@@ -177,10 +178,15 @@ def _allowed_methods(request: Request) -> list[str]:
 
 
 async def _unexpected(request: Request, exc: Exception) -> Response:
+    # this answer is sent from outside the app's middleware: it names the request itself
+    rid = current_request_id()
     full = storage_full(exc)
     if full is not None:
         log.error("%s %s: the disk is full: %s", request.method, request.url.path, exc)
-        return await _engine_error(request, full)
+        response = await _engine_error(request, full)
+        if rid is not None:
+            response.headers[REQUEST_ID_HEADER] = rid
+        return response
     log.exception("internal error on %s %s", request.method, request.url.path, exc_info=exc)
     # Starlette re-raises after this answer and the server then drops the connection:
     # say so, so that a keep-alive client opens a new one for its next request
@@ -189,7 +195,7 @@ async def _unexpected(request: Request, exc: Exception) -> Response:
         500,
         "internal",
         f"internal error ({type(exc).__name__}); see the service log",
-        headers={"Connection": "close"},
+        headers={"Connection": "close", **({REQUEST_ID_HEADER: rid} if rid else {})},
     )
 
 
