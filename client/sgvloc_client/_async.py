@@ -3,23 +3,40 @@
 from __future__ import annotations
 
 import asyncio
+import os
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import AsyncIterator, Mapping, Sequence
 from types import TracebackType
-from typing import Any, TypeVar
+from typing import Any, BinaryIO, TypeVar
 
 import httpx
 
-from ._base import DEFAULT_BASE_URL, BaseClient, Call, WireFormat
+from ._base import (
+    ARCHIVE_TYPE,
+    DEFAULT_BASE_URL,
+    BaseClient,
+    Call,
+    WireFormat,
+    _chunks,
+    _map_path,
+    _open_dest,
+    _open_src,
+)
 from ._errors import TransportError
 from ._models import (
     InsertResult,
     Keyframe,
     KeyframeDeleted,
     KeyframeIn,
+    KeyframePage,
+    KeyframesDeleted,
+    KeyframeSummary,
     Localization,
     MapInfo,
+    MapStats,
     Prior,
+    RecentLocalization,
+    Seed,
 )
 
 T = TypeVar("T")
@@ -223,6 +240,115 @@ class AsyncClient(BaseClient):
         """Delete one keyframe; returns the map's new version."""
         return await self._send(self._delete_keyframe(map, keyframe_id))
 
+    async def recent_localizations(self, map: str, limit: int = 100) -> list[RecentLocalization]:
+        """The map's most recent localize answers (at most ``limit``, 1..500), newest
+        first. The service keeps the last 500 per map in memory, not across restarts."""
+        return await self._send(self._recent_localizations(map, limit))
+
+    # ----------------------------------------------------------------------------------
+    # Map management
+
+    async def list_keyframes(
+        self,
+        map: str,
+        *,
+        limit: int = 100,
+        cursor: str | None = None,
+        key_prefix: str | None = None,
+        bbox: Sequence[float] | None = None,
+        time_min: float | None = None,
+        time_max: float | None = None,
+        sequence: str | None = None,
+    ) -> KeyframePage:
+        """See :meth:`Client.list_keyframes`."""
+        filters = dict(
+            key_prefix=key_prefix,
+            bbox=bbox,
+            time_min=time_min,
+            time_max=time_max,
+            sequence=sequence,
+        )
+        return await self._send(self._list_keyframes(map, limit, cursor, filters))
+
+    async def iter_keyframes(
+        self, map: str, *, page_size: int = 1000, **filters: Any
+    ) -> AsyncIterator[KeyframeSummary]:
+        """See :meth:`Client.iter_keyframes`."""
+        cursor = None
+        while True:
+            page = await self.list_keyframes(map, limit=page_size, cursor=cursor, **filters)
+            for kf in page.keyframes:
+                yield kf
+            if page.next_cursor is None:
+                return
+            cursor = page.next_cursor
+
+    async def delete_keyframes(
+        self,
+        map: str,
+        *,
+        all: bool = False,
+        key_prefix: str | None = None,
+        bbox: Sequence[float] | None = None,
+        time_min: float | None = None,
+        time_max: float | None = None,
+        sequence: str | None = None,
+    ) -> KeyframesDeleted:
+        """See :meth:`Client.delete_keyframes`."""
+        filters = dict(
+            key_prefix=key_prefix,
+            bbox=bbox,
+            time_min=time_min,
+            time_max=time_max,
+            sequence=sequence,
+        )
+        return await self._send(self._delete_keyframes(map, all, filters))
+
+    async def map_stats(self, map: str) -> MapStats:
+        """See :meth:`Client.map_stats`."""
+        return await self._send(self._map_stats(map))
+
+    async def export_map(
+        self, map: str, dest: str | os.PathLike[str] | BinaryIO, *, timeout: float | None = 600.0
+    ) -> int:
+        """See :meth:`Client.export_map`."""
+        path = f"{_map_path(map)}/export"
+        with _open_dest(dest) as out:
+            async with self._http.stream("GET", path, timeout=timeout) as r:
+                if r.status_code >= 400:
+                    content = await r.aread()
+                    raise self._stream_failed(
+                        r.status_code, content, r.headers.get("content-type", "")
+                    )
+                size = 0
+                async for block in r.aiter_bytes():
+                    out.write(block)
+                    size += len(block)
+        return size
+
+    async def import_map(
+        self,
+        src: str | os.PathLike[str] | BinaryIO,
+        name: str | None = None,
+        *,
+        timeout: float | None = 600.0,
+    ) -> MapInfo:
+        """See :meth:`Client.import_map`."""
+
+        with _open_src(src) as f:
+
+            async def chunks() -> AsyncIterator[bytes]:
+                for block in _chunks(f):
+                    yield block
+
+            r = await self._http.post(
+                self._import_path(name),
+                content=chunks(),
+                headers={"Content-Type": ARCHIVE_TYPE},
+                timeout=timeout,
+            )
+        return self._finish(self._import_call(), r)
+
     # ----------------------------------------------------------------------------------
     # Localize
 
@@ -236,6 +362,7 @@ class AsyncClient(BaseClient):
         refine: str | None = None,
         prior: Prior | Mapping[str, Any] | None = None,
         min_confidence: float | None = None,
+        seed: Seed | Mapping[str, Any] | None = None,
     ) -> Localization:
         """Localize a scan (``points`` ``[P, 3|4]`` in the sensor frame) or precomputed
         ``features`` in a map.
@@ -248,5 +375,7 @@ class AsyncClient(BaseClient):
         ``localized=False`` with the reason and its best ``estimate``; it is not an error.
         """
         return await self._send(
-            self._localize(map, points, features, top_k, rerank, refine, prior, min_confidence)
+            self._localize(
+                map, points, features, top_k, rerank, refine, prior, min_confidence, seed
+            )
         )

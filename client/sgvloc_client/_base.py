@@ -9,11 +9,13 @@ response logic lives in this module.
 from __future__ import annotations
 
 import json
-from collections.abc import Callable, Mapping, Sequence
+import os
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from importlib import metadata
-from typing import Any, Generic, Literal, TypeVar
-from urllib.parse import quote
+from typing import Any, BinaryIO, Generic, Literal, TypeVar
+from urllib.parse import quote, urlencode
 
 import httpx
 
@@ -24,9 +26,14 @@ from ._models import (
     Keyframe,
     KeyframeDeleted,
     KeyframeIn,
+    KeyframePage,
+    KeyframesDeleted,
     Localization,
     MapInfo,
+    MapStats,
     Prior,
+    RecentLocalization,
+    Seed,
     features_body,
     points_array,
 )
@@ -72,6 +79,51 @@ def _map_path(name: str) -> str:
     if not isinstance(name, str) or not name:
         raise ValueError(f"map name must be a non-empty string, got {name!r}")
     return f"/v1/maps/{quote(name, safe='')}"
+
+
+ARCHIVE_TYPE = "application/x-tar"  # map archives (export_map / import_map)
+
+
+@contextmanager
+def _open_dest(dest: str | os.PathLike[str] | BinaryIO) -> Iterator[BinaryIO]:
+    """A binary file to write: ``dest`` itself, or the path opened (and closed after)."""
+    if isinstance(dest, str | os.PathLike):
+        with open(dest, "wb") as f:
+            yield f
+    else:
+        yield dest
+
+
+@contextmanager
+def _open_src(src: str | os.PathLike[str] | BinaryIO) -> Iterator[BinaryIO]:
+    """A binary file to read: ``src`` itself, or the path opened (and closed after)."""
+    if isinstance(src, str | os.PathLike):
+        with open(src, "rb") as f:
+            yield f
+    else:
+        yield src
+
+
+def _chunks(f: BinaryIO, size: int = 1 << 20) -> Iterator[bytes]:
+    """A file's content in blocks (uploads stream; the file is never read whole)."""
+    while block := f.read(size):
+        yield block
+
+
+def _filter_params(filters: Mapping[str, Any]) -> dict[str, Any]:
+    """Keyframe filters as query parameters (None values left out; bbox joined)."""
+    out: dict[str, Any] = {}
+    for name in ("key_prefix", "bbox", "time_min", "time_max", "sequence"):
+        value = filters.get(name)
+        if value is None:
+            continue
+        if name == "bbox":
+            box = [float(v) for v in value]
+            if len(box) != 4:
+                raise ValueError(f"bbox must be (x_min, y_min, x_max, y_max), got {value!r}")
+            value = ",".join(repr(v) for v in box)
+        out[name] = value
+    return out
 
 
 def _shorthand(value: str | Mapping[str, Any] | None, key: str) -> dict[str, Any] | None:
@@ -333,6 +385,73 @@ class BaseClient:
             idempotent=True,
         )
 
+    def _list_keyframes(
+        self, map: str, limit: int, cursor: str | None, filters: dict[str, Any]
+    ) -> Call[KeyframePage]:
+        if not 1 <= int(limit) <= 1000:
+            raise ValueError(f"limit must be within 1..1000, got {limit}")
+        params = {"limit": int(limit), **_filter_params(filters)}
+        if cursor is not None:
+            params["cursor"] = cursor
+        return self._call(
+            "GET",
+            f"{_map_path(map)}/keyframes?{urlencode(params)}",
+            _body_only(KeyframePage.from_body),
+            idempotent=True,
+        )
+
+    def _delete_keyframes(
+        self, map: str, all: bool, filters: dict[str, Any]
+    ) -> Call[KeyframesDeleted]:
+        params = _filter_params(filters)
+        if not params and not all:
+            raise ValueError("give at least one filter, or all=True to delete every keyframe")
+        if all:
+            params["all"] = "true"
+        # resending deletes what matches then: nothing more, once the first one went through
+        return self._call(
+            "DELETE",
+            f"{_map_path(map)}/keyframes?{urlencode(params)}",
+            _body_only(KeyframesDeleted.from_body),
+            idempotent=True,
+        )
+
+    def _map_stats(self, map: str) -> Call[MapStats]:
+        return self._call(
+            "GET", f"{_map_path(map)}/stats", _body_only(MapStats.from_body), idempotent=True
+        )
+
+    def _import_call(self) -> Call[MapInfo]:
+        """How an import's answer is read (its body is streamed, not a Call's)."""
+        return self._call(
+            "POST", "/v1/map-archives", _body_only(MapInfo.from_body), idempotent=False
+        )
+
+    def _import_path(self, name: str | None) -> str:
+        return "/v1/map-archives" + ("" if name is None else f"?{urlencode({'name': name})}")
+
+    def _stream_failed(self, status: int, content: bytes, ctype: str) -> APIError:
+        """The error of a streamed call's failed answer (already read into ``content``)."""
+        body: Any = content.decode(errors="replace")
+        if ctype.startswith(wire.MSGPACK):
+            body = wire.unpackb(content)
+        elif ctype.startswith("application/json"):
+            try:
+                body = json.loads(content)
+            except ValueError:
+                pass
+        return self._error(status, body)
+
+    def _recent_localizations(self, map: str, limit: int) -> Call[list[RecentLocalization]]:
+        if not 1 <= int(limit) <= 500:
+            raise ValueError(f"limit must be within 1..500, got {limit}")
+        return self._call(
+            "GET",
+            f"{_map_path(map)}/localizations?limit={int(limit)}",
+            _body_only(lambda b: [RecentLocalization.from_body(x) for x in b["localizations"]]),
+            idempotent=True,
+        )
+
     def _localize(
         self,
         map: str,
@@ -343,6 +462,7 @@ class BaseClient:
         refine: str | None,
         prior: Prior | Mapping[str, Any] | None = None,
         min_confidence: float | None = None,
+        seed: Seed | Mapping[str, Any] | None = None,
     ) -> Call[Localization]:
         if (points is None) == (features is None):
             raise ValueError("give exactly one of points or features")
@@ -357,6 +477,7 @@ class BaseClient:
             ("refine", refine),
             ("prior", None if prior is None else Prior.coerce(prior).to_body()),
             ("min_confidence", min_confidence),
+            ("seed", None if seed is None else Seed.coerce(seed).to_body()),
         ):
             if value is not None:
                 body[key] = value

@@ -2,23 +2,40 @@
 
 from __future__ import annotations
 
+import os
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from types import TracebackType
-from typing import Any, TypeVar
+from typing import Any, BinaryIO, TypeVar
 
 import httpx
 
-from ._base import DEFAULT_BASE_URL, BaseClient, Call, WireFormat
+from ._base import (
+    ARCHIVE_TYPE,
+    DEFAULT_BASE_URL,
+    BaseClient,
+    Call,
+    WireFormat,
+    _chunks,
+    _map_path,
+    _open_dest,
+    _open_src,
+)
 from ._errors import TransportError
 from ._models import (
     InsertResult,
     Keyframe,
     KeyframeDeleted,
     KeyframeIn,
+    KeyframePage,
+    KeyframesDeleted,
+    KeyframeSummary,
     Localization,
     MapInfo,
+    MapStats,
     Prior,
+    RecentLocalization,
+    Seed,
 )
 
 T = TypeVar("T")
@@ -222,6 +239,111 @@ class Client(BaseClient):
         """Delete one keyframe; returns the map's new version."""
         return self._send(self._delete_keyframe(map, keyframe_id))
 
+    def recent_localizations(self, map: str, limit: int = 100) -> list[RecentLocalization]:
+        """The map's most recent localize answers (at most ``limit``, 1..500), newest
+        first. The service keeps the last 500 per map in memory, not across restarts."""
+        return self._send(self._recent_localizations(map, limit))
+
+    # ----------------------------------------------------------------------------------
+    # Map management
+
+    def list_keyframes(
+        self,
+        map: str,
+        *,
+        limit: int = 100,
+        cursor: str | None = None,
+        key_prefix: str | None = None,
+        bbox: Sequence[float] | None = None,
+        time_min: float | None = None,
+        time_max: float | None = None,
+        sequence: str | None = None,
+    ) -> KeyframePage:
+        """One page of keyframes (id order) matching every given filter: key prefix,
+        ``bbox`` = (x_min, y_min, x_max, y_max) of the position, metadata ``timestamp``
+        range, metadata ``sequence``. Pass the page's ``next_cursor`` for the next one."""
+        filters = dict(
+            key_prefix=key_prefix,
+            bbox=bbox,
+            time_min=time_min,
+            time_max=time_max,
+            sequence=sequence,
+        )
+        return self._send(self._list_keyframes(map, limit, cursor, filters))
+
+    def iter_keyframes(
+        self, map: str, *, page_size: int = 1000, **filters: Any
+    ) -> Iterator[KeyframeSummary]:
+        """Every keyframe matching the filters of :meth:`list_keyframes`, page by page."""
+        cursor = None
+        while True:
+            page = self.list_keyframes(map, limit=page_size, cursor=cursor, **filters)
+            yield from page.keyframes
+            if page.next_cursor is None:
+                return
+            cursor = page.next_cursor
+
+    def delete_keyframes(
+        self,
+        map: str,
+        *,
+        all: bool = False,
+        key_prefix: str | None = None,
+        bbox: Sequence[float] | None = None,
+        time_min: float | None = None,
+        time_max: float | None = None,
+        sequence: str | None = None,
+    ) -> KeyframesDeleted:
+        """Delete every keyframe matching the filters (see :meth:`list_keyframes`) in one
+        transaction; without filters only with ``all=True``."""
+        filters = dict(
+            key_prefix=key_prefix,
+            bbox=bbox,
+            time_min=time_min,
+            time_max=time_max,
+            sequence=sequence,
+        )
+        return self._send(self._delete_keyframes(map, all, filters))
+
+    def map_stats(self, map: str) -> MapStats:
+        """Keyframes, extent, disk and memory use, index kind and last write of a map."""
+        return self._send(self._map_stats(map))
+
+    def export_map(
+        self, map: str, dest: str | os.PathLike[str] | BinaryIO, *, timeout: float | None = 600.0
+    ) -> int:
+        """Download map ``map`` as an archive into ``dest`` (a path or a binary file),
+        streamed; returns the bytes written. ``timeout``: seconds without data."""
+        path = f"{_map_path(map)}/export"
+        with _open_dest(dest) as out, self._http.stream("GET", path, timeout=timeout) as r:
+            if r.status_code >= 400:
+                raise self._stream_failed(
+                    r.status_code, r.read(), r.headers.get("content-type", "")
+                )
+            size = 0
+            for block in r.iter_bytes():
+                out.write(block)
+                size += len(block)
+        return size
+
+    def import_map(
+        self,
+        src: str | os.PathLike[str] | BinaryIO,
+        name: str | None = None,
+        *,
+        timeout: float | None = 600.0,
+    ) -> MapInfo:
+        """Create a map from an archive made by :meth:`export_map` (streamed from ``src``,
+        a path or a binary file), under ``name`` or its archived name."""
+        with _open_src(src) as f:
+            r = self._http.post(
+                self._import_path(name),
+                content=_chunks(f),
+                headers={"Content-Type": ARCHIVE_TYPE},
+                timeout=timeout,
+            )
+        return self._finish(self._import_call(), r)
+
     # ----------------------------------------------------------------------------------
     # Localize
 
@@ -235,6 +357,7 @@ class Client(BaseClient):
         refine: str | None = None,
         prior: Prior | Mapping[str, Any] | None = None,
         min_confidence: float | None = None,
+        seed: Seed | Mapping[str, Any] | None = None,
     ) -> Localization:
         """Localize a scan (``points`` ``[P, 3|4]`` in the sensor frame) or precomputed
         ``features`` in a map.
@@ -243,9 +366,14 @@ class Client(BaseClient):
         "fgr-rir" | "sgv"``), ``refine`` (``"none" | "icp"``) and ``min_confidence`` (the
         acceptance threshold of the calibrated confidence) override the map's defaults.
         ``prior`` (:class:`Prior` or a dict with its fields) restricts the search to the
-        keyframes near a believed position. A scan that cannot be localized returns
-        ``localized=False`` with the reason and its best ``estimate``; it is not an error.
+        keyframes near a believed position. ``seed`` (:class:`Seed` or a dict) tracks:
+        the scan is registered against the map around a predicted pose, much faster than
+        a global search; :class:`Tracker` keeps the seeds for a moving vehicle. A scan
+        that cannot be localized returns ``localized=False`` with the reason and its best
+        ``estimate``; it is not an error.
         """
         return self._send(
-            self._localize(map, points, features, top_k, rerank, refine, prior, min_confidence)
+            self._localize(
+                map, points, features, top_k, rerank, refine, prior, min_confidence, seed
+            )
         )

@@ -229,6 +229,35 @@ class KeyframeDeleted:
 
 
 @dataclass(frozen=True)
+class RecentLocalization:
+    """One of a map's recent localize answers (``GET /v1/maps/{map}/localizations``):
+    when (``time``, ISO 8601 UTC), where (``translation`` ``[3]`` of the estimate, accepted
+    or not; None without one), the verdict, its ``confidence``, the matched keyframe and
+    the map version that answered."""
+
+    time: str
+    translation: np.ndarray | None  # [3]
+    localized: bool
+    verdict: str
+    confidence: float
+    keyframe_id: int | None
+    map_version: int
+
+    @classmethod
+    def from_body(cls, d: Mapping[str, Any]) -> RecentLocalization:
+        kf = d.get("keyframe_id")
+        return cls(
+            time=str(d["time"]),
+            translation=_vector(d.get("translation")),
+            localized=bool(d["localized"]),
+            verdict=str(d.get("verdict", "")),
+            confidence=float(d.get("confidence") or 0.0),
+            keyframe_id=None if kf is None else int(kf),
+            map_version=int(d["map_version"]),
+        )
+
+
+@dataclass(frozen=True)
 class Candidate:
     """A keyframe proposed for a query: retrieval similarity, rank and re-ranking score."""
 
@@ -306,6 +335,34 @@ class Prior:
 
 
 @dataclass(frozen=True)
+class Seed:
+    """A predicted pose for tracking, sent with a localize request: the service
+    registers the scan against the map around ``T_map_sensor`` (``[4, 4]``) and trusts
+    the fit only within ``sigma_m`` / ``sigma_yaw_deg`` (1 sigma, times the map's
+    ``tracking.seed_sigmas``). :class:`~sgvloc_client.Tracker` makes these."""
+
+    T_map_sensor: Any
+    sigma_m: float
+    sigma_yaw_deg: float
+
+    def to_body(self) -> dict[str, Any]:
+        return {
+            "T_map_sensor": np.asarray(self.T_map_sensor, dtype=np.float64),
+            "sigma_m": float(self.sigma_m),
+            "sigma_yaw_deg": float(self.sigma_yaw_deg),
+        }
+
+    @classmethod
+    def coerce(cls, value: Seed | Mapping[str, Any]) -> Seed:
+        """Accept a :class:`Seed` or a dict with the same fields."""
+        if isinstance(value, Seed):
+            return value
+        if not isinstance(value, Mapping):
+            raise TypeError(f"a seed must be a Seed or a dict, got {type(value).__name__}")
+        return cls(**value)
+
+
+@dataclass(frozen=True)
 class Estimate:
     """A pose estimate: ``T_map_sensor``, ``T_keyframe_sensor`` ``[4, 4]``, ``translation``
     ``[3]`` and ``quaternion_xyzw`` ``[4]``."""
@@ -338,6 +395,9 @@ class Localization:
     probability that the estimate is within 2 m and 5 degrees, ``min_confidence`` the
     threshold applied, ``evidence`` what the confidence came from. ``map_version`` says
     which state of the map answered; ``prior`` how a prior restricted the search.
+    ``mode``: ``"global"`` search, ``"tracked"`` (fitted around the request's seed) or
+    ``"relocalized"`` (the seed's fit failed; the global path answered); ``tracking``
+    describes the seeded fit (fitness, rmse_m, seed_offset_m, why, ...).
     """
 
     map: str
@@ -361,6 +421,8 @@ class Localization:
     estimate: Estimate | None = None
     evidence: dict[str, Any] = field(default_factory=dict)
     prior: dict[str, Any] | None = None
+    mode: str = "global"
+    tracking: dict[str, Any] | None = None
     raw: dict[str, Any] = field(repr=False, compare=False, default_factory=dict)
 
     @classmethod
@@ -388,5 +450,90 @@ class Localization:
             estimate=None if d.get("estimate") is None else Estimate.from_body(d["estimate"]),
             evidence=dict(d.get("evidence") or {}),
             prior=None if d.get("prior") is None else dict(d["prior"]),
+            mode=str(d.get("mode") or "global"),
+            tracking=None if d.get("tracking") is None else dict(d["tracking"]),
             raw=dict(d),
+        )
+
+
+@dataclass(frozen=True)
+class KeyframeSummary:
+    """One keyframe of a listing (``GET /v1/maps/{map}/keyframes``): no features."""
+
+    id: int
+    key: str | None
+    T_map_sensor: np.ndarray  # [4, 4] float64
+    position: np.ndarray  # [3] float64, x y z in map coordinates
+    metadata: dict[str, Any]
+    created_at: Any
+
+    @classmethod
+    def from_body(cls, d: Mapping[str, Any]) -> KeyframeSummary:
+        return cls(
+            id=int(d["id"]),
+            key=d.get("key"),
+            T_map_sensor=_pose(d["T_map_sensor"]),
+            position=np.asarray(d["position"], dtype=np.float64),
+            metadata=dict(d.get("metadata") or {}),
+            created_at=d.get("created_at"),
+        )
+
+
+@dataclass(frozen=True)
+class KeyframePage:
+    """One page of a keyframe listing; pass ``next_cursor`` for the next (None: last)."""
+
+    keyframes: list[KeyframeSummary]
+    next_cursor: str | None
+
+    @classmethod
+    def from_body(cls, d: Mapping[str, Any]) -> KeyframePage:
+        return cls(
+            keyframes=[KeyframeSummary.from_body(k) for k in d["keyframes"]],
+            next_cursor=d.get("next_cursor"),
+        )
+
+
+@dataclass(frozen=True)
+class KeyframesDeleted:
+    """Result of a bulk delete: how many keyframes went, and the map's version after."""
+
+    deleted: int
+    map_version: int
+
+    @classmethod
+    def from_body(cls, d: Mapping[str, Any]) -> KeyframesDeleted:
+        return cls(deleted=int(d["deleted"]), map_version=int(d["map_version"]))
+
+
+@dataclass(frozen=True)
+class MapStats:
+    """A map's size (``GET /v1/maps/{map}/stats``). ``extent`` is ``(min xyz, max xyz)``
+    of the keyframe positions, None while the map is empty."""
+
+    map: str
+    version: int
+    keyframes: int
+    extent: tuple[np.ndarray, np.ndarray] | None
+    disk_bytes: int
+    memory_bytes: int
+    index_kind: str
+    created_at: Any
+    last_write: Any
+
+    @classmethod
+    def from_body(cls, d: Mapping[str, Any]) -> MapStats:
+        ext = d.get("extent")
+        return cls(
+            map=str(d["map"]),
+            version=int(d["version"]),
+            keyframes=int(d["keyframes"]),
+            extent=None
+            if ext is None
+            else (np.asarray(ext["min"], np.float64), np.asarray(ext["max"], np.float64)),
+            disk_bytes=int(d["disk_bytes"]),
+            memory_bytes=int(d["memory_bytes"]),
+            index_kind=str(d["index_kind"]),
+            created_at=d.get("created_at"),
+            last_write=d.get("last_write"),
         )

@@ -4,11 +4,13 @@ each command, so the client-only install can list the commands."""
 
 from __future__ import annotations
 
-import logging
+from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any, TypeVar
 
 import typer
+
+T = TypeVar("T")
 
 app = typer.Typer(
     help="sgvloc: LiDAR localization service and tools.",
@@ -74,13 +76,11 @@ def _cap_threads(threads: int | None, default: int = 1) -> None:
     limit_library_threads(threads or default, force=threads is not None)
 
 
-def _configure_logging(level: str) -> None:
-    logging.basicConfig(
-        level=level.upper(),
-        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-    )
-    # faiss logs which CPU build it loaded (and every build it could not) at INFO
-    logging.getLogger("faiss.loader").setLevel(logging.WARNING)
+def _configure_logging(level: str, fmt: str = "text") -> None:
+    # the standard library only: the numeric libraries are not loaded yet
+    from .server.logs import configure_logging
+
+    configure_logging(level, "json" if fmt == "json" else "text")
 
 
 @app.command(
@@ -113,6 +113,13 @@ def serve(
     ] = None,
     log_level: Annotated[
         str | None, typer.Option(help="critical|error|warning|info|debug (env SGVLOC_LOG_LEVEL)")
+    ] = None,
+    log_format: Annotated[
+        str | None,
+        typer.Option(
+            help="text | json: JSON lines with request ids and an access line per request "
+            "(env SGVLOC_LOG_FORMAT, default text)"
+        ),
     ] = None,
     keys_file: Annotated[
         Path | None,
@@ -155,6 +162,7 @@ def serve(
         "workers": workers,
         "threads_per_worker": threads,
         "log_level": log_level.lower() if log_level else None,
+        "log_format": log_format.lower() if log_format else None,
         "keys_file": keys_file,
         "dev": True if dev else None,
     }
@@ -162,7 +170,7 @@ def serve(
         settings = Settings(**{k: v for k, v in overrides.items() if v is not None})
     except ValueError as exc:  # pydantic's ValidationError
         raise typer.BadParameter(str(exc)) from None
-    _configure_logging(settings.log_level)
+    _configure_logging(settings.log_level, settings.log_format)
     try:
         run_service(settings)
     except StartupError as exc:
@@ -563,6 +571,133 @@ def eval_command(
         raise typer.Exit(1) from None
 
 
+def _kidnap(text: str) -> tuple[int, int]:
+    try:
+        at, to = (int(v) for v in text.split(":"))
+    except ValueError:
+        raise typer.BadParameter(
+            f"{text!r}: give AT:TO scan indices", param_hint="'--kidnap'"
+        ) from None
+    return at, to
+
+
+@app.command("eval-track", epilog=ONE_THREAD)
+def eval_track_command(
+    data: Annotated[
+        Path,
+        typer.Option(
+            help="KITTI-layout sequence with poses (velodyne/, poses.txt)",
+            exists=True,
+            file_okay=False,
+        ),
+    ],
+    out: Annotated[Path, typer.Option(help="folder for track.json and trajectory.png")] = Path(
+        "eval-track"
+    ),
+    map_every: Annotated[int, typer.Option(min=1, help="map = every Nth scan")] = 5,
+    map_until: Annotated[
+        float | None, typer.Option(help="map = the scans of the first SECONDS instead")
+    ] = None,
+    encoder: EncoderOpt = None,
+    kidnap: Annotated[
+        list[str] | None,
+        typer.Option(help="AT:TO: after scan AT the stream jumps to scan TO (repeatable)"),
+    ] = None,
+    max_scans: Annotated[int | None, typer.Option(min=1, help="use the first N scans")] = None,
+    coverage: Annotated[
+        float, typer.Option(help="scans within this of a map keyframe count for availability (m)")
+    ] = 5.0,
+    progress: Annotated[bool, typer.Option(help="print progress lines")] = True,
+    threads: ThreadsOpt = None,
+) -> None:
+    """Evaluate tracking: build a map from part of a sequence, stream every scan through
+    the service's seeded localize with the SDK's motion model, compare with the ground
+    truth (errors, availability, wrong fixes, time per mode, kidnap recovery)."""
+    _cap_threads(threads)
+    from .core.encoders import EncoderSpec
+    from .core.errors import SgvlocError
+    from .tools.build_map import parse_encoder
+    from .tools.eval_track import eval_track, report_lines
+
+    _configure_logging("warning")
+    jumps = [_kidnap(k) for k in kidnap or []]
+    try:
+        spec = parse_encoder(encoder)
+        report = eval_track(
+            data,
+            out,
+            map_every=map_every,
+            map_until=map_until,
+            encoder=None if spec is None else EncoderSpec.model_validate(spec),
+            kidnaps=jumps,
+            max_scans=max_scans,
+            coverage_m=coverage,
+            progress=(lambda m: typer.echo(m, err=True)) if progress else None,
+        )
+    except (ValueError, SgvlocError) as exc:
+        typer.echo(f"eval-track: {exc}", err=True)
+        raise typer.Exit(1) from None
+    for line in report_lines(report):
+        typer.echo(line)
+    typer.echo(f"wrote {out / 'track.json'} and {out / 'trajectory.png'}")
+
+
+@app.command("calibrate-track", epilog=ONE_THREAD)
+def calibrate_track_command(
+    data: Annotated[
+        list[Path], typer.Option(help="training sequence with poses (repeat for several)")
+    ],
+    out: Annotated[Path, typer.Option(help="model file to write (JSON)")],
+    check: Annotated[
+        list[Path] | None, typer.Option(help="held-out sequence to report on (repeatable)")
+    ] = None,
+    map_every: Annotated[int, typer.Option(min=1, help="map = every Nth scan")] = 5,
+    max_scans: Annotated[int | None, typer.Option(min=1, help="first N scans of each")] = None,
+    draws: Annotated[int, typer.Option(min=1, help="perturbed seeds per scan")] = 3,
+    encoder: EncoderOpt = None,
+    threshold: Annotated[
+        float | None,
+        typer.Option(help="report acceptance at this confidence (default: the map default)"),
+    ] = None,
+    progress: Annotated[bool, typer.Option(help="print progress lines")] = True,
+    threads: ThreadsOpt = None,
+) -> None:
+    """Fit the confidence of tracked answers (P(fit within 2 m and 5 deg) from its
+    fitness and RMSE) on sequences with ground truth, from seeds perturbed near and far;
+    report it on held-out sequences. Ship the result as sgvloc/calibration/tracking.json."""
+    _cap_threads(threads)
+    import json
+
+    from .core.config import VerdictConfig
+    from .core.encoders import EncoderSpec
+    from .core.errors import SgvlocError
+    from .tools.build_map import parse_encoder
+    from .tools.eval_track import confidence_figures, fit_track_confidence, track_samples
+
+    _configure_logging("warning")
+    say = (lambda m: typer.echo(m, err=True)) if progress else None
+    cut = VerdictConfig().min_confidence if threshold is None else threshold
+    try:
+        spec = parse_encoder(encoder)
+        enc = None if spec is None else EncoderSpec.model_validate(spec)
+        options = dict(map_every=map_every, encoder=enc, max_scans=max_scans, draws=draws)
+        train = [s for d in data for s in track_samples(d, progress=say, **options)]
+        model = fit_track_confidence(
+            train, {"data": [d.name for d in data], "map_every": map_every, "draws": draws}
+        )
+        out.write_text(json.dumps(model.to_dict(), indent=1) + "\n")
+        typer.echo(
+            f"training ({', '.join(d.name for d in data)}): {confidence_figures(train, model, cut)}"
+        )
+        for d in check or []:
+            held = track_samples(d, progress=say, seed=1, **options)
+            typer.echo(f"held out ({d.name}): {confidence_figures(held, model, cut)}")
+    except (ValueError, SgvlocError) as exc:
+        typer.echo(f"calibrate-track: {exc}", err=True)
+        raise typer.Exit(1) from None
+    typer.echo(f"wrote {out} (acceptance figures at confidence >= {cut:g})")
+
+
 @app.command("calibrate", epilog=ONE_THREAD)
 def calibrate_command(
     out: Annotated[Path, typer.Option(help="calibration file to write (JSON)")],
@@ -842,6 +977,232 @@ def export_weights_command(
         typer.echo(f"sgvloc export-weights: {exc}", err=True)
         raise typer.Exit(2) from None
     typer.echo(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB)")
+
+
+# -- map management on a running service (the SDK only: works with the client install) --
+
+map_app = typer.Typer(
+    help="Manage the maps of a running service: list, statistics, keyframes, bulk "
+    "delete, export and import archives.",
+    no_args_is_help=True,
+)
+app.add_typer(map_app, name="map")
+
+UrlOpt = Annotated[str, typer.Option(help="base URL of the service", envvar="SGVLOC_URL")]
+KeyOpt = Annotated[
+    str | None,
+    typer.Option(
+        "--api-key",
+        help="bearer token (viewer reads; mapper/admin writes)",
+        envvar="SGVLOC_API_KEY",
+    ),
+]
+TimeoutOpt = Annotated[float, typer.Option(help="seconds to wait for the service")]
+KeyPrefixOpt = Annotated[str | None, typer.Option(help="keyframes whose key starts with this")]
+BboxOpt = Annotated[
+    str | None, typer.Option(help="x_min,y_min,x_max,y_max: positions inside this box")
+]
+TimeMinOpt = Annotated[float | None, typer.Option(help="metadata timestamp >= this")]
+TimeMaxOpt = Annotated[float | None, typer.Option(help="metadata timestamp <= this")]
+SequenceOpt = Annotated[str | None, typer.Option(help="metadata sequence equal to this")]
+DEFAULT_URL = "http://127.0.0.1:8470"
+
+
+def _filters(
+    key_prefix: str | None,
+    bbox: str | None,
+    time_min: float | None,
+    time_max: float | None,
+    sequence: str | None,
+) -> dict[str, Any]:
+    box = None
+    if bbox is not None:
+        try:
+            box = [float(v) for v in bbox.split(",")]
+        except ValueError:
+            box = []
+        if len(box) != 4:
+            raise typer.BadParameter("four numbers: x_min,y_min,x_max,y_max", param_hint="'--bbox'")
+    return dict(
+        key_prefix=key_prefix, bbox=box, time_min=time_min, time_max=time_max, sequence=sequence
+    )
+
+
+def _sdk_call(command: str, fn: Callable[[], T]) -> T:
+    """Run ``fn`` and turn the SDK's errors into one line on stderr (exit 1)."""
+    import sgvloc_client
+
+    try:
+        return fn()
+    except (sgvloc_client.SgvlocError, OSError) as exc:
+        typer.echo(f"sgvloc map {command}: {exc}", err=True)
+        raise typer.Exit(1) from None
+
+
+def _sdk(url: str, api_key: str | None, timeout: float) -> Any:
+    """A :class:`sgvloc_client.Client` (imported here: the CLI starts without httpx)."""
+    import sgvloc_client
+
+    return sgvloc_client.Client(url, timeout=timeout, api_key=api_key)
+
+
+@map_app.command("list")
+def map_list_command(
+    url: UrlOpt = DEFAULT_URL, api_key: KeyOpt = None, timeout: TimeoutOpt = 30.0
+) -> None:
+    """The maps with keyframes, version and encoder, one per line."""
+    with _sdk(url, api_key, timeout) as c:
+        maps = _sdk_call("list", c.list_maps)
+    for m in maps:
+        typer.echo(f"{m.name}\t{m.keyframes} keyframes\tversion {m.version}\t{m.encoder.kind}")
+
+
+@map_app.command("stats")
+def map_stats_command(
+    map_name: Annotated[str, typer.Argument(metavar="MAP")],
+    url: UrlOpt = DEFAULT_URL,
+    api_key: KeyOpt = None,
+    timeout: TimeoutOpt = 30.0,
+) -> None:
+    """A map's statistics as JSON: keyframes, extent, disk and memory use, index kind,
+    last write."""
+    import json
+
+    with _sdk(url, api_key, timeout) as c:
+        s = _sdk_call("stats", lambda: c.map_stats(map_name))
+    typer.echo(json.dumps(_stats_dict(s), indent=1))
+
+
+def _stats_dict(s: Any) -> dict[str, Any]:
+    return {
+        "map": s.map,
+        "version": s.version,
+        "keyframes": s.keyframes,
+        "extent": None
+        if s.extent is None
+        else {"min": s.extent[0].tolist(), "max": s.extent[1].tolist()},
+        "disk_bytes": s.disk_bytes,
+        "memory_bytes": s.memory_bytes,
+        "index_kind": s.index_kind,
+        "created_at": s.created_at,
+        "last_write": s.last_write,
+    }
+
+
+@map_app.command("keyframes")
+def map_keyframes_command(
+    map_name: Annotated[str, typer.Argument(metavar="MAP")],
+    key_prefix: KeyPrefixOpt = None,
+    bbox: BboxOpt = None,
+    time_min: TimeMinOpt = None,
+    time_max: TimeMaxOpt = None,
+    sequence: SequenceOpt = None,
+    url: UrlOpt = DEFAULT_URL,
+    api_key: KeyOpt = None,
+    timeout: TimeoutOpt = 30.0,
+) -> None:
+    """The keyframes matching the filters, one JSON object per line (id, key, position,
+    metadata, created_at), every page."""
+    import json
+
+    where = _filters(key_prefix, bbox, time_min, time_max, sequence)
+    with _sdk(url, api_key, timeout) as c:
+
+        def run() -> None:
+            for kf in c.iter_keyframes(map_name, **where):
+                line = {
+                    "id": kf.id,
+                    "key": kf.key,
+                    "position": kf.position.tolist(),
+                    "metadata": kf.metadata,
+                    "created_at": kf.created_at,
+                }
+                typer.echo(json.dumps(line))
+
+        _sdk_call("keyframes", run)
+
+
+@map_app.command("delete-keyframes")
+def map_delete_keyframes_command(
+    map_name: Annotated[str, typer.Argument(metavar="MAP")],
+    key_prefix: KeyPrefixOpt = None,
+    bbox: BboxOpt = None,
+    time_min: TimeMinOpt = None,
+    time_max: TimeMaxOpt = None,
+    sequence: SequenceOpt = None,
+    all_keyframes: Annotated[
+        bool, typer.Option("--all", help="delete every keyframe (when no filter is given)")
+    ] = False,
+    url: UrlOpt = DEFAULT_URL,
+    api_key: KeyOpt = None,
+    timeout: TimeoutOpt = 30.0,
+) -> None:
+    """Delete the keyframes matching the filters in one transaction (mapper/admin)."""
+    where = _filters(key_prefix, bbox, time_min, time_max, sequence)
+    if all(v is None for v in where.values()) and not all_keyframes:
+        raise typer.BadParameter("give a filter, or --all to delete every keyframe")
+    with _sdk(url, api_key, timeout) as c:
+        r = _sdk_call(
+            "delete-keyframes", lambda: c.delete_keyframes(map_name, all=all_keyframes, **where)
+        )
+    typer.echo(f"map {map_name}: {r.deleted} keyframes deleted, version {r.map_version}")
+
+
+@map_app.command("export")
+def map_export_command(
+    map_name: Annotated[str, typer.Argument(metavar="MAP")],
+    file: Annotated[Path, typer.Argument(help="the archive to write", dir_okay=False)],
+    force: Annotated[bool, typer.Option(help="overwrite FILE if it exists")] = False,
+    url: UrlOpt = DEFAULT_URL,
+    api_key: KeyOpt = None,
+    timeout: TimeoutOpt = 600.0,
+) -> None:
+    """Download MAP as one archive file (mapper/admin): settings, encoder identity,
+    calibration, version, every keyframe with features and cloud, checksums. Streamed;
+    written aside and renamed when complete, so FILE is never half an archive."""
+    import time
+
+    if file.exists() and not force:
+        raise typer.BadParameter(f"{file} exists (--force to overwrite)", param_hint="'FILE'")
+    part = file.with_name(file.name + ".part")
+    t0 = time.perf_counter()
+    with _sdk(url, api_key, timeout) as c:
+        try:
+            size = _sdk_call("export", lambda: c.export_map(map_name, part, timeout=timeout))
+        except BaseException:
+            part.unlink(missing_ok=True)
+            raise
+    part.replace(file)
+    typer.echo(
+        f"map {map_name}: {size / 1e6:.1f} MB written to {file} in {time.perf_counter() - t0:.1f} s"
+    )
+
+
+@map_app.command("import")
+def map_import_command(
+    file: Annotated[
+        Path,
+        typer.Argument(help="an archive from `sgvloc map export`", exists=True, dir_okay=False),
+    ],
+    name: Annotated[
+        str | None, typer.Option(help="the new map's name (default: the archived name)")
+    ] = None,
+    url: UrlOpt = DEFAULT_URL,
+    api_key: KeyOpt = None,
+    timeout: TimeoutOpt = 600.0,
+) -> None:
+    """Create a map from an archive (mapper/admin), streamed to the service: the same
+    keyframes, ids, version and settings, so the same answers. A damaged or foreign
+    archive is refused and leaves nothing behind."""
+    import time
+
+    t0 = time.perf_counter()
+    with _sdk(url, api_key, timeout) as c:
+        info = _sdk_call("import", lambda: c.import_map(file, name, timeout=timeout))
+    typer.echo(
+        f"map {info.name}: {info.keyframes} keyframes, version {info.version}, imported in "
+        f"{time.perf_counter() - t0:.1f} s"
+    )
 
 
 def main() -> None:

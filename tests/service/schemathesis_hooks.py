@@ -24,3 +24,10 @@ def _packable(value):  # noqa: ANN001, ANN202
 @schemathesis.serializer("application/msgpack")
 def _msgpack(ctx, value):  # noqa: ANN001, ANN202 - schemathesis' hook signature
     return msgpack.packb(_packable(value), use_bin_type=True)
+
+
+@schemathesis.serializer("application/x-tar")
+def _tar(ctx, value):  # noqa: ANN001, ANN202 - schemathesis' hook signature
+    """Map archives are binary: generated strings go as their bytes (the service must
+    refuse them as not an archive, never fail)."""
+    return value if isinstance(value, bytes) else str(value).encode()

@@ -43,7 +43,13 @@ ALLOWED: dict[str, set[str]] = {
     "insert_keyframes": {"mapper", "admin"},
     "get_keyframe": {"mapper", "viewer", "admin"},
     "delete_keyframe": {"mapper", "admin"},
+    "list_keyframes": {"mapper", "viewer", "admin"},
+    "delete_keyframes": {"mapper", "admin"},
+    "map_stats": {"mapper", "viewer", "admin"},
+    "export_map": {"mapper", "admin"},
+    "import_map": {"mapper", "admin"},
     "localize": {"vehicle", "mapper", "admin"},
+    "recent_localizations": {"mapper", "viewer", "admin"},
     "get_config": {"viewer", "admin"},
     "metrics": {"viewer", "admin"},  # metrics_auth=viewer, the default
     "healthz": {"anyone"},
@@ -152,8 +158,28 @@ def _request(op: str, c: httpx.Client, admin: httpx.Client, ids: dict[str, int])
         r = post_msgpack(admin, "/v1/maps/auth-a/keyframes", body)
         assert r.status_code == 201, r.text
         return c.delete(f"/v1/maps/auth-a/keyframes/{r.json()['ids'][0]}")
+    if op == "list_keyframes":
+        return c.get("/v1/maps/auth-a/keyframes", params={"limit": 5})
+    if op == "delete_keyframes":  # a key nothing has: deletes nothing
+        return c.delete("/v1/maps/auth-a/keyframes", params={"key_prefix": "no-such-key"})
+    if op == "map_stats":
+        return c.get("/v1/maps/auth-a/stats")
+    if op == "export_map":
+        return c.get("/v1/maps/auth-a/export")
+    if op == "import_map":  # into a map the -a keys may use, freed again by admin
+        archive = admin.get("/v1/maps/auth-a/export")
+        assert archive.status_code == 200, archive.text
+        admin.delete("/v1/maps/auth-imported")
+        return c.post(
+            "/v1/map-archives",
+            params={"name": "auth-imported"},
+            content=archive.content,
+            headers={"Content-Type": "application/x-tar"},
+        )
     if op == "localize":
         return post_msgpack(c, "/v1/maps/auth-a/localize", {"features": feats, "rerank": "none"})
+    if op == "recent_localizations":
+        return c.get("/v1/maps/auth-a/localizations")
     if op == "get_config":
         return c.get("/v1/config")
     if op == "healthz":

@@ -54,7 +54,17 @@ def test_response_names_frames_and_map(client: httpx.Client, balm_map: BalmMap) 
     # maps keep keyframe clouds by default, so the default ICP refinement ran
     assert out["pose"]["refined"] and out["pose"]["icp"]["used"]
     assert out["pose"]["icp"]["fitness"] > 0.5
-    assert set(out["timings_ms"]) == {"encode", "retrieve", "rerank", "pose", "verify", "total"}
+    assert set(out["timings_ms"]) == {
+        "encode",
+        "retrieve",
+        "rerank",
+        "pose",
+        "verify",
+        "track",
+        "total",
+    }
+    assert out["timings_ms"]["track"] == 0 and out["mode"] == "global"
+    assert out["tracking"] is None
     assert out["rerank_method"] == "sgv"
     assert len(out["retrieved"]) == len(balm_map.ids)  # map default top_k 20 > map size
     assert out["reranked"][0]["keyframe_id"] == out["keyframe_id"]

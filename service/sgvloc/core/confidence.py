@@ -268,6 +268,7 @@ VERDICT_CODES = (
     "outside_prior",  # the estimate lies outside the prior region
     "pose_check",  # the pose step's own minimums (inliers, fitness, ICP fitness) failed
     "low_confidence",  # confidence < min_confidence
+    "tracking_failed",  # a seeded fit failed its checks and no fallback was asked for
     "localized",
 )
 

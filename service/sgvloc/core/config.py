@@ -103,6 +103,47 @@ class PoseConfig(_Section):
     min_fitness: float = Field(0.05, ge=0.0, le=1.0, description="lower fitness = not localized")
 
 
+class TrackingConfig(_Section):
+    """Seeded localization (:mod:`sgvloc.core.tracking`): GICP of the scan against the
+    keyframe clouds around the seed, checked before it is trusted."""
+
+    submap_radius_m: float = Field(
+        40.0, gt=0.0, le=1000.0, description="keyframes within this of the seed form the submap"
+    )
+    submap_cell_m: float = Field(
+        10.0, gt=0.0, le=1000.0, description="submaps are built (and cached) per cell this wide"
+    )
+    submap_voxel_m: float = Field(0.3, gt=0.0, le=10.0, description="submap downsampling (m)")
+    scan_voxel_m: float = Field(0.5, gt=0.0, le=10.0, description="scan downsampling (m)")
+    max_range_m: float = Field(
+        60.0, gt=0.0, le=1000.0, description="scan points beyond are dropped"
+    )
+    max_correspondence_m: float = Field(
+        1.0, gt=0.0, le=50.0, description="GICP correspondence distance (m)"
+    )
+    max_iterations: int = Field(20, ge=1, le=1000)
+    inlier_distance_m: float = Field(
+        0.5, gt=0.0, le=50.0, description="fitness: scan points within this of the submap"
+    )
+    min_fitness: float = Field(
+        0.5, ge=0.0, le=1.0, description="share of scan points that must fit the submap"
+    )
+    max_rmse_m: float = Field(0.25, gt=0.0, le=10.0, description="RMSE of those points (m)")
+    seed_sigmas: float = Field(
+        3.0, gt=0.0, le=100.0, description="the fit must lie within this many seed sigmas"
+    )
+    min_submap_keyframes: int = Field(1, ge=1, le=1000)
+    cached_submaps: int = Field(8, ge=1, le=256, description="submaps kept per map (LRU)")
+    fallback: Literal["global", "none"] = Field(
+        "global",
+        description="when the fit fails: localize globally with the seed as a prior, or answer "
+        "not localized at once",
+    )
+    fallback_min_radius_m: float = Field(
+        15.0, gt=0.0, le=100000.0, description="the fallback prior's radius: at least this"
+    )
+
+
 class VerdictConfig(_Section):
     """When an answer counts as localized (:mod:`sgvloc.core.confidence`)."""
 
@@ -130,6 +171,7 @@ class LocalizerConfig(_Section):
     sgv: SGVConfig = SGVConfig()
     pose: PoseConfig = PoseConfig()
     verdict: VerdictConfig = VerdictConfig()
+    tracking: TrackingConfig = TrackingConfig()
     top_k: int = Field(20, ge=1, le=1000)
     rerank: RerankMethod = "sgv"
     qe_k: int = Field(3, ge=1, le=100, description="query expansion: neighbours averaged")

@@ -37,6 +37,15 @@ from .pose import PoseResult, check_rigid, ransac_pose, refine_icp
 from .prior import PositionGrid, Prior
 from .rerank import Candidate, RerankOutput, check_method, rerank
 from .retrieval import FaissIndex
+from .tracking import (
+    Seed,
+    SubmapCache,
+    TrackResult,
+    build_submap,
+    register,
+    tracked_confidence,
+    yaw_deg,
+)
 
 log = logging.getLogger(__name__)
 
@@ -67,7 +76,11 @@ class LocalizationResult:
     ``verdict`` a reason code (:data:`~sgvloc.core.confidence.VERDICT_CODES`) and
     ``reason`` a sentence. ``prior``: how a prior restricted the search (None: no prior).
     ``retrieved`` is the candidate list in retrieval order, ``reranked`` after re-ranking
-    (best first). ``timings_ms`` holds encode, retrieve, rerank, pose, verify and total.
+    (best first). ``timings_ms`` holds encode, retrieve, rerank, pose, verify and total
+    (and track for a seeded request). ``mode`` says how the answer was found: ``global``
+    search, ``tracked`` (registered against the map around the request's seed), or
+    ``relocalized`` (the seed's fit failed and the global path answered); ``tracking``
+    describes the seeded fit.
     """
 
     localized: bool
@@ -86,6 +99,8 @@ class LocalizationResult:
     T_map_sensor_estimate: np.ndarray | None = None
     T_keyframe_sensor_estimate: np.ndarray | None = None
     prior: dict[str, Any] | None = None
+    mode: str = "global"  # global | tracked | relocalized (a seed's fit failed: global)
+    tracking: dict[str, Any] | None = None  # the seeded fit (None without a seed)
 
     @property
     def T_map_sensor(self) -> np.ndarray | None:
@@ -127,6 +142,7 @@ class Localizer:
         self._next_id = itertools.count(1)
         self._lock = RWLock()
         self.version = 0  # changes on every insert and removal
+        self._submaps = SubmapCache(self.config.tracking.cached_submaps)
 
     # -- the map ------------------------------------------------------------------------
 
@@ -264,6 +280,7 @@ class Localizer:
         with self._lock.write():
             self.config = config
             self.calibration = calibration
+            self._submaps = SubmapCache(config.tracking.cached_submaps)
 
     def _fresh_id(self) -> int:
         while True:
@@ -283,13 +300,46 @@ class Localizer:
         refine: str | None = None,
         prior: Prior | None = None,
         min_confidence: float | None = None,
+        seed: Seed | None = None,
     ) -> LocalizationResult:
         """Localize a raw scan (or precomputed features) in this map.
 
         ``prior``: search only the keyframes inside its radius and reject an estimate
         outside its region; ``min_confidence``: this request's acceptance threshold
-        (default: the map's ``verdict.min_confidence``).
+        (default: the map's ``verdict.min_confidence``). ``seed``: track: register the
+        scan against the map around this pose first (:mod:`sgvloc.core.tracking`); if
+        the fit fails, localize globally with the seed as a prior (``tracking.fallback``).
         """
+        if seed is not None:
+            if scan is None:
+                raise InputError("seed: tracking needs the raw scan (points), not features")
+            t_start = time.perf_counter()
+            tracked = self._track(scan, seed)
+            if tracked.ok:
+                return self._tracked_answer(tracked, t_start, min_confidence)
+            tcfg = self.config.tracking
+            if tcfg.fallback == "none":
+                return self._tracked_answer(tracked, t_start, min_confidence)
+            if prior is None:
+                k = tcfg.seed_sigmas
+                prior = Prior(
+                    tuple(seed.T_map_sensor[:3, 3]),
+                    max(k * seed.sigma_m, tcfg.fallback_min_radius_m),
+                    yaw_deg=yaw_deg(seed.T_map_sensor[:3, :3]),
+                    yaw_tolerance_deg=min(180.0, max(k * seed.sigma_yaw_deg, 30.0)),
+                )
+            result = self.localize(
+                scan,
+                top_k=top_k,
+                rerank_method=rerank_method,
+                refine=refine,
+                prior=prior,
+                min_confidence=min_confidence,
+            )
+            result.mode, result.tracking = "relocalized", tracked.to_dict()
+            result.timings_ms["track"] = tracked.timings_ms["track"]
+            result.timings_ms["total"] = _ms(t_start)
+            return result
         cfg = self.config
         top_k = top_k or cfg.top_k
         method = check_method(rerank_method or cfg.rerank)
@@ -414,6 +464,82 @@ class Localizer:
             T_map_sensor_estimate=T_map,
             T_keyframe_sensor_estimate=T_kf,
             prior=prior_info,
+        )
+
+    def _track(self, scan: np.ndarray, seed: Seed) -> TrackResult:
+        """Register ``scan`` against the submap around ``seed`` (built once per map cell
+        and version, then cached)."""
+        cfg = self.config.tracking
+        t = time.perf_counter()
+        x, y = seed.T_map_sensor[:2, 3]
+        cell = (int(np.floor(x / cfg.submap_cell_m)), int(np.floor(y / cfg.submap_cell_m)))
+        with self._lock.read():
+            key = (self.version, cell)
+
+            def build():  # noqa: ANN202 - the cache's builder
+                centre = ((cell[0] + 0.5) * cfg.submap_cell_m, (cell[1] + 0.5) * cfg.submap_cell_m)
+                reach = cfg.submap_radius_m + cfg.submap_cell_m * 0.7072  # + half a diagonal
+                ids = self._grid.within(Prior(centre, reach))
+                clouds = [
+                    (int(i), kf.T_map_sensor, kf.cloud)
+                    for i in ids
+                    if (kf := self._keyframes[int(i)]).cloud is not None
+                ]
+                return build_submap(clouds, cfg)
+
+            submap = self._submaps.get(key, build)
+            poses = (
+                {i: self._keyframes[i].T_map_sensor[:3, 3] for i in submap.keyframe_ids}
+                if submap is not None
+                else {}
+            )
+        if submap is None:
+            out = TrackResult(
+                False,
+                f"no keyframe cloud within {cfg.submap_radius_m:g} m of the seed (the map "
+                "keeps no clouds, or the seed lies outside it)",
+            )
+        else:
+            check_deadline("tracking")
+            out = register(scan, seed, submap, cfg)
+            pos = out.T_map_sensor[:3, 3]
+            out.nearest_keyframe = min(poses, key=lambda i: float(np.linalg.norm(poses[i] - pos)))
+        out.timings_ms["track"] = _ms(t)
+        return out
+
+    def _tracked_answer(
+        self, tracked: TrackResult, t_start: float, min_confidence: float | None
+    ) -> LocalizationResult:
+        """The answer of a seeded fit (accepted or, with ``fallback: none``, not)."""
+        if min_confidence is None:
+            min_confidence = self.config.verdict.min_confidence
+        T = tracked.T_map_sensor
+        T_kf = None
+        if T is not None and tracked.nearest_keyframe is not None:
+            T_kf = np.linalg.inv(self._keyframes[tracked.nearest_keyframe].T_map_sensor) @ T
+        confidence = tracked_confidence(tracked) if T is not None else 0.0
+        localized = tracked.ok and confidence >= min_confidence
+        reason = tracked.why
+        if tracked.ok and not localized:
+            reason = f"confidence {confidence:.2f} < min_confidence {min_confidence:g}"
+        timings = {"track": tracked.timings_ms["track"], "total": _ms(t_start)}
+        return LocalizationResult(
+            localized,
+            reason,
+            tracked.nearest_keyframe,
+            None,
+            [],
+            [],
+            "none",
+            timings,
+            self.version,
+            verdict="localized" if localized else "tracking_failed",
+            confidence=confidence,
+            min_confidence=min_confidence,
+            T_map_sensor_estimate=T,
+            T_keyframe_sensor_estimate=T_kf,
+            mode="tracked",
+            tracking=tracked.to_dict(),
         )
 
     def _spectral(

@@ -51,6 +51,7 @@ from sgvloc.core.localizer import Keyframe, LocalizationResult, Localizer
 from sgvloc.core.pose import check_rigid
 from sgvloc.core.prior import Prior
 from sgvloc.core.retrieval import FaissIndex
+from sgvloc.core.tracking import Seed
 
 from .archive import ArchiveError, read_archive, write_archive
 from .store import (
@@ -921,8 +922,9 @@ class MapManager:
         refine: str | None = None,
         prior: Prior | None = None,
         min_confidence: float | None = None,
+        seed: Seed | None = None,
     ) -> LocalizationResult:
-        """Localize a scan (or features) in map ``name``."""
+        """Localize a scan (or features) in map ``name``; with ``seed``, track."""
         handle = self.get(name)
         if (points is None) == (features is None):
             raise InputError("give exactly one of points or features")
@@ -933,6 +935,14 @@ class MapManager:
             "prior": prior,
             "min_confidence": min_confidence,
         }
+        if seed is not None:
+            if features is not None:
+                raise field_error(
+                    InputError("tracking needs the raw scan (points), not features"), "seed"
+                )
+            self._check_scan_allowed(handle)
+            with at_field("points"):
+                return handle.localizer.localize(points, seed=seed, **options)
         if points is not None:
             self._check_scan_allowed(handle)
             with at_field("points"):

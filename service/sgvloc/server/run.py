@@ -40,13 +40,17 @@ def serve(settings: Settings) -> None:
         application = create_app(settings)
     except KeysError as exc:
         raise StartupError(str(exc)) from None
+    json_logs = settings.log_format == "json"
     config = uvicorn.Config(
         application,
         host=settings.host,
         port=settings.port,
         log_level=settings.log_level,
+        # JSON: uvicorn's records go through the root logger's JSON handler, and the app's
+        # own access line (with the request id) replaces uvicorn's
+        log_config=None if json_logs else uvicorn.config.LOGGING_CONFIG,
         workers=None,  # one process: an app object cannot be forked into workers anyway
-        access_log=settings.log_level == "debug",
+        access_log=settings.log_level == "debug" and not json_logs,
         timeout_graceful_shutdown=settings.shutdown_timeout_s,
         http=_header_timeout_protocol(settings.header_timeout_s),
     )

@@ -39,6 +39,13 @@ class Settings(BaseSettings):
     )
     max_body_bytes: int = Field(64 * 1024 * 1024, ge=1024, description="413 above this")
     max_batch: int = Field(1000, ge=1, description="keyframes per insert request")
+    max_import_bytes: int = Field(
+        64 * 1024**3,
+        ge=1024,
+        le=2**50,
+        description="largest map archive POST /v1/map-archives takes (streamed to the data "
+        "directory, never held in memory); 413 above this",
+    )
     max_points: int = Field(500_000, ge=1, le=10_000_000, description="points per scan")
     max_keypoints: int = Field(
         4096,
@@ -56,6 +63,11 @@ class Settings(BaseSettings):
         30.0, gt=0, description="save a changed map's snapshot at most this long after a write"
     )
     log_level: LogLevel = "info"
+    log_format: Literal["text", "json"] = Field(
+        "text",
+        description="text lines, or JSON lines with request ids and one access line per "
+        "request (docs/OPERATIONS.md, 'Monitoring')",
+    )
 
     # -- access control (docs/OPERATIONS.md) --
     dev: bool = Field(

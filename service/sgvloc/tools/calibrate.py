@@ -53,15 +53,16 @@ class Examples:
         self.correct += other.correct
 
 
-def fit_logistic(
-    X: np.ndarray, y: np.ndarray, features: list[str], l2: float = 1e-2
-) -> LogisticModel:
-    """Logistic regression ``[n, F] -> p`` with weights >= 0 on standardised inputs."""
+def fit_weights(
+    X: np.ndarray, y: np.ndarray, l2: float = 1e-2
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """Logistic regression ``[n, F] -> p`` with weights >= 0 on standardised inputs:
+    ``(mean, scale, weights, bias)``."""
     from scipy.optimize import minimize
 
     X = np.asarray(X, dtype=np.float64)
     y = np.asarray(y, dtype=np.float64)
-    if X.ndim != 2 or X.shape[0] != len(y) or X.shape[1] != len(features):
+    if X.ndim != 2 or X.shape[0] != len(y):
         raise InputError("fit_logistic: X must be [n, F] with one label per row")
     if y.min(initial=1) == y.max(initial=0):
         raise InputError(
@@ -88,13 +89,20 @@ def fit_logistic(
     res = minimize(loss, np.zeros(F + 1), jac=True, method="L-BFGS-B", bounds=bounds)
     if not res.success:
         log.warning("calibration fit: %s", res.message)
-    w = np.maximum(res.x[:F], 0.0)
-    return LogisticModel(
-        list(features), mean.tolist(), scale.tolist(), w.round(8).tolist(), float(res.x[F])
-    )
+    return mean, scale, np.maximum(res.x[:F], 0.0), float(res.x[F])
 
 
-def choose_l2(X: np.ndarray, y: np.ndarray, features: list[str], seed: int = 0) -> float:
+def fit_logistic(
+    X: np.ndarray, y: np.ndarray, features: list[str], l2: float = 1e-2
+) -> LogisticModel:
+    """:func:`fit_weights` as the confidence model of ``features``."""
+    if np.asarray(X).ndim != 2 or np.asarray(X).shape[1] != len(features):
+        raise InputError("fit_logistic: X must be [n, F] with one label per row")
+    mean, scale, w, b = fit_weights(X, y, l2)
+    return LogisticModel(list(features), mean.tolist(), scale.tolist(), w.round(8).tolist(), b)
+
+
+def choose_l2(X: np.ndarray, y: np.ndarray, seed: int = 0) -> float:
     """The L2 penalty of :data:`L2_GRID` with the lowest 5-fold cross-validated log-loss
     (folds stratified by label, seeded)."""
     rng = np.random.default_rng(seed)
@@ -110,8 +118,8 @@ def choose_l2(X: np.ndarray, y: np.ndarray, features: list[str], seed: int = 0) 
         total = 0.0
         for f in range(FOLDS):
             tr, te = fold != f, fold == f
-            m = fit_logistic(X[tr], y[tr], features, l2)
-            z = m.bias + ((X[te] - m.mean) / m.scale) @ np.asarray(m.weights)
+            mean, scale, w, b = fit_weights(X[tr], y[tr], l2)
+            z = b + ((X[te] - mean) / scale) @ w
             total += float((np.logaddexp(0.0, z) - y[te] * z).sum())
         losses.append(total / len(y))
     return L2_GRID[int(np.argmin(losses))]
@@ -234,7 +242,7 @@ def calibrate(
                 f"profile {profile}: the {len(y)} answers are all "
                 f"{'correct' if y.any() else 'wrong'}; calibration needs both"
             )
-        l2 = choose_l2(X, y, feats)
+        l2 = choose_l2(X, y)
         model = fit_logistic(X, y, feats, l2)
         p = np.array([model.predict(e) for e in ex.evidence])
         models[profile] = model

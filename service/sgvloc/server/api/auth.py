@@ -49,16 +49,22 @@ ROUTE_ROLES: dict[str, frozenset[Role] | None | str] = {
     "create_map": frozenset({"mapper", "admin"}),
     "list_maps": frozenset({"mapper", "viewer", "admin"}),
     "get_map": frozenset({"mapper", "viewer", "admin"}),
+    "map_stats": frozenset({"mapper", "viewer", "admin"}),
     "update_map": frozenset({"mapper", "admin"}),
     "delete_map": frozenset({"admin"}),
     "reload_keys": frozenset({"admin"}),
     "reload_map": frozenset({"admin"}),
+    "export_map": frozenset({"mapper", "admin"}),
+    "import_map": frozenset({"mapper", "admin"}),
     # keyframes
     "insert_keyframes": frozenset({"mapper", "admin"}),
     "get_keyframe": frozenset({"mapper", "viewer", "admin"}),
     "delete_keyframe": frozenset({"mapper", "admin"}),
+    "list_keyframes": frozenset({"mapper", "viewer", "admin"}),
+    "delete_keyframes": frozenset({"mapper", "admin"}),
     # localize
     "localize": frozenset({"vehicle", "mapper", "admin"}),
+    "recent_localizations": frozenset({"mapper", "viewer", "admin"}),
     # service
     "get_config": frozenset({"viewer", "admin"}),
     "healthz": None,

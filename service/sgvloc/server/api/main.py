@@ -29,12 +29,14 @@ from sgvloc.about import __version__
 
 from ..maps import MapManager
 from ..metrics import Metrics
+from ..recent import RecentLocalizations
 from ..settings import Settings
 from .auth import KeyRing, KeysError, reload_keys
 from .deps import Admission
 from .errors import install_error_handlers
 from .openapi import install_openapi
-from .routes import config, keyframes, localize, maps, probes
+from .request_id import RequestIdMiddleware
+from .routes import archives, config, keyframes, localizations, localize, maps, probes, ui
 
 log = logging.getLogger(__name__)
 
@@ -150,11 +152,17 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings()
     keyring = KeyRing.from_settings(settings)
     metrics = Metrics()
+    recent = RecentLocalizations()  # for the status page; a deleted map's is dropped
+
+    def on_change(name: str, keyframes: int | None) -> None:
+        metrics.set_map_keyframes(name, keyframes)
+        recent.on_change(name, keyframes)
+
     manager = MapManager(
         settings.maps_dir,
         snapshot_every=settings.snapshot_every,
         snapshot_delay_s=settings.snapshot_delay_s,
-        on_change=metrics.set_map_keyframes,
+        on_change=on_change,
     )
     about = dict(
         title="sgvloc",
@@ -172,18 +180,23 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     app.state.metrics = metrics
     app.state.manager = manager
+    app.state.recent = recent
     app.state.keyring = keyring
     app.state.admission = Admission(settings.inflight_limit)
-    for module in (maps, keyframes, localize, probes, config):
+    metrics.localize_inflight.set_function(lambda: app.state.admission.inflight)
+    metrics.watch_maps(lambda: [(h.name, h.num_keyframes, h.version) for h in manager.list()])
+    routers = (maps, archives, keyframes, localize, localizations, probes, config, ui)
+    for module in routers:
         app.include_router(module.router)
     # for the Allow header of 405 answers: every route's path and methods
     app.state.route_methods = [
         (route.path_regex, set(route.methods) - {"HEAD"})
-        for module in (maps, keyframes, localize, probes, config)
+        for module in routers
         for route in module.router.routes
         if isinstance(route, APIRoute)
     ]
     install_error_handlers(app)
     install_openapi(app)
     app.add_middleware(MetricsMiddleware, metrics=metrics)
+    app.add_middleware(RequestIdMiddleware)  # outermost: every log record names its request
     return app

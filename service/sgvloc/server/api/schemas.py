@@ -28,7 +28,9 @@ from sgvloc.core.confidence import Calibration
 from sgvloc.core.config import LocalizerConfig, RerankMethod, RetrievalConfig
 from sgvloc.core.encoders import EncoderSpec
 from sgvloc.core.errors import InputError
+from sgvloc.core.pose import check_rigid
 from sgvloc.core.prior import DEFAULT_YAW_TOLERANCE_DEG, Prior
+from sgvloc.core.tracking import Seed
 
 from ..maps import FeaturesIn, KeyframeIn, at_field, field_error
 from ..settings import Settings
@@ -349,6 +351,58 @@ class KeyframeDeleted(BaseModel):
     map_version: int
 
 
+class KeyframeSummaryOut(BaseModel):
+    """One keyframe of a listing (no features)."""
+
+    id: int
+    key: str | None
+    T_map_sensor: Matrix4
+    position: list[float] = Field(description="x, y, z of the pose in map coordinates")
+    metadata: dict[str, Any]
+    created_at: str
+
+
+class KeyframePage(BaseModel):
+    """``GET /v1/maps/{map}/keyframes``: one page of a listing, by id."""
+
+    keyframes: list[KeyframeSummaryOut]
+    next_cursor: str | None = Field(
+        description="pass as ``cursor`` for the next page; null on the last page"
+    )
+
+
+class KeyframesDeleted(BaseModel):
+    """``DELETE /v1/maps/{map}/keyframes``: how many keyframes one transaction deleted."""
+
+    deleted: int
+    map_version: int
+
+
+class ExtentOut(BaseModel):
+    """The bounding box of the keyframe positions (map coordinates, metres)."""
+
+    min: list[float]
+    max: list[float]
+
+
+class MapStats(BaseModel):
+    """``GET /v1/maps/{map}/stats``."""
+
+    map: str
+    version: int
+    keyframes: int
+    extent: ExtentOut | None = Field(description="null while the map is empty")
+    disk_bytes: int = Field(description="the map's folder: store, index snapshot")
+    memory_bytes: int = Field(
+        description="keyframe arrays (features, clouds, poses) and index vectors held in memory"
+    )
+    index_kind: str
+    created_at: str
+    last_write: str | None = Field(
+        description="last keyframe insert or delete (null if none since this was recorded)"
+    )
+
+
 # -- localize -----------------------------------------------------------------------------
 
 
@@ -372,6 +426,19 @@ class PriorBody(_In):
         return Prior(tuple(self.position), self.radius_m, self.yaw_deg, self.yaw_tolerance_deg)
 
 
+class SeedBody(_In):
+    """Where the sensor is believed to be, for tracking: a pose and its 1-sigma errors."""
+
+    T_map_sensor: Array = Field(description="4x4 rigid transform, row-major: the predicted pose")
+    sigma_m: Finite = Field(gt=0.0, le=1e4, description="position uncertainty, 1 sigma (m)")
+    sigma_yaw_deg: Finite = Field(gt=0.0, le=180.0, description="heading uncertainty (deg)")
+
+    def to_seed(self) -> Seed:
+        with at_field("seed.T_map_sensor"):
+            T = check_rigid(self.T_map_sensor, "T_map_sensor")
+        return Seed(T, float(self.sigma_m), float(self.sigma_yaw_deg))
+
+
 class LocalizeBody(_In):
     """``POST /v1/maps/{map}/localize``: a scan or features, and per-request options."""
 
@@ -389,6 +456,11 @@ class LocalizeBody(_In):
     )
     min_confidence: Annotated[Finite, Field(ge=0.0, le=1.0)] | None = Field(
         None, description="accept when confidence >= this (map default: verdict.min_confidence)"
+    )
+    seed: SeedBody | None = Field(
+        None,
+        description="track: register the scan against the map around this pose (needs "
+        "points); if the fit fails, localize globally with the seed as a prior",
     )
 
     @field_validator("points")
@@ -442,6 +514,7 @@ class TimingsOut(BaseModel):
     rerank: float = 0.0
     pose: float = 0.0
     verify: float = Field(0.0, description="evidence, confidence and verdict")
+    track: float = Field(0.0, description="a seeded fit: submap and registration")
     total: float = 0.0
 
 
@@ -461,6 +534,20 @@ class PriorOut(BaseModel):
     keyframes_in_radius: int
 
 
+class TrackingOut(BaseModel):
+    """How a seeded fit went (``mode`` tracked or relocalized)."""
+
+    fitness: float = Field(description="share of scan points within inlier_distance_m")
+    rmse_m: float = Field(description="RMSE of those points (-1: none)")
+    iterations: int
+    submap_keyframes: int
+    submap_points: int
+    scan_points: int
+    seed_offset_m: float = Field(description="distance of the fit from the seed (-1: no fit)")
+    seed_offset_yaw_deg: float
+    why: str = Field(description="why the fit was (not) trusted")
+
+
 class LocalizeOut(BaseModel):
     """Where the scan is in the map, with the candidates and diagnostics behind it.
 
@@ -473,9 +560,14 @@ class LocalizeOut(BaseModel):
     localized: bool
     verdict: str = Field(
         description="why: localized | low_confidence | pose_check | outside_prior | "
-        "no_estimate | no_keyframe_in_prior | no_keyframes"
+        "no_estimate | no_keyframe_in_prior | no_keyframes | tracking_failed"
     )
     reason: str
+    mode: Literal["global", "tracked", "relocalized"] = Field(
+        description="global search; tracked (registered around the request's seed); "
+        "relocalized (the seed's fit failed, the global path answered)"
+    )
+    tracking: TrackingOut | None = Field(description="the seeded fit; null without a seed")
     confidence: float = Field(description="probability that the estimate is within 2 m, 5 deg")
     min_confidence: float = Field(description="the acceptance threshold applied")
     keyframe_id: int | None = Field(description="the re-ranked top-1 the pose was taken from")

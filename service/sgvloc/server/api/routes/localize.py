@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 from sgvloc.core.localizer import LocalizationResult
 from sgvloc.core.rerank import Candidate
 
-from ..auth import authorize
+from ..auth import authorize, principal_of
 from ..body import encode
 from ..deps import (
     BodyDep,
@@ -31,6 +31,7 @@ from ..schemas import (
     PoseOut,
     PriorOut,
     TimingsOut,
+    TrackingOut,
     limits,
 )
 
@@ -89,6 +90,12 @@ def localize_out(name: str, result: LocalizationResult) -> LocalizeOut:
         evidence=evidence
         and {k: _finite(v) if isinstance(v, float) else v for k, v in evidence.items()},
         prior=None if result.prior is None else PriorOut(**result.prior),
+        mode=result.mode,
+        tracking=None
+        if result.tracking is None
+        else TrackingOut(
+            **{k: _finite(v) if isinstance(v, float) else v for k, v in result.tracking.items()}
+        ),
         pose=None
         if pose is None
         else PoseOut(
@@ -131,6 +138,7 @@ async def localize(
     ``request_timeout_s`` of the body's arrival: past it the work stops at its next step
     and the answer is 503 ``deadline_exceeded``."""
     deadline_at = time.monotonic() + settings.request_timeout_s
+    key_name = principal_of(request).name  # for the metrics: the key's name, never the key
 
     def work() -> LocalizeOut:
         manager.get(map_name)
@@ -144,8 +152,10 @@ async def localize(
             refine=req.refine,
             prior=None if req.prior is None else req.prior.to_prior(),
             min_confidence=req.min_confidence,
+            seed=None if req.seed is None else req.seed.to_seed(),
         )
-        metrics.observe_localization(result)
+        metrics.observe_localization(result, map_name, key_name)
+        request.app.state.recent.record(map_name, result)  # for the status page
         return localize_out(map_name, result)
 
     return encode(request, await worker.run(work, deadline_at=deadline_at))

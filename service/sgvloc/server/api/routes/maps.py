@@ -23,6 +23,7 @@ from ..schemas import (
     MapInfo,
     MapList,
     MapPatch,
+    MapStats,
     limits,
     parse_calibration,
 )
@@ -152,6 +153,19 @@ async def list_maps(request: Request, manager: ManagerDep) -> Response:
 async def get_map(request: Request, map_name: MapName, manager: ManagerDep) -> Response:
     """Describe one map."""
     return encode(request, map_info(manager.get(map_name)))
+
+
+@router.get(
+    "/{map}/stats",
+    response_model=MapStats,
+    operation_id="map_stats",
+    responses=error_responses(404),
+)
+async def map_stats(
+    request: Request, map_name: MapName, manager: ManagerDep, worker: WorkerDep
+) -> Response:
+    """A map's size: keyframes, extent, disk and memory use, index kind, last write."""
+    return encode(request, MapStats(**await worker.run(lambda: manager.stats(map_name))))
 
 
 @router.patch(

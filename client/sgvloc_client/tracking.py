@@ -1,0 +1,230 @@
+"""Tracking a moving vehicle: seeds from the last fix and a motion model.
+
+The service is stateless; the state of a track lives here, in the client. Each scan is
+sent with a :class:`~sgvloc_client.Seed`, the pose predicted from the last fix by a
+constant-velocity model over the scans' timestamps (or by the vehicle's own odometry
+increment, when given), with uncertainties that grow with the time since that fix. The
+service registers the scan against the map around the seed (``mode == "tracked"``),
+falling back to its global path when the fit fails. After ``max_misses`` answers in a row
+that were not localized, the next scan is sent without a seed: a global relocalization
+(start-up, a kidnapped vehicle, a gap in the map).
+
+    tracker = Tracker(client, "campus")
+    for stamp, points in scans:
+        fix = tracker.update(points, stamp)
+        if fix.localized:
+            use(fix.T_map_sensor)
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from ._models import Localization, Seed
+
+if TYPE_CHECKING:
+    from ._async import AsyncClient
+    from ._client import Client
+
+
+def _log_rotation(R: np.ndarray) -> np.ndarray:
+    """Rotation vector (axis * angle) of a rotation matrix."""
+    cos = float(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))
+    angle = math.acos(cos)
+    if angle < 1e-9:
+        return np.zeros(3)
+    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    if math.pi - angle < 1e-6:  # near 180 deg: the axis from the symmetric part
+        axis = np.sqrt(np.clip((np.diag(R) + 1.0) / 2.0, 0.0, None))
+        axis *= np.sign(w) + (w == 0)
+        return axis / np.linalg.norm(axis) * angle
+    return w / (2.0 * math.sin(angle)) * angle
+
+
+def _exp_rotation(v: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a rotation vector (Rodrigues)."""
+    angle = float(np.linalg.norm(v))
+    if angle < 1e-12:
+        return np.eye(3)
+    k = v / angle
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + math.sin(angle) * K + (1 - math.cos(angle)) * K @ K
+
+
+@dataclass
+class MotionModel:
+    """The prediction half of a tracker, free of any transport.
+
+    ``sigma_m`` / ``sigma_yaw_deg``: the seed's uncertainty right after a fix; they grow
+    by ``growth_m_per_s`` / ``growth_yaw_deg_per_s`` per second since that fix, and are
+    multiplied by ``widen`` for every answer in a row that was not localized. After
+    ``max_misses`` such answers, or ``max_gap_s`` seconds without a fix, :meth:`seed`
+    returns None: relocalize globally.
+    """
+
+    sigma_m: float = 0.5
+    sigma_yaw_deg: float = 3.0
+    growth_m_per_s: float = 1.0
+    growth_yaw_deg_per_s: float = 30.0
+    widen: float = 3.0
+    max_misses: int = 1
+    max_gap_s: float = 5.0
+
+    def __post_init__(self) -> None:
+        if not (self.sigma_m > 0 and self.sigma_yaw_deg > 0 and self.widen >= 1):
+            raise ValueError("sigma_m and sigma_yaw_deg must be positive, widen at least 1")
+        if self.max_misses < 1:
+            raise ValueError(f"max_misses must be at least 1, got {self.max_misses}")
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the track: the next scan is localized globally."""
+        self.pose: np.ndarray | None = None  # the last fix, T_map_sensor
+        self.stamp: float | None = None
+        self.misses = 0
+        self._delta: np.ndarray | None = None  # motion between the last two fixes
+        self._delta_dt = 0.0
+        self._pending_odom: np.ndarray | None = None  # odometry since the last fix
+
+    @property
+    def lost(self) -> bool:
+        """True when the next scan goes to global relocalization."""
+        return self.pose is None or self.misses >= self.max_misses
+
+    def predict(self, stamp: float, odom_delta: Any = None) -> np.ndarray | None:
+        """The predicted ``T_map_sensor`` at ``stamp`` (None without a usable fix).
+
+        ``odom_delta``: the vehicle's own motion since the previous scan (``T_prev_curr``);
+        it replaces the constant-velocity model while given.
+        """
+        if self.pose is None or self.stamp is None:
+            return None
+        if odom_delta is not None:
+            step = np.asarray(odom_delta, dtype=np.float64).reshape(4, 4)
+            base = self._pending_odom if self._pending_odom is not None else np.eye(4)
+            self._pending_odom = base @ step
+            return self.pose @ self._pending_odom
+        dt = stamp - self.stamp
+        if self._delta is None or self._delta_dt <= 0 or dt <= 0:
+            return self.pose.copy()
+        ratio = dt / self._delta_dt
+        step = np.eye(4)
+        step[:3, :3] = _exp_rotation(_log_rotation(self._delta[:3, :3]) * ratio)
+        step[:3, 3] = self._delta[:3, 3] * ratio
+        return self.pose @ step
+
+    def seed(self, stamp: float, odom_delta: Any = None) -> Seed | None:
+        """The seed for a scan taken at ``stamp`` (seconds), or None: relocalize."""
+        if self.lost or self.stamp is None or stamp - self.stamp > self.max_gap_s:
+            return None
+        T = self.predict(stamp, odom_delta)
+        if T is None:
+            return None
+        dt = max(0.0, stamp - self.stamp)
+        widen = self.widen**self.misses
+        return Seed(
+            T,
+            (self.sigma_m + self.growth_m_per_s * dt) * widen,
+            min(180.0, (self.sigma_yaw_deg + self.growth_yaw_deg_per_s * dt) * widen),
+        )
+
+    def observe(self, result: Localization, stamp: float) -> None:
+        """Take an answer for the scan at ``stamp`` into the track."""
+        if not result.localized or result.T_map_sensor is None:
+            self.misses += 1
+            return
+        T = np.asarray(result.T_map_sensor, dtype=np.float64)
+        if self.pose is not None and self.stamp is not None and stamp > self.stamp:
+            if self.misses == 0:  # motion between consecutive fixes only
+                self._delta = np.linalg.inv(self.pose) @ T
+                self._delta_dt = stamp - self.stamp
+        self.pose, self.stamp, self.misses = T, float(stamp), 0
+        self._pending_odom = None
+
+
+class Tracker:
+    """Localizes a stream of scans of one vehicle in map ``map`` through ``client``
+    (a :class:`~sgvloc_client.Client`), seeding each from the last fix.
+
+    Keyword arguments go to :class:`MotionModel`. ``localize_options`` (e.g. ``top_k``,
+    ``min_confidence``) are sent with every request.
+    """
+
+    def __init__(
+        self,
+        client: Client,
+        map: str,
+        *,
+        localize_options: Mapping[str, Any] | None = None,
+        **motion: Any,
+    ) -> None:
+        self.client = client
+        self.map = map
+        self.model = MotionModel(**motion)
+        self.options = dict(localize_options or {})
+        self.relocalizations = 0  # global searches after the first fix
+
+    @property
+    def pose(self) -> np.ndarray | None:
+        """The last fix (``T_map_sensor``), None before the first."""
+        return self.model.pose
+
+    @property
+    def lost(self) -> bool:
+        return self.model.lost
+
+    def update(self, points: Any, stamp: float, odom_delta: Any = None) -> Localization:
+        """Localize the scan ``points`` taken at ``stamp`` (seconds); ``odom_delta`` is
+        the vehicle's motion since its previous scan (``T_prev_curr``), if it has one."""
+        seed = self.model.seed(stamp, odom_delta)
+        if seed is None and self.model.pose is not None:
+            self.relocalizations += 1
+        result = self.client.localize(self.map, points=points, seed=seed, **self.options)
+        self.model.observe(result, stamp)
+        return result
+
+    def reset(self) -> None:
+        self.model.reset()
+
+
+class AsyncTracker:
+    """:class:`Tracker` for an :class:`~sgvloc_client.AsyncClient`."""
+
+    def __init__(
+        self,
+        client: AsyncClient,
+        map: str,
+        *,
+        localize_options: Mapping[str, Any] | None = None,
+        **motion: Any,
+    ) -> None:
+        self.client = client
+        self.map = map
+        self.model = MotionModel(**motion)
+        self.options = dict(localize_options or {})
+        self.relocalizations = 0
+
+    @property
+    def pose(self) -> np.ndarray | None:
+        return self.model.pose
+
+    @property
+    def lost(self) -> bool:
+        return self.model.lost
+
+    async def update(self, points: Any, stamp: float, odom_delta: Any = None) -> Localization:
+        """See :meth:`Tracker.update`."""
+        seed = self.model.seed(stamp, odom_delta)
+        if seed is None and self.model.pose is not None:
+            self.relocalizations += 1
+        result = await self.client.localize(self.map, points=points, seed=seed, **self.options)
+        self.model.observe(result, stamp)
+        return result
+
+    def reset(self) -> None:
+        self.model.reset()

@@ -1,0 +1,302 @@
+"""Tracking: localize a scan by registering it against the map around a seed pose.
+
+A vehicle that localized a moment ago knows roughly where it is. Instead of a global
+search (encode, retrieve, re-rank, RANSAC), the scan is registered with GICP
+(``small_gicp``) against a *submap*: the stored clouds of the keyframes within
+``submap_radius_m`` of the seed, put into map coordinates, downsampled and indexed once
+and cached per map cell. The fit is trusted only if enough scan points lie on the
+submap (``min_fitness``), closely (``max_rmse_m``), and the pose lies within
+``seed_sigmas`` of the seed; otherwise the caller falls back to the global path.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import math
+import threading
+from collections import OrderedDict
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from sgvloc.about import PACKAGE_DIR
+
+from .config import TrackingConfig
+from .errors import InputError
+from .pose import check_rigid
+from .preprocess import as_points
+
+try:  # the service extra installs it; the engine still imports without it
+    import small_gicp
+except ImportError:  # pragma: no cover - reported at the first seeded localize
+    small_gicp = None
+
+
+@dataclass(frozen=True)
+class Seed:
+    """Where the sensor is believed to be: a pose and its uncertainty (1 sigma)."""
+
+    T_map_sensor: np.ndarray
+    sigma_m: float
+    sigma_yaw_deg: float
+
+    def __post_init__(self) -> None:
+        T = check_rigid(self.T_map_sensor, "seed.T_map_sensor")
+        object.__setattr__(self, "T_map_sensor", T)
+        for name in ("sigma_m", "sigma_yaw_deg"):
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+                raise InputError(f"seed.{name} must be a positive number, got {value!r}")
+        if self.sigma_yaw_deg > 180:
+            raise InputError(f"seed.sigma_yaw_deg must be at most 180, got {self.sigma_yaw_deg}")
+
+
+@dataclass
+class Submap:
+    """The map around a cell: keyframe clouds in map coordinates, ready for GICP."""
+
+    cloud: Any  # small_gicp.PointCloud with covariances
+    tree: Any  # small_gicp.KdTree
+    keyframe_ids: list[int]
+    points: int
+
+
+@dataclass
+class TrackResult:
+    """One seeded registration and what the checks made of it."""
+
+    ok: bool
+    why: str
+    T_map_sensor: np.ndarray | None = None
+    fitness: float = 0.0
+    rmse_m: float = float("inf")
+    iterations: int = 0
+    submap_keyframes: int = 0
+    submap_points: int = 0
+    scan_points: int = 0
+    seed_offset_m: float = float("nan")
+    seed_offset_yaw_deg: float = float("nan")
+    nearest_keyframe: int | None = None
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "fitness": self.fitness,
+            "rmse_m": self.rmse_m,
+            "iterations": self.iterations,
+            "submap_keyframes": self.submap_keyframes,
+            "submap_points": self.submap_points,
+            "scan_points": self.scan_points,
+            "seed_offset_m": self.seed_offset_m,
+            "seed_offset_yaw_deg": self.seed_offset_yaw_deg,
+            "why": self.why,
+        }
+
+
+@dataclass(frozen=True)
+class TrackConfidence:
+    """P(a seeded fit is within 2 m and 5 deg) as a logistic model of its fitness and
+    RMSE: ``sigmoid(bias + sum w_i (x_i - mean_i) / scale_i)`` over ``x = (fitness,
+    -rmse_m)``. Fitted by ``sgvloc calibrate-track`` (docs/EVALUATION.md, "Tracking");
+    the fitted one ships as ``sgvloc/calibration/tracking.json``."""
+
+    mean: tuple[float, float]
+    scale: tuple[float, float]
+    weights: tuple[float, float]
+    bias: float
+    fitted_on: dict[str, Any] = field(default_factory=dict, compare=False)
+
+    FEATURES = ("fitness", "neg_rmse_m")
+
+    @staticmethod
+    def row(fitness: float, rmse_m: float) -> np.ndarray:
+        return np.array([fitness, -rmse_m], dtype=np.float64)
+
+    def predict(self, fitness: float, rmse_m: float) -> float:
+        if not (math.isfinite(fitness) and math.isfinite(rmse_m)):
+            return 0.0
+        z = (self.row(fitness, rmse_m) - np.asarray(self.mean)) / np.asarray(self.scale)
+        z = self.bias + float(np.dot(self.weights, z))
+        return float(1.0 / (1.0 + math.exp(-max(min(z, 50.0), -50.0))))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "features": list(self.FEATURES),
+            "mean": list(self.mean),
+            "scale": list(self.scale),
+            "weights": list(self.weights),
+            "bias": self.bias,
+            "fitted_on": self.fitted_on,
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> TrackConfidence:
+        try:
+            if list(d["features"]) != list(cls.FEATURES):
+                raise ValueError(f"features must be {list(cls.FEATURES)}")
+            model = cls(
+                tuple(float(v) for v in d["mean"]),
+                tuple(float(v) for v in d["scale"]),
+                tuple(float(v) for v in d["weights"]),
+                float(d["bias"]),
+                dict(d.get("fitted_on") or {}),
+            )
+        except (KeyError, TypeError, ValueError) as exc:
+            raise InputError(f"tracking confidence model: {exc}") from None
+        if len(model.mean) != 2 or len(model.scale) != 2 or len(model.weights) != 2:
+            raise InputError("tracking confidence model: two features expected")
+        if any(v <= 0 for v in model.scale) or any(w < 0 for w in model.weights):
+            raise InputError("tracking confidence model: scales > 0 and weights >= 0 needed")
+        return model
+
+
+@functools.cache
+def shipped_track_confidence() -> TrackConfidence:
+    """The tracking confidence model shipped with this installation."""
+    path = PACKAGE_DIR / "calibration" / "tracking.json"
+    return TrackConfidence.from_dict(json.loads(path.read_text()))
+
+
+def tracked_confidence(r: TrackResult, model: TrackConfidence | None = None) -> float:
+    """The calibrated confidence of a seeded fit (0 without a pose)."""
+    if r.T_map_sensor is None:
+        return 0.0
+    return (model or shipped_track_confidence()).predict(r.fitness, r.rmse_m)
+
+
+def _require_small_gicp() -> None:
+    if small_gicp is None:
+        raise InputError(
+            "seeded localization needs the small_gicp package (pip install small_gicp; it "
+            "is part of the service extra)"
+        )
+
+
+def yaw_deg(R: np.ndarray) -> float:
+    """Heading of a rotation: the angle of its x axis in the x-y plane (degrees)."""
+    return math.degrees(math.atan2(R[1, 0], R[0, 0]))
+
+
+def angle_diff_deg(a: float, b: float) -> float:
+    """|a - b| on the circle (degrees, 0..180)."""
+    return abs((a - b + 180.0) % 360.0 - 180.0)
+
+
+class SubmapCache:
+    """Submaps by (map version, cell), least recently used first out. Thread-safe; a
+    submap is built once even when several requests ask for it at the same time."""
+
+    def __init__(self, capacity: int) -> None:
+        self.capacity = capacity
+        self._items: OrderedDict[tuple, Submap | None] = OrderedDict()
+        self._lock = threading.Lock()
+        self._building: dict[tuple, threading.Event] = {}
+
+    def get(self, key: tuple, build: Callable[[], Submap | None]) -> Submap | None:
+        while True:
+            with self._lock:
+                if key in self._items:
+                    self._items.move_to_end(key)
+                    return self._items[key]
+                waiting = self._building.get(key)
+                if waiting is None:
+                    self._building[key] = threading.Event()
+                    break
+            waiting.wait()
+        try:
+            submap = build()
+            with self._lock:
+                self._items[key] = submap
+                while len(self._items) > self.capacity:
+                    self._items.popitem(last=False)
+            return submap
+        finally:
+            with self._lock:
+                self._building.pop(key).set()
+
+    def clear(self) -> None:
+        with self._lock:
+            self._items.clear()
+
+
+def build_submap(
+    clouds: list[tuple[int, np.ndarray, np.ndarray]], cfg: TrackingConfig
+) -> Submap | None:
+    """A submap from ``(keyframe id, T_map_sensor, cloud in the sensor frame)``; None
+    when there are fewer than ``min_submap_keyframes`` clouds."""
+    _require_small_gicp()
+    if len(clouds) < cfg.min_submap_keyframes:
+        return None
+    pts = np.concatenate(
+        [c.astype(np.float64) @ T[:3, :3].T + T[:3, 3] for _, T, c in clouds if len(c)]
+    )
+    cloud, tree = small_gicp.preprocess_points(
+        pts, downsampling_resolution=cfg.submap_voxel_m, num_threads=1
+    )
+    return Submap(cloud, tree, [i for i, _, _ in clouds], int(cloud.size()))
+
+
+def scan_cloud(points: np.ndarray, cfg: TrackingConfig) -> np.ndarray:
+    """The scan's finite points within ``max_range_m`` ``[M, 3]`` float64."""
+    pts = as_points(points)[:, :3].astype(np.float64)
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    pts = pts[np.einsum("ij,ij->i", pts, pts) <= cfg.max_range_m**2]
+    if len(pts) < 10:
+        raise InputError(f"the scan has {len(pts)} usable points; tracking needs at least 10")
+    return pts
+
+
+def register(points: np.ndarray, seed: Seed, submap: Submap, cfg: TrackingConfig) -> TrackResult:
+    """GICP of the scan against the submap from the seed, and the checks."""
+    _require_small_gicp()
+    source, _ = small_gicp.preprocess_points(
+        scan_cloud(points, cfg), downsampling_resolution=cfg.scan_voxel_m, num_threads=1
+    )
+    res = small_gicp.align(
+        submap.cloud,
+        source,
+        submap.tree,
+        init_T_target_source=seed.T_map_sensor,
+        registration_type="GICP",
+        max_correspondence_distance=cfg.max_correspondence_m,
+        max_iterations=cfg.max_iterations,
+        num_threads=1,
+    )
+    T = np.asarray(res.T_target_source, dtype=np.float64)
+    src = source.points()[:, :3]
+    moved = src @ T[:3, :3].T + T[:3, 3]
+    _, sq = submap.tree.batch_nearest_neighbor_search(moved, num_threads=1)
+    sq = np.asarray(sq, dtype=np.float64)
+    inl = sq <= cfg.inlier_distance_m**2
+    fitness = float(inl.mean()) if len(sq) else 0.0
+    rmse = float(np.sqrt(sq[inl].mean())) if inl.any() else float("inf")
+    offset = float(np.linalg.norm(T[:3, 3] - seed.T_map_sensor[:3, 3]))
+    dyaw = angle_diff_deg(yaw_deg(T[:3, :3]), yaw_deg(seed.T_map_sensor[:3, :3]))
+    out = TrackResult(
+        ok=False,
+        why="",
+        T_map_sensor=T,
+        fitness=fitness,
+        rmse_m=rmse,
+        iterations=int(res.iterations),
+        submap_keyframes=len(submap.keyframe_ids),
+        submap_points=submap.points,
+        scan_points=int(source.size()),
+        seed_offset_m=offset,
+        seed_offset_yaw_deg=dyaw,
+    )
+    k = cfg.seed_sigmas
+    if fitness < cfg.min_fitness:
+        out.why = f"only {fitness:.0%} of the scan fits the map (min_fitness {cfg.min_fitness:g})"
+    elif rmse > cfg.max_rmse_m:
+        out.why = f"the fit's RMSE {rmse:.2f} m exceeds max_rmse_m {cfg.max_rmse_m:g}"
+    elif offset > k * seed.sigma_m + cfg.scan_voxel_m:
+        out.why = f"the fit lies {offset:.1f} m from the seed (more than {k:g} sigma_m)"
+    elif dyaw > k * seed.sigma_yaw_deg + 1.0:
+        out.why = f"the fit turns {dyaw:.1f} deg from the seed (more than {k:g} sigma_yaw_deg)"
+    else:
+        out.ok, out.why = True, "the scan fits the map around the seed"
+    return out
