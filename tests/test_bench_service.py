@@ -95,6 +95,24 @@ def test_scaling_section_through_the_cli(tmp_path: Path, monkeypatch: pytest.Mon
     assert list(work.iterdir()) == []
 
 
+def test_tracking_section_through_the_cli(tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from sgvloc.cli import app
+
+    out = tmp_path / "t.json"
+    run = CliRunner().invoke(app, ["bench", "--only", "tracking", "--out", str(out)])
+    assert run.exit_code == 0, run.output
+    assert "global / tracked" in run.output
+    res = json.loads(out.read_text())["tracking"]
+    assert res["map_keyframes"] == 8 and res["queries"] == 7
+    for path in ("in_process", "http"):
+        s = res[path]
+        assert s["samples"] == 7 * res["repeats"]
+        assert s["tracked_share"] == 1.0  # every seeded scan of the fixture was tracked
+        assert s["global_p50_ms"] > 0 and s["tracked_p50_ms"] > 0
+
+
 def test_cli_names_the_sections() -> None:
     from typer.testing import CliRunner
 

@@ -147,17 +147,12 @@ class MotionModel:
         self._pending_odom = None
 
 
-class Tracker:
-    """Localizes a stream of scans of one vehicle in map ``map`` through ``client``
-    (a :class:`~sgvloc_client.Client`), seeding each from the last fix.
-
-    Keyword arguments go to :class:`MotionModel`. ``localize_options`` (e.g. ``top_k``,
-    ``min_confidence``) are sent with every request.
-    """
+class _TrackerBase:
+    """What :class:`Tracker` and :class:`AsyncTracker` share: the model and the seeds."""
 
     def __init__(
         self,
-        client: Client,
+        client: Any,
         map: str,
         *,
         localize_options: Mapping[str, Any] | None = None,
@@ -176,55 +171,47 @@ class Tracker:
 
     @property
     def lost(self) -> bool:
+        """True when the next scan goes to global relocalization."""
         return self.model.lost
+
+    def reset(self) -> None:
+        """Forget the track: the next scan is localized globally."""
+        self.model.reset()
+
+    def _seed(self, stamp: float, odom_delta: Any) -> Seed | None:
+        seed = self.model.seed(stamp, odom_delta)
+        if seed is None and self.model.pose is not None:
+            self.relocalizations += 1
+        return seed
+
+
+class Tracker(_TrackerBase):
+    """Localizes a stream of scans of one vehicle in map ``map`` through ``client``
+    (a :class:`~sgvloc_client.Client`), seeding each from the last fix.
+
+    Keyword arguments go to :class:`MotionModel`. ``localize_options`` (e.g. ``top_k``,
+    ``min_confidence``) are sent with every request.
+    """
+
+    client: Client
 
     def update(self, points: Any, stamp: float, odom_delta: Any = None) -> Localization:
         """Localize the scan ``points`` taken at ``stamp`` (seconds); ``odom_delta`` is
         the vehicle's motion since its previous scan (``T_prev_curr``), if it has one."""
-        seed = self.model.seed(stamp, odom_delta)
-        if seed is None and self.model.pose is not None:
-            self.relocalizations += 1
+        seed = self._seed(stamp, odom_delta)
         result = self.client.localize(self.map, points=points, seed=seed, **self.options)
         self.model.observe(result, stamp)
         return result
 
-    def reset(self) -> None:
-        self.model.reset()
 
-
-class AsyncTracker:
+class AsyncTracker(_TrackerBase):
     """:class:`Tracker` for an :class:`~sgvloc_client.AsyncClient`."""
 
-    def __init__(
-        self,
-        client: AsyncClient,
-        map: str,
-        *,
-        localize_options: Mapping[str, Any] | None = None,
-        **motion: Any,
-    ) -> None:
-        self.client = client
-        self.map = map
-        self.model = MotionModel(**motion)
-        self.options = dict(localize_options or {})
-        self.relocalizations = 0
-
-    @property
-    def pose(self) -> np.ndarray | None:
-        return self.model.pose
-
-    @property
-    def lost(self) -> bool:
-        return self.model.lost
+    client: AsyncClient
 
     async def update(self, points: Any, stamp: float, odom_delta: Any = None) -> Localization:
         """See :meth:`Tracker.update`."""
-        seed = self.model.seed(stamp, odom_delta)
-        if seed is None and self.model.pose is not None:
-            self.relocalizations += 1
+        seed = self._seed(stamp, odom_delta)
         result = await self.client.localize(self.map, points=points, seed=seed, **self.options)
         self.model.observe(result, stamp)
         return result
-
-    def reset(self) -> None:
-        self.model.reset()

@@ -604,6 +604,9 @@ def eval_track_command(
         typer.Option(help="AT:TO: after scan AT the stream jumps to scan TO (repeatable)"),
     ] = None,
     max_scans: Annotated[int | None, typer.Option(min=1, help="use the first N scans")] = None,
+    first_scan: Annotated[
+        int, typer.Option(min=0, help="stream from this scan on (the map still spans all)")
+    ] = 0,
     coverage: Annotated[
         float, typer.Option(help="scans within this of a map keyframe count for availability (m)")
     ] = 5.0,
@@ -631,6 +634,7 @@ def eval_track_command(
             encoder=None if spec is None else EncoderSpec.model_validate(spec),
             kidnaps=jumps,
             max_scans=max_scans,
+            first_scan=first_scan,
             coverage_m=coverage,
             progress=(lambda m: typer.echo(m, err=True)) if progress else None,
         )
@@ -645,11 +649,16 @@ def eval_track_command(
 @app.command("calibrate-track", epilog=ONE_THREAD)
 def calibrate_track_command(
     data: Annotated[
-        list[Path], typer.Option(help="training sequence with poses (repeat for several)")
+        list[str],
+        typer.Option(
+            help="training sequence with poses, DIR@N for its first N scans or DIR@A:B for "
+            "scans A..B-1 (repeatable)"
+        ),
     ],
     out: Annotated[Path, typer.Option(help="model file to write (JSON)")],
     check: Annotated[
-        list[Path] | None, typer.Option(help="held-out sequence to report on (repeatable)")
+        list[str] | None,
+        typer.Option(help="held-out sequence to report on (DIR, DIR@N, DIR@A:B; repeatable)"),
     ] = None,
     map_every: Annotated[int, typer.Option(min=1, help="map = every Nth scan")] = 5,
     max_scans: Annotated[int | None, typer.Option(min=1, help="first N scans of each")] = None,
@@ -658,6 +667,14 @@ def calibrate_track_command(
     threshold: Annotated[
         float | None,
         typer.Option(help="report acceptance at this confidence (default: the map default)"),
+    ] = None,
+    samples_file: Annotated[
+        Path | None,
+        typer.Option(
+            "--samples",
+            help="JSON of the fits: written after sampling, or read instead of sampling when "
+            "it exists (to refit without re-running the registrations)",
+        ),
     ] = None,
     progress: Annotated[bool, typer.Option(help="print progress lines")] = True,
     threads: ThreadsOpt = None,
@@ -680,18 +697,31 @@ def calibrate_track_command(
     try:
         spec = parse_encoder(encoder)
         enc = None if spec is None else EncoderSpec.model_validate(spec)
-        options = dict(map_every=map_every, encoder=enc, max_scans=max_scans, draws=draws)
-        train = [s for d in data for s in track_samples(d, progress=say, **options)]
+        options = dict(map_every=map_every, encoder=enc, draws=draws)
+
+        def samples(spec: str, seed: int) -> list[dict[str, float]]:
+            path, _, span = spec.partition("@")  # DIR, DIR@N or DIR@A:B
+            a, _, b = span.rpartition(":")
+            first, n = int(a or 0), int(b) if b else max_scans
+            return track_samples(
+                Path(path), first_scan=first, max_scans=n, seed=seed, progress=say, **options
+            )
+
+        if samples_file is not None and samples_file.is_file():
+            saved = json.loads(samples_file.read_text())
+            train, held = saved["train"], saved["check"]
+        else:
+            train = [s for d in data for s in samples(d, 0)]
+            held = {d: samples(d, 1) for d in check or []}
+            if samples_file is not None:
+                samples_file.write_text(json.dumps({"train": train, "check": held}))
         model = fit_track_confidence(
-            train, {"data": [d.name for d in data], "map_every": map_every, "draws": draws}
+            train, {"data": list(data), "map_every": map_every, "draws": draws}
         )
         out.write_text(json.dumps(model.to_dict(), indent=1) + "\n")
-        typer.echo(
-            f"training ({', '.join(d.name for d in data)}): {confidence_figures(train, model, cut)}"
-        )
-        for d in check or []:
-            held = track_samples(d, progress=say, seed=1, **options)
-            typer.echo(f"held out ({d.name}): {confidence_figures(held, model, cut)}")
+        typer.echo(f"training: {confidence_figures(train, model, cut)}")
+        for d, fits in held.items():
+            typer.echo(f"held out ({d}): {confidence_figures(fits, model, cut)}")
     except (ValueError, SgvlocError) as exc:
         typer.echo(f"calibrate-track: {exc}", err=True)
         raise typer.Exit(1) from None
@@ -842,9 +872,10 @@ def bench_command(
     only: Annotated[
         str,
         typer.Option(
-            help="comma-separated sections: rerank, retrieval, encoding, http, scaling, prior"
+            help="comma-separated sections: rerank, retrieval, encoding, http, scaling, prior, "
+            "tracking"
         ),
-    ] = "rerank,retrieval,encoding,http,scaling,prior",
+    ] = "rerank,retrieval,encoding,http,scaling,prior,tracking",
     out: Annotated[Path, typer.Option(help="JSON file with every figure")] = Path("bench.json"),
     ks: Annotated[str, typer.Option(help="rerank: candidates per query")] = "2,5,10,20,50",
     ns: Annotated[str, typer.Option(help="rerank: keypoints (correspondences)")] = "128,256,1000",
@@ -892,10 +923,22 @@ def bench_command(
     prior_noise: Annotated[
         float, typer.Option(min=0.0, help="prior: position noise per axis (m)")
     ] = 5.0,
+    track_data: Annotated[
+        Path | None,
+        typer.Option(
+            help="tracking: KITTI-layout sequence (default: the shipped fixture)",
+            exists=True,
+            file_okay=False,
+        ),
+    ] = None,
+    track_map_every: Annotated[
+        int, typer.Option(min=1, help="tracking: the map is every Nth scan")
+    ] = 2,
     threads: ThreadsOpt = None,
 ) -> None:
-    """Measure re-ranking, retrieval, encoding, the service end to end (http, scaling) and
-    localize with a prior (prior); print tables and write --out (JSON).
+    """Measure re-ranking, retrieval, encoding, the service end to end (http, scaling),
+    localize with a prior (prior) and tracked against global localize (tracking); print
+    tables and write --out (JSON).
 
     Medians after warm-up, every comparison in one process on the same inputs. The
     defaults take a few minutes on 2 cores; CUDA timings of SGV are added when a GPU is

@@ -4,45 +4,9 @@ every script, style and font comes from the service itself."""
 from __future__ import annotations
 
 import re
-import shutil
-import subprocess
-import tempfile
 
 import httpx
-import pytest
-
-CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
-
-
-def render(url: str) -> str:
-    """The DOM of ``url`` after its scripts ran, in headless chromium that can reach
-    127.0.0.1 and nothing else (every other host name resolves to nothing)."""
-    if CHROMIUM is None:
-        pytest.fail("Debian's chromium is not installed (README, Install)")
-    with tempfile.TemporaryDirectory() as profile:
-        run = subprocess.run(
-            [
-                CHROMIUM,
-                "--headless",
-                "--no-sandbox",
-                "--disable-gpu",
-                "--disable-quic",
-                "--no-first-run",
-                "--disable-background-networking",
-                "--disable-component-update",
-                "--disable-sync",
-                f"--user-data-dir={profile}",
-                "--host-resolver-rules=MAP * ~NOTFOUND, EXCLUDE 127.0.0.1",
-                "--virtual-time-budget=20000",
-                "--dump-dom",
-                url,
-            ],
-            capture_output=True,
-            text=True,
-            timeout=120,
-        )
-    assert run.returncode == 0, run.stderr[-2000:]
-    return run.stdout
+from browser import render
 
 
 def test_swagger_ui_renders_the_operations_offline(server) -> None:

@@ -137,6 +137,26 @@ def test_the_sdk_tracker_follows_the_fixture_and_recovers_a_kidnap(server, track
         assert recovered is not None and recovered <= 2
 
 
+def test_the_async_tracker(server, track_map) -> None:
+    import asyncio
+
+    seq = track_map
+
+    async def main() -> list[tuple[str, float]]:
+        async with sgvloc_client.AsyncClient(server.url, timeout=120) as c:
+            tracker = sgvloc_client.AsyncTracker(c, "track", localize_options={"top_k": 5})
+            out = []
+            for i in (8, 9, 10):  # 3.0 s and 3.5 s apart
+                fix = await tracker.update(seq[i].scan().xyzi(), seq[i].time)
+                err = pose_error(fix.T_map_sensor, seq[i].T_world_sensor)[0]
+                out.append((fix.mode, err))
+            return out
+
+    fixes = asyncio.run(main())
+    assert fixes[0][0] == "global" and all(err < 0.3 for _, err in fixes), fixes
+    assert fixes[2][0] in ("tracked", "relocalized"), fixes
+
+
 def test_eval_track_on_the_fixture(balm_mini_dir: Path, tmp_path: Path) -> None:
     from sgvloc.tools.eval_track import eval_track, report_lines
 

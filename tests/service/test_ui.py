@@ -13,9 +13,6 @@ from __future__ import annotations
 import json
 import os
 import re
-import shutil
-import subprocess
-import tempfile
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,12 +20,12 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
+from browser import chromium, render
 from conftest import Server
 from svc_helpers import PRECOMPUTED, post_msgpack, random_features, rotation_z
 
 from sgvloc.server.keys import hash_key
 
-CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 KEYS = {
     "viewer": "ui-viewer-key-0123456789abcdef",
     "admin": "ui-admin-key-0123456789abcdef",
@@ -38,42 +35,6 @@ KEYS = {
 MAP = "campus-loop"
 KEYFRAMES = 1100  # more than one page of the keyframe listing (1000)
 BATCH = 100
-
-
-def chromium(url: str, *args: str) -> str:
-    """Run headless chromium on ``url`` with ``args`` (``--dump-dom``, ``--screenshot``);
-    it can reach 127.0.0.1 and nothing else. Returns its standard output."""
-    if CHROMIUM is None:
-        pytest.fail("Debian's chromium is not installed (README, Install)")
-    with tempfile.TemporaryDirectory() as profile:
-        run = subprocess.run(
-            [
-                CHROMIUM,
-                "--headless",
-                "--no-sandbox",
-                "--disable-gpu",
-                "--disable-quic",
-                "--no-first-run",
-                "--disable-background-networking",
-                "--disable-component-update",
-                "--disable-sync",
-                f"--user-data-dir={profile}",
-                "--host-resolver-rules=MAP * ~NOTFOUND, EXCLUDE 127.0.0.1",
-                "--virtual-time-budget=20000",
-                *args,
-                url,
-            ],
-            capture_output=True,
-            text=True,
-            timeout=180,
-        )
-    assert run.returncode == 0, run.stderr[-2000:]
-    return run.stdout
-
-
-def render(url: str) -> str:
-    """The DOM of ``url`` after its scripts ran (and a few refreshes went by)."""
-    return chromium(url, "--dump-dom")
 
 
 # -- a service with keys and a map ----------------------------------------------------------

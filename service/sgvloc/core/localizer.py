@@ -34,7 +34,7 @@ from .encoders import Encoder
 from .errors import ConflictError, InputError, NotFoundError
 from .features import Features
 from .pose import PoseResult, check_rigid, ransac_pose, refine_icp
-from .prior import PositionGrid, Prior
+from .prior import PositionGrid, Prior, yaw_deg
 from .rerank import Candidate, RerankOutput, check_method, rerank
 from .retrieval import FaissIndex
 from .tracking import (
@@ -44,7 +44,6 @@ from .tracking import (
     build_submap,
     register,
     tracked_confidence,
-    yaw_deg,
 )
 
 log = logging.getLogger(__name__)
@@ -325,7 +324,7 @@ class Localizer:
                 prior = Prior(
                     tuple(seed.T_map_sensor[:3, 3]),
                     max(k * seed.sigma_m, tcfg.fallback_min_radius_m),
-                    yaw_deg=yaw_deg(seed.T_map_sensor[:3, :3]),
+                    yaw_deg=yaw_deg(seed.T_map_sensor),
                     yaw_tolerance_deg=min(180.0, max(k * seed.sigma_yaw_deg, 30.0)),
                 )
             result = self.localize(

@@ -16,7 +16,7 @@ import json
 import math
 import threading
 from collections import OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -72,59 +72,91 @@ class TrackResult:
     why: str
     T_map_sensor: np.ndarray | None = None
     fitness: float = 0.0
+    fitness_fine: float = 0.0  # share of scan points within FINE_M of the map
     rmse_m: float = float("inf")
+    conditioning: float = float("nan")  # log10 of the smallest / largest eigenvalue of the
+    #   fit's translation information (GICP Hessian): near 0 well constrained, very negative
+    #   when the scene lets the scan slide one way (a corridor, a long wall)
+    information: float = float("nan")  # log10 of the smallest such eigenvalue per inlier
     iterations: int = 0
     submap_keyframes: int = 0
     submap_points: int = 0
     scan_points: int = 0
     seed_offset_m: float = float("nan")
-    seed_offset_yaw_deg: float = float("nan")
+    seed_offset_deg: float = float("nan")
     nearest_keyframe: int | None = None
     timings_ms: dict[str, float] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         return {
             "fitness": self.fitness,
+            "fitness_fine": self.fitness_fine,
             "rmse_m": self.rmse_m,
+            "conditioning": self.conditioning,
+            "information": self.information,
             "iterations": self.iterations,
             "submap_keyframes": self.submap_keyframes,
             "submap_points": self.submap_points,
             "scan_points": self.scan_points,
             "seed_offset_m": self.seed_offset_m,
-            "seed_offset_yaw_deg": self.seed_offset_yaw_deg,
+            "seed_offset_deg": self.seed_offset_deg,
             "why": self.why,
         }
 
 
+FINE_M = 0.2  # the "fine" fitness: scan points this close to the map
+
+#: what a tracking confidence model may use, from a fit's :meth:`TrackResult.to_dict`;
+#: oriented so that larger means more likely correct (the fit's weights are >= 0)
+TRACK_FEATURES: dict[str, Callable[[Mapping[str, Any]], float]] = {
+    "fitness": lambda e: float(e["fitness"]),
+    "fitness_fine": lambda e: float(e["fitness_fine"]),
+    "neg_rmse_m": lambda e: -min(float(e["rmse_m"]), 10.0),
+    "neg_seed_offset_m": lambda e: -min(float(e["seed_offset_m"]), 100.0),
+    "conditioning": lambda e: float(e["conditioning"]),
+    "information": lambda e: float(e["information"]),
+}
+
+
 @dataclass(frozen=True)
 class TrackConfidence:
-    """P(a seeded fit is within 2 m and 5 deg) as a logistic model of its fitness and
-    RMSE: ``sigmoid(bias + sum w_i (x_i - mean_i) / scale_i)`` over ``x = (fitness,
-    -rmse_m)``. Fitted by ``sgvloc calibrate-track`` (docs/EVALUATION.md, "Tracking");
-    the fitted one ships as ``sgvloc/calibration/tracking.json``."""
+    """P(a seeded fit is within 2 m and 5 deg) as a logistic model of its evidence:
+    ``sigmoid(bias + sum w_i (x_i - mean_i) / scale_i)`` over the named
+    :data:`TRACK_FEATURES`. Fitted by ``sgvloc calibrate-track`` (docs/EVALUATION.md,
+    "Tracking"); the fitted one ships as ``sgvloc/calibration/tracking.json``."""
 
-    mean: tuple[float, float]
-    scale: tuple[float, float]
-    weights: tuple[float, float]
+    features: tuple[str, ...]
+    mean: tuple[float, ...]
+    scale: tuple[float, ...]
+    weights: tuple[float, ...]
     bias: float
     fitted_on: dict[str, Any] = field(default_factory=dict, compare=False)
 
-    FEATURES = ("fitness", "neg_rmse_m")
+    def __post_init__(self) -> None:
+        unknown = [f for f in self.features if f not in TRACK_FEATURES]
+        n = len(self.features)
+        if unknown or not n:
+            raise InputError(f"tracking confidence model: unknown features {unknown}")
+        if not (len(self.mean) == len(self.scale) == len(self.weights) == n):
+            raise InputError("tracking confidence model: one mean, scale, weight per feature")
+        if any(not v > 0 for v in self.scale) or any(w < 0 for w in self.weights):
+            raise InputError("tracking confidence model: scales > 0 and weights >= 0 needed")
 
     @staticmethod
-    def row(fitness: float, rmse_m: float) -> np.ndarray:
-        return np.array([fitness, -rmse_m], dtype=np.float64)
+    def row(evidence: Mapping[str, Any], features: Sequence[str]) -> np.ndarray:
+        """The feature vector of one fit's evidence (unstandardised)."""
+        return np.array([TRACK_FEATURES[f](evidence) for f in features], dtype=np.float64)
 
-    def predict(self, fitness: float, rmse_m: float) -> float:
-        if not (math.isfinite(fitness) and math.isfinite(rmse_m)):
+    def predict(self, evidence: Mapping[str, Any]) -> float:
+        x = self.row(evidence, self.features)
+        if not np.isfinite(x).all():
             return 0.0
-        z = (self.row(fitness, rmse_m) - np.asarray(self.mean)) / np.asarray(self.scale)
-        z = self.bias + float(np.dot(self.weights, z))
+        z = self.bias + float(np.dot(self.weights, (x - self.mean) / np.asarray(self.scale)))
         return float(1.0 / (1.0 + math.exp(-max(min(z, 50.0), -50.0))))
 
     def to_dict(self) -> dict[str, Any]:
         return {
-            "features": list(self.FEATURES),
+            "features": list(self.features),
             "mean": list(self.mean),
             "scale": list(self.scale),
             "weights": list(self.weights),
@@ -133,11 +165,10 @@ class TrackConfidence:
         }
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> TrackConfidence:
+    def from_dict(cls, d: Mapping[str, Any]) -> TrackConfidence:
         try:
-            if list(d["features"]) != list(cls.FEATURES):
-                raise ValueError(f"features must be {list(cls.FEATURES)}")
-            model = cls(
+            return cls(
+                tuple(str(f) for f in d["features"]),
                 tuple(float(v) for v in d["mean"]),
                 tuple(float(v) for v in d["scale"]),
                 tuple(float(v) for v in d["weights"]),
@@ -146,11 +177,6 @@ class TrackConfidence:
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError(f"tracking confidence model: {exc}") from None
-        if len(model.mean) != 2 or len(model.scale) != 2 or len(model.weights) != 2:
-            raise InputError("tracking confidence model: two features expected")
-        if any(v <= 0 for v in model.scale) or any(w < 0 for w in model.weights):
-            raise InputError("tracking confidence model: scales > 0 and weights >= 0 needed")
-        return model
 
 
 @functools.cache
@@ -164,7 +190,7 @@ def tracked_confidence(r: TrackResult, model: TrackConfidence | None = None) -> 
     """The calibrated confidence of a seeded fit (0 without a pose)."""
     if r.T_map_sensor is None:
         return 0.0
-    return (model or shipped_track_confidence()).predict(r.fitness, r.rmse_m)
+    return (model or shipped_track_confidence()).predict(r.to_dict())
 
 
 def _require_small_gicp() -> None:
@@ -175,14 +201,9 @@ def _require_small_gicp() -> None:
         )
 
 
-def yaw_deg(R: np.ndarray) -> float:
-    """Heading of a rotation: the angle of its x axis in the x-y plane (degrees)."""
-    return math.degrees(math.atan2(R[1, 0], R[0, 0]))
-
-
-def angle_diff_deg(a: float, b: float) -> float:
-    """|a - b| on the circle (degrees, 0..180)."""
-    return abs((a - b + 180.0) % 360.0 - 180.0)
+def rotation_angle_deg(R: np.ndarray) -> float:
+    """The angle of a rotation matrix (degrees, 0..180)."""
+    return math.degrees(math.acos(float(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
 
 
 class SubmapCache:
@@ -272,21 +293,27 @@ def register(points: np.ndarray, seed: Seed, submap: Submap, cfg: TrackingConfig
     sq = np.asarray(sq, dtype=np.float64)
     inl = sq <= cfg.inlier_distance_m**2
     fitness = float(inl.mean()) if len(sq) else 0.0
+    fine = float((sq <= FINE_M**2).mean()) if len(sq) else 0.0
     rmse = float(np.sqrt(sq[inl].mean())) if inl.any() else float("inf")
+    eig = np.linalg.eigvalsh(np.asarray(res.H, dtype=np.float64)[3:, 3:])  # translation block
+    low, high = max(float(eig[0]), 1e-12), max(float(eig[-1]), 1e-12)
     offset = float(np.linalg.norm(T[:3, 3] - seed.T_map_sensor[:3, 3]))
-    dyaw = angle_diff_deg(yaw_deg(T[:3, :3]), yaw_deg(seed.T_map_sensor[:3, :3]))
+    dyaw = rotation_angle_deg(seed.T_map_sensor[:3, :3].T @ T[:3, :3])  # heading and tilt
     out = TrackResult(
         ok=False,
         why="",
         T_map_sensor=T,
         fitness=fitness,
+        fitness_fine=fine,
         rmse_m=rmse,
+        conditioning=math.log10(low / high),
+        information=math.log10(low / max(int(res.num_inliers), 1)),
         iterations=int(res.iterations),
         submap_keyframes=len(submap.keyframe_ids),
         submap_points=submap.points,
         scan_points=int(source.size()),
         seed_offset_m=offset,
-        seed_offset_yaw_deg=dyaw,
+        seed_offset_deg=dyaw,
     )
     k = cfg.seed_sigmas
     if fitness < cfg.min_fitness:

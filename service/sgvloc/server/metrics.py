@@ -29,7 +29,8 @@ from sgvloc.core.localizer import LocalizationResult
 _HTTP_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0, 60.0)
 _STAGE_BUCKETS = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0)
 _WAIT_BUCKETS = (0.001, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0)
-STAGES = ("encode", "retrieve", "rerank", "pose", "verify")
+STAGES = ("encode", "retrieve", "rerank", "pose", "verify", "track")
+MODES = ("global", "tracked", "relocalized")
 VERDICTS = ("localized", "not_localized")
 
 #: ``(name, keyframes, version)`` of every loaded map, read at each scrape
@@ -80,7 +81,8 @@ class Metrics:
         )
         self.stage_duration = Histogram(
             "sgvloc_stage_duration_seconds",
-            "Localization stage duration per map (encode, retrieve, rerank, pose, verify)",
+            "Localization stage duration per map (encode, retrieve, rerank, pose, verify; "
+            "track for a seeded request)",
             ["map", "stage"],
             buckets=_STAGE_BUCKETS,
             registry=r,
@@ -92,6 +94,12 @@ class Metrics:
             "sgvloc_localize_reason",
             "Localizations per map by verdict code (localized, low_confidence, ...)",
             ["map", "reason"],
+            registry=r,
+        )
+        self.localize_mode = Counter(
+            "sgvloc_localize_mode",
+            "Localizations per map by how they were found (global, tracked, relocalized)",
+            ["map", "mode"],
             registry=r,
         )
         self.localize_by_key = Counter(
@@ -156,6 +164,8 @@ class Metrics:
             yield (name, verdict), self.localize_total
         for code in VERDICT_CODES:
             yield (name, code), self.localize_reason
+        for mode in MODES:
+            yield (name, mode), self.localize_mode
 
     def observe_localization(
         self, result: LocalizationResult, map_name: str, key_name: str
@@ -167,10 +177,11 @@ class Metrics:
             if map_name in self._maps:
                 for stage in STAGES:
                     ms = result.timings_ms.get(stage)
-                    if ms is not None:
+                    if ms:  # a stage that did not run has no time
                         self.stage_duration.labels(map_name, stage).observe(ms / 1e3)
                 self.localize_total.labels(map_name, verdict).inc()
                 self.localize_reason.labels(map_name, result.verdict).inc()
+                self.localize_mode.labels(map_name, result.mode).inc()
         self.localize_by_key.labels(key_name, verdict).inc()
         if result.T_map_sensor_estimate is not None:
             self.confidence.observe(result.confidence)

@@ -18,7 +18,7 @@ from __future__ import annotations
 import json
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -77,11 +77,11 @@ def _errors(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
     return float(np.linalg.norm(D[:3, 3])), float(np.degrees(np.arccos(cos)))
 
 
-def stream_order(n: int, kidnaps: list[tuple[int, int]]) -> list[int]:
-    """Scan indices in streaming order: 0, 1, ... with each ``(at, to)`` jumping from
-    scan ``at`` straight to scan ``to`` (then on from there)."""
+def stream_order(n: int, kidnaps: list[tuple[int, int]], first: int = 0) -> list[int]:
+    """Scan indices in streaming order: ``first``, ``first + 1``, ... with each
+    ``(at, to)`` jumping from scan ``at`` straight to scan ``to`` (then on from there)."""
     jumps = dict(kidnaps)
-    order, i, seen = [], 0, set()
+    order, i, seen = [], first, set()
     while 0 <= i < n and i not in seen:
         order.append(i)
         seen.add(i)
@@ -98,12 +98,13 @@ def eval_track(
     encoder: EncoderSpec | None = None,
     kidnaps: list[tuple[int, int]] | None = None,
     max_scans: int | None = None,
+    first_scan: int = 0,
     coverage_m: float = 5.0,
     motion: dict[str, Any] | None = None,
     progress: Callable[[str], None] | None = None,
 ) -> TrackReport:
-    """Build the map, stream the sequence, write ``out/track.json`` and
-    ``out/trajectory.png``; returns the report."""
+    """Build the map, stream the sequence from ``first_scan`` on, write
+    ``out/track.json`` and ``out/trajectory.png``; returns the report."""
     seq = KittiSequence(data)
     n = len(seq) if max_scans is None else min(len(seq), max_scans)
     if map_until is not None:
@@ -127,7 +128,8 @@ def eval_track(
                     ],
                 )
                 say(f"map: {min(start + 20, len(map_ids))}/{len(map_ids)} keyframes")
-            report = _stream(seq, n, map_ids, manager, kidnaps or [], coverage_m, motion, say)
+            order = stream_order(n, kidnaps or [], first_scan)
+            report = _stream(seq, order, map_ids, manager, kidnaps or [], coverage_m, motion, say)
         finally:
             manager.close()
     report.data = str(data)
@@ -138,7 +140,7 @@ def eval_track(
 
 def _stream(
     seq: KittiSequence,
-    n: int,
+    order: list[int],
     map_ids: list[int],
     manager: MapManager,
     kidnaps: list[tuple[int, int]],
@@ -150,8 +152,7 @@ def _stream(
     map_xy = np.array([seq[i].T_world_sensor[:3, 3] for i in map_ids])
     records: list[ScanRecord] = []
     relocalizations = 0
-    order = stream_order(n, kidnaps)
-    times = [seq[i].time for i in range(n)]
+    times = [seq[i].time for i in range(len(seq))]
     steps = np.diff([t for t in times if t is not None])
     period = float(np.median(steps)) if len(steps) else 0.1  # the sensor's scan period
     for k, i in enumerate(order):
@@ -336,13 +337,16 @@ def track_samples(
     map_every: int = 5,
     encoder: EncoderSpec | None = None,
     max_scans: int | None = None,
+    first_scan: int = 0,
     draws: int = 3,
     seed: int = 0,
     progress: Callable[[str], None] | None = None,
 ) -> list[dict[str, float]]:
-    """Seeded fits of every scan of a sequence against a map of every Nth scan, from
-    perturbed ground-truth seeds: ``{"fitness", "rmse_m", "error_m", "error_deg",
-    "correct"}`` each. The seeds are not gated (huge sigmas), so every fit is kept."""
+    """Seeded fits of the scans ``first_scan`` .. ``max_scans - 1`` of a sequence against
+    a map of every Nth of them, from perturbed ground-truth seeds: ``{"fitness",
+    "fitness_fine", "rmse_m", "seed_offset_m", ..., "error_m", "error_deg", "correct"}``
+    each (the fit's evidence as the service reports it). The seeds are not gated (huge
+    sigmas), so every fit is kept."""
     from sgvloc.core.config import LocalizerConfig, TrackingConfig
     from sgvloc.core.encoders import make_encoder
     from sgvloc.core.localizer import Localizer
@@ -351,12 +355,13 @@ def track_samples(
     n = len(seq) if max_scans is None else min(len(seq), max_scans)
     config = LocalizerConfig(tracking=TrackingConfig(fallback="none"))
     loc = Localizer(make_encoder(encoder or EncoderSpec()), config)
-    for i in range(0, n, map_every):
+    scans = range(first_scan, n)
+    for i in scans[::map_every]:
         loc.add_keyframe(seq[i].T_world_sensor, scan=seq[i].scan().xyzi())
     rng = np.random.default_rng(seed)
     say = progress or (lambda _msg: None)
     out = []
-    for i in range(n):
+    for i in scans:
         T_true = seq[i].T_world_sensor
         points = seq[i].scan().xyzi()
         for d in range(draws):
@@ -370,41 +375,36 @@ def track_samples(
             if r.T_map_sensor_estimate is None or r.tracking is None:
                 continue
             err_m, err_deg = _errors(r.T_map_sensor_estimate, T_true)
-            out.append(
-                {
-                    "fitness": float(r.tracking["fitness"]),
-                    "rmse_m": float(r.tracking["rmse_m"]),
-                    "error_m": err_m,
-                    "error_deg": err_deg,
-                    "correct": float(err_m <= CORRECT_M and err_deg <= CORRECT_DEG),
-                }
-            )
+            correct = err_m <= CORRECT_M and err_deg <= CORRECT_DEG
+            out.append({**r.tracking, "error_m": err_m, "error_deg": err_deg, "correct": correct})
         if (i + 1) % 50 == 0 or i + 1 == n:
-            say(f"{data.name}: {i + 1}/{n} scans")
+            say(f"{data.name}: scan {i + 1} of {first_scan}..{n - 1}")
     return out
 
 
-def _rows(samples: list[dict[str, float]]) -> tuple[np.ndarray, np.ndarray]:
+def _rows(samples: list[dict[str, Any]], features: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
     from sgvloc.core.tracking import TrackConfidence
 
-    rmse = [s["rmse_m"] if np.isfinite(s["rmse_m"]) else 10.0 for s in samples]
-    X = np.stack([TrackConfidence.row(s["fitness"], r) for s, r in zip(samples, rmse, strict=True)])
-    return X, np.array([s["correct"] for s in samples])
+    X = np.stack([TrackConfidence.row(s, features) for s in samples])
+    return X, np.array([float(s["correct"]) for s in samples])
 
 
 def fit_track_confidence(
-    samples: list[dict[str, float]], fitted_on: dict[str, Any]
+    samples: list[dict[str, Any]], fitted_on: dict[str, Any], features: Sequence[str] | None = None
 ) -> Any:  # TrackConfidence
     """The logistic model of :class:`~sgvloc.core.tracking.TrackConfidence` fitted to
-    ``samples`` (L2 chosen by cross-validation, as ``sgvloc calibrate``)."""
-    from sgvloc.core.tracking import TrackConfidence
+    ``samples`` over ``features`` (default: all of them; L2 chosen by cross-validation,
+    as ``sgvloc calibrate``)."""
+    from sgvloc.core.tracking import TRACK_FEATURES, TrackConfidence
 
     from .calibrate import choose_l2, fit_weights
 
-    X, y = _rows(samples)
+    features = tuple(features or TRACK_FEATURES)
+    X, y = _rows(samples, features)
     l2 = choose_l2(X, y) if len(samples) >= 20 else 1e-2
     mean, scale, w, b = fit_weights(X, y, l2)
     return TrackConfidence(
+        features,
         tuple(mean.tolist()),
         tuple(scale.tolist()),
         tuple(w.round(8).tolist()),
@@ -420,8 +420,8 @@ def confidence_figures(
     fits accepted and of wrong fits accepted (false accepts)."""
     from .evaluation.metrics import expected_calibration_error
 
-    X, y = _rows(samples)
-    p = np.array([model.predict(s["fitness"], s["rmse_m"]) for s in samples])
+    y = np.array([float(s["correct"]) for s in samples])
+    p = np.array([model.predict(s) for s in samples])
     accepted = p >= threshold
     wrong = y == 0
     return {

@@ -538,13 +538,19 @@ class TrackingOut(BaseModel):
     """How a seeded fit went (``mode`` tracked or relocalized)."""
 
     fitness: float = Field(description="share of scan points within inlier_distance_m")
+    fitness_fine: float = Field(description="share of scan points within 0.2 m")
     rmse_m: float = Field(description="RMSE of those points (-1: none)")
+    conditioning: float = Field(
+        description="log10 smallest/largest eigenvalue of the fit's translation information: "
+        "very negative when the scan can slide along the map (a corridor)"
+    )
+    information: float = Field(description="log10 of the smallest such eigenvalue per inlier")
     iterations: int
     submap_keyframes: int
     submap_points: int
     scan_points: int
     seed_offset_m: float = Field(description="distance of the fit from the seed (-1: no fit)")
-    seed_offset_yaw_deg: float
+    seed_offset_deg: float = Field(description="rotation between the fit and the seed (deg)")
     why: str = Field(description="why the fit was (not) trusted")
 
 

@@ -1,5 +1,6 @@
 """``sgvloc bench``: the engine's stages (:mod:`.engine`: rerank, retrieval, encoding, prior) and
-the service end to end (:mod:`.http`: http, scaling), one JSON file of every figure."""
+the service end to end (:mod:`.http`: http, scaling), tracking against global localization
+(:mod:`.tracking`), one JSON file of every figure."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-SECTIONS = ("rerank", "retrieval", "encoding", "http", "scaling", "prior")
+SECTIONS = ("rerank", "retrieval", "encoding", "http", "scaling", "prior", "tracking")
 
 
 def check_sections(sections: list[str]) -> list[str]:
@@ -28,7 +29,7 @@ def run_bench(
 
     ``sections`` are checked with :func:`check_sections` first.
     """
-    from . import engine, http
+    from . import engine, http, tracking
 
     check_sections(sections)
     o = options
@@ -55,8 +56,12 @@ def run_bench(
             workers=o["service_workers"],
             plot=o["plot"] or out.with_name(f"{out.stem}-scaling.png"), echo=echo,
         ),
+        "tracking": lambda: tracking.bench_tracking(
+            data=o["track_data"], map_every=o["track_map_every"], workers=o["service_workers"],
+            echo=echo,
+        ),
     }  # fmt: skip
-    formatters = {**engine.FORMATTERS, **http.FORMATTERS}
+    formatters = {**engine.FORMATTERS, **http.FORMATTERS, **tracking.FORMATTERS}
     result: dict = {"machine": engine.machine_info(), "command": " ".join(sys.argv)}
     for section in sections:
         echo(f"## {section}")
