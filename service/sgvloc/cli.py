@@ -607,6 +607,10 @@ def eval_track_command(
     first_scan: Annotated[
         int, typer.Option(min=0, help="stream from this scan on (the map still spans all)")
     ] = 0,
+    tracking: Annotated[
+        str | None,
+        typer.Option(help="the map's tracking settings as JSON, e.g. '{\"scan_voxel_m\": 0.7}'"),
+    ] = None,
     coverage: Annotated[
         float, typer.Option(help="scans within this of a map keyframe count for availability (m)")
     ] = 5.0,
@@ -617,6 +621,8 @@ def eval_track_command(
     the service's seeded localize with the SDK's motion model, compare with the ground
     truth (errors, availability, wrong fixes, time per mode, kidnap recovery)."""
     _cap_threads(threads)
+    import json
+
     from .core.encoders import EncoderSpec
     from .core.errors import SgvlocError
     from .tools.build_map import parse_encoder
@@ -636,6 +642,7 @@ def eval_track_command(
             max_scans=max_scans,
             first_scan=first_scan,
             coverage_m=coverage,
+            tracking=None if tracking is None else json.loads(tracking),
             progress=(lambda m: typer.echo(m, err=True)) if progress else None,
         )
     except (ValueError, SgvlocError) as exc:

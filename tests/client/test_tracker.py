@@ -37,7 +37,9 @@ def test_rotation_log_and_exp_are_inverse(angle: float) -> None:
 
 
 def test_constant_velocity_prediction_and_growing_sigmas() -> None:
-    m = MotionModel(sigma_m=0.5, sigma_yaw_deg=2.0, growth_m_per_s=1.0, growth_yaw_deg_per_s=10)
+    m = MotionModel(
+        sigma_m=0.5, sigma_yaw_deg=2.0, growth_m_per_s=1.0, growth_yaw_deg_per_s=10, turn_factor=1
+    )
     assert m.seed(0.0) is None and m.lost  # nothing to seed from: global
     m.observe(_fix(_pose(0, 0, 0)), 0.0)
     s = m.seed(0.5)  # one fix: no velocity yet, the last pose
@@ -49,6 +51,9 @@ def test_constant_velocity_prediction_and_growing_sigmas() -> None:
     np.testing.assert_allclose(s.T_map_sensor, _pose(1, 0, 10) @ _pose(1, 0, 10), atol=1e-9)
     s = m.seed(0.75)  # half a period: half the step
     np.testing.assert_allclose(s.T_map_sensor, _pose(1, 0, 10) @ _pose(0.5, 0, 5), atol=1e-9)
+    m.turn_factor = 0.5  # the default: half the turn carried over
+    s = m.seed(1.0)
+    np.testing.assert_allclose(s.T_map_sensor, _pose(1, 0, 10) @ _pose(1, 0, 5), atol=1e-9)
 
 
 def test_odometry_replaces_the_motion_model_and_accumulates_over_misses() -> None:
@@ -85,3 +90,5 @@ def test_bad_settings_are_refused() -> None:
         MotionModel(sigma_m=0)
     with pytest.raises(ValueError):
         MotionModel(max_misses=0)
+    with pytest.raises(ValueError):
+        MotionModel(turn_factor=2)

@@ -114,7 +114,7 @@ class TrackingConfig(_Section):
         10.0, gt=0.0, le=1000.0, description="submaps are built (and cached) per cell this wide"
     )
     submap_voxel_m: float = Field(0.3, gt=0.0, le=10.0, description="submap downsampling (m)")
-    scan_voxel_m: float = Field(0.5, gt=0.0, le=10.0, description="scan downsampling (m)")
+    scan_voxel_m: float = Field(0.7, gt=0.0, le=10.0, description="scan downsampling (m)")
     max_range_m: float = Field(
         60.0, gt=0.0, le=1000.0, description="scan points beyond are dropped"
     )

@@ -313,12 +313,25 @@ class Localizer:
             if scan is None:
                 raise InputError("seed: tracking needs the raw scan (points), not features")
             t_start = time.perf_counter()
+            threshold = self.config.verdict.min_confidence
+            if min_confidence is not None:
+                if not 0.0 <= min_confidence <= 1.0:
+                    raise InputError(f"min_confidence must be in [0, 1], got {min_confidence}")
+                threshold = min_confidence
             tracked = self._track(scan, seed)
+            if tracked.T_map_sensor is not None:
+                tracked.confidence = tracked_confidence(tracked)
+            if tracked.ok and tracked.confidence < threshold:
+                tracked.ok = False  # a fit the confidence does not trust: as a failed one
+                tracked.why = (
+                    f"the fit's confidence {tracked.confidence:.2f} is below min_confidence "
+                    f"{threshold:g}"
+                )
             if tracked.ok:
-                return self._tracked_answer(tracked, t_start, min_confidence)
+                return self._tracked_answer(tracked, t_start, threshold)
             tcfg = self.config.tracking
             if tcfg.fallback == "none":
-                return self._tracked_answer(tracked, t_start, min_confidence)
+                return self._tracked_answer(tracked, t_start, threshold)
             if prior is None:
                 k = tcfg.seed_sigmas
                 prior = Prior(
@@ -507,20 +520,15 @@ class Localizer:
         return out
 
     def _tracked_answer(
-        self, tracked: TrackResult, t_start: float, min_confidence: float | None
+        self, tracked: TrackResult, t_start: float, min_confidence: float
     ) -> LocalizationResult:
-        """The answer of a seeded fit (accepted or, with ``fallback: none``, not)."""
-        if min_confidence is None:
-            min_confidence = self.config.verdict.min_confidence
+        """The answer of a seeded fit: accepted (``tracked.ok``, its confidence at least
+        ``min_confidence``) or, with ``fallback: none``, not."""
         T = tracked.T_map_sensor
         T_kf = None
         if T is not None and tracked.nearest_keyframe is not None:
             T_kf = np.linalg.inv(self._keyframes[tracked.nearest_keyframe].T_map_sensor) @ T
-        confidence = tracked_confidence(tracked) if T is not None else 0.0
-        localized = tracked.ok and confidence >= min_confidence
-        reason = tracked.why
-        if tracked.ok and not localized:
-            reason = f"confidence {confidence:.2f} < min_confidence {min_confidence:g}"
+        localized, reason, confidence = tracked.ok, tracked.why, tracked.confidence
         timings = {"track": tracked.timings_ms["track"], "total": _ms(t_start)}
         return LocalizationResult(
             localized,

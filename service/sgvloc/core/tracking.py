@@ -85,6 +85,7 @@ class TrackResult:
     seed_offset_m: float = float("nan")
     seed_offset_deg: float = float("nan")
     nearest_keyframe: int | None = None
+    confidence: float = 0.0  # set by the localizer once the fit passed its checks
     timings_ms: dict[str, float] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
