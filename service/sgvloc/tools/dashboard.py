@@ -285,7 +285,8 @@ def drive(
     map_keyframes: int,
     seconds: float,
 ) -> Traffic:
-    """Localize traffic in three phases of ``seconds / 3``: one vehicle at an easy pace;
+    """Localize traffic in three phases of ``seconds / 3``: one vehicle at an easy pace
+    (global, with a prior, or tracked with a seed);
     three vehicles at once (more than max_inflight_localize: some 429s); then two
     vehicles, one also with priors far from the map (not localized), while a mapper adds
     the keyframes that map ``yard`` (every third scan) lacks, one at a time."""
@@ -306,11 +307,18 @@ def drive(
         )
         for p, _ in queries
     ]
+    tracked = [
+        (
+            "/v1/maps/campus/localize",
+            {"points": p, "seed": {"T_map_sensor": T, "sigma_m": 1.0, "sigma_yaw_deg": 5.0}},
+        )
+        for p, T in queries
+    ]
     yard = [("/v1/maps/yard/localize", {"points": p}) for p, _ in queries]
     phase = seconds / 3
     start = time.monotonic()
     plans = [  # (key, jobs, from, to, pause)
-        ("truck-17", plain + near, 0.0, seconds, 0.3),
+        ("truck-17", plain + near + tracked, 0.0, seconds, 0.3),
         ("truck-18", plain + yard, phase, 2 * phase, 0.0),
         ("truck-19", near + yard, phase, 2 * phase, 0.0),
         ("truck-18", far + plain + yard, 2 * phase, seconds, 0.5),
