@@ -316,10 +316,8 @@ class AsyncClient(BaseClient):
         with _open_dest(dest) as out:
             async with self._http.stream("GET", path, timeout=timeout) as r:
                 if r.status_code >= 400:
-                    content = await r.aread()
-                    raise self._stream_failed(
-                        r.status_code, content, r.headers.get("content-type", "")
-                    )
+                    await r.aread()
+                    raise self._error(r.status_code, self._decode(r))
                 size = 0
                 async for block in r.aiter_bytes():
                     out.write(block)

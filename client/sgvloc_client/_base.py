@@ -430,18 +430,6 @@ class BaseClient:
     def _import_path(self, name: str | None) -> str:
         return "/v1/map-archives" + ("" if name is None else f"?{urlencode({'name': name})}")
 
-    def _stream_failed(self, status: int, content: bytes, ctype: str) -> APIError:
-        """The error of a streamed call's failed answer (already read into ``content``)."""
-        body: Any = content.decode(errors="replace")
-        if ctype.startswith(wire.MSGPACK):
-            body = wire.unpackb(content)
-        elif ctype.startswith("application/json"):
-            try:
-                body = json.loads(content)
-            except ValueError:
-                pass
-        return self._error(status, body)
-
     def _recent_localizations(self, map: str, limit: int) -> Call[list[RecentLocalization]]:
         if not 1 <= int(limit) <= 500:
             raise ValueError(f"limit must be within 1..500, got {limit}")

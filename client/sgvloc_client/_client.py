@@ -317,9 +317,8 @@ class Client(BaseClient):
         path = f"{_map_path(map)}/export"
         with _open_dest(dest) as out, self._http.stream("GET", path, timeout=timeout) as r:
             if r.status_code >= 400:
-                raise self._stream_failed(
-                    r.status_code, r.read(), r.headers.get("content-type", "")
-                )
+                r.read()
+                raise self._error(r.status_code, self._decode(r))
             size = 0
             for block in r.iter_bytes():
                 out.write(block)

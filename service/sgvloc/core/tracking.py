@@ -27,7 +27,7 @@ from sgvloc.about import PACKAGE_DIR
 from .config import TrackingConfig
 from .errors import InputError
 from .pose import check_rigid
-from .preprocess import as_points
+from .preprocess import as_points, crop_range, finite
 
 try:  # the service extra installs it; the engine still imports without it
     import small_gicp
@@ -239,10 +239,6 @@ class SubmapCache:
             with self._lock:
                 self._building.pop(key).set()
 
-    def clear(self) -> None:
-        with self._lock:
-            self._items.clear()
-
 
 def build_submap(
     clouds: list[tuple[int, np.ndarray, np.ndarray]], cfg: TrackingConfig
@@ -263,9 +259,7 @@ def build_submap(
 
 def scan_cloud(points: np.ndarray, cfg: TrackingConfig) -> np.ndarray:
     """The scan's finite points within ``max_range_m`` ``[M, 3]`` float64."""
-    pts = as_points(points)[:, :3].astype(np.float64)
-    pts = pts[np.isfinite(pts).all(axis=1)]
-    pts = pts[np.einsum("ij,ij->i", pts, pts) <= cfg.max_range_m**2]
+    pts = crop_range(finite(as_points(points).astype(np.float64)), 0.0, cfg.max_range_m)
     if len(pts) < 10:
         raise InputError(f"the scan has {len(pts)} usable points; tracking needs at least 10")
     return pts

@@ -163,6 +163,24 @@ def _folder_bytes(folder: Path) -> int:
     return total
 
 
+def _encoder_features(
+    encoder: Encoder, g: np.ndarray, keypoints: np.ndarray, local: np.ndarray, map_name: str
+) -> Features:
+    """Arrays as ``encoder``'s Features, checked: values and shapes (InputError),
+    dimensions of another encoder (EncoderMismatchError), the encoder's own checks."""
+    ident = encoder.identity
+    feats = Features.validated(g, keypoints, local, ident)
+    gd, d = feats.global_descriptor.shape[0], feats.local_features.shape[1]
+    if gd != encoder.global_dim or (feats.num_keypoints and d != encoder.local_dim):
+        raise EncoderMismatchError(
+            f"features have global_dim={gd}, local_dim={d}, but map {map_name!r} "
+            f"uses encoder {ident.name!r} with global_dim={encoder.global_dim}, "
+            f"local_dim={encoder.local_dim}: they come from another encoder"
+        )
+    encoder.check(feats)
+    return feats
+
+
 class MapUnavailableError(SgvlocError):
     """The map's folder exists but could not be loaded (503 until it is reloaded)."""
 
@@ -465,6 +483,30 @@ class MapManager:
                 )
             self._reserved.add(name)
 
+    @contextmanager
+    def _building(self, name: str) -> Iterator[tuple[Path, Path]]:
+        """Reserve ``name`` and give ``(tmp, folder)``: a new map is built whole in
+        ``tmp`` (store, index snapshot) and renamed to ``folder`` by the block, so a map
+        folder exists only once it is complete. If the block fails, both are removed (a
+        full disk raises :class:`~sgvloc.core.errors.StorageFullError`)."""
+        self._reserve(name)
+        try:
+            self.maps_dir.mkdir(parents=True, exist_ok=True)
+            tmp = self.maps_dir / f"{_TMP_PREFIX}{name}-{uuid.uuid4().hex[:8]}"
+            tmp.mkdir()
+            folder = self.maps_dir / name
+            try:
+                yield tmp, folder
+            except BaseException as exc:
+                for leftover in (tmp, folder):
+                    if leftover.exists():
+                        shutil.rmtree(leftover, ignore_errors=True)
+                raise_if_full(exc)
+                raise
+        finally:
+            with self._lock:
+                self._reserved.discard(name)
+
     def create(
         self,
         name: str,
@@ -482,8 +524,7 @@ class MapManager:
         self._check_name(name)
         encoder_spec = encoder_spec or EncoderSpec()
         localizer_config = localizer_config or LocalizerConfig()
-        self._reserve(name)
-        try:
+        with self._building(name) as (tmp, folder):
             with at_field("encoder"):
                 encoder = make_encoder(encoder_spec)
             record = MapRecord(
@@ -501,31 +542,11 @@ class MapManager:
                 keep_clouds=record.keep_clouds,
                 calibration=record.calibration,
             )
-            # build the whole folder aside (store and index snapshot), then move it into
-            # place in one rename: a map folder exists only once it is complete
-            self.maps_dir.mkdir(parents=True, exist_ok=True)
-            tmp = self.maps_dir / f"{_TMP_PREFIX}{name}-{uuid.uuid4().hex[:8]}"
-            tmp.mkdir()
-            folder = self.maps_dir / name
-            store = None
-            try:
-                self.backend.create(tmp, record).close()
-                localizer.index.save(tmp / INDEX_NAME)
-                tmp.rename(folder)
-                store = self.backend.open(folder)
-            except BaseException as exc:
-                if store is not None:
-                    store.close()
-                for leftover in (tmp, folder):
-                    if leftover.exists():
-                        shutil.rmtree(leftover, ignore_errors=True)
-                raise_if_full(exc)
-                raise
-            handle = MapHandle(name, folder, record, store, localizer)
+            self.backend.create(tmp, record).close()
+            localizer.index.save(tmp / INDEX_NAME)
+            tmp.rename(folder)
+            handle = MapHandle(name, folder, record, self.backend.open(folder), localizer)
             self._publish(handle)
-        finally:
-            with self._lock:
-                self._reserved.discard(name)
         log.info("created map %r (encoder %r)", name, encoder.identity.name)
         return handle
 
@@ -615,20 +636,9 @@ class MapManager:
                 "features.fingerprint",
             )
         with at_field("features"):
-            feats = Features.validated(f.global_descriptor, f.keypoints, f.local_features, ident)
-        g, d = feats.global_descriptor.shape[0], feats.local_features.shape[1]
-        if g != encoder.global_dim or (feats.num_keypoints and d != encoder.local_dim):
-            raise field_error(
-                EncoderMismatchError(
-                    f"features have global_dim={g}, local_dim={d}, but map {handle.name!r} "
-                    f"uses encoder {ident.name!r} with global_dim={encoder.global_dim}, "
-                    f"local_dim={encoder.local_dim}: they come from another encoder"
-                ),
-                "features",
+            return _encoder_features(
+                encoder, f.global_descriptor, f.keypoints, f.local_features, handle.name
             )
-        with at_field("features"):
-            encoder.check(feats)
-        return feats
 
     def _check_scan_allowed(self, handle: MapHandle) -> None:
         spec = handle.record.encoder_spec
@@ -850,37 +860,22 @@ class MapManager:
                 "features cannot be used with this server"
             )
         record = replace(record, name=name, encoder_spec=spec)
-        self._reserve(name)
-        try:
-            self.maps_dir.mkdir(parents=True, exist_ok=True)
-            tmp = self.maps_dir / f"{_TMP_PREFIX}{name}-{uuid.uuid4().hex[:8]}"
-            tmp.mkdir()
-            folder = self.maps_dir / name
+        with self._building(name) as (tmp, folder):
+            store = self.backend.create(tmp, record)
             try:
-                store = self.backend.create(tmp, record)
-                try:
-                    for rows in chunks:
-                        for row in rows:
-                            self._check_archived(encoder, row)
-                        try:
-                            store.insert_exact(rows, header.version)
-                        except self.backend.errors as exc:
-                            raise_if_full(exc)
-                            raise ArchiveError(f"the archive's keyframes clash: {exc}") from None
-                finally:
-                    store.close()
-                tmp.rename(folder)
-                handle = self._load(folder)
-            except BaseException as exc:
-                for leftover in (tmp, folder):
-                    if leftover.exists():
-                        shutil.rmtree(leftover, ignore_errors=True)
-                raise_if_full(exc)
-                raise
+                for rows in chunks:
+                    for row in rows:
+                        self._check_archived(encoder, row)
+                    try:
+                        store.insert_exact(rows, header.version)
+                    except self.backend.errors as exc:
+                        raise_if_full(exc)
+                        raise ArchiveError(f"the archive's keyframes clash: {exc}") from None
+            finally:
+                store.close()
+            tmp.rename(folder)
+            handle = self._load(folder)
             self._publish(handle)
-        finally:
-            with self._lock:
-                self._reserved.discard(name)
         log.info(
             "imported map %r: %d keyframes, version %d (exported by sgvloc %s)",
             name,
@@ -899,13 +894,9 @@ class MapManager:
             if not isinstance(row.metadata, dict):
                 raise InputError("metadata is not an object")
             check_rigid(row.T_map_sensor, "T_map_sensor")
-            feats = Features.validated(
-                row.global_descriptor, row.keypoints, row.local_features, encoder.identity
+            _encoder_features(
+                encoder, row.global_descriptor, row.keypoints, row.local_features, "archived"
             )
-            g, d = feats.global_descriptor.shape[0], feats.local_features.shape[1]
-            if g != encoder.global_dim or (feats.num_keypoints and d != encoder.local_dim):
-                raise InputError(f"features of dimensions {g}/{d}, the encoder's differ")
-            encoder.check(feats)
         except SgvlocError as exc:
             raise ArchiveError(f"archived keyframe {row.id} is invalid: {exc}") from None
 
@@ -928,21 +919,18 @@ class MapManager:
         handle = self.get(name)
         if (points is None) == (features is None):
             raise InputError("give exactly one of points or features")
+        if seed is not None and features is not None:
+            raise field_error(
+                InputError("tracking needs the raw scan (points), not features"), "seed"
+            )
         options = {
             "top_k": top_k,
             "rerank_method": rerank,
             "refine": refine,
             "prior": prior,
             "min_confidence": min_confidence,
+            "seed": seed,
         }
-        if seed is not None:
-            if features is not None:
-                raise field_error(
-                    InputError("tracking needs the raw scan (points), not features"), "seed"
-                )
-            self._check_scan_allowed(handle)
-            with at_field("points"):
-                return handle.localizer.localize(points, seed=seed, **options)
         if points is not None:
             self._check_scan_allowed(handle)
             with at_field("points"):

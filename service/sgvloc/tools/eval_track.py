@@ -32,6 +32,8 @@ from sgvloc.core.tracking import Seed
 from sgvloc.server.maps import KeyframeIn, MapManager
 from sgvloc_client.tracking import MotionModel
 
+from .evaluation.metrics import rre, rte
+
 CORRECT_M, CORRECT_DEG = 2.0, 5.0  # a fix beyond either is wrong
 
 
@@ -73,9 +75,17 @@ class TrackReport:
 
 
 def _errors(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
-    D = np.linalg.inv(T_true) @ T_est
-    cos = np.clip((np.trace(D[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
-    return float(np.linalg.norm(D[:3, 3])), float(np.degrees(np.arccos(cos)))
+    """Position (m) and rotation (deg) error, as ``sgvloc eval`` measures them."""
+    return float(rte(T_est, T_true)), float(rre(T_est, T_true))
+
+
+def perturbed(T: np.ndarray, dxy: np.ndarray, dyaw_deg: float) -> np.ndarray:
+    """``T`` moved by ``dxy`` (map x/y, m) and turned by ``dyaw_deg`` about the map's z."""
+    c, s = np.cos(np.radians(dyaw_deg)), np.sin(np.radians(dyaw_deg))
+    out = np.array(T, dtype=np.float64)
+    out[:3, :3] = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]) @ out[:3, :3]
+    out[:2, 3] += dxy
+    return out
 
 
 def stream_order(n: int, kidnaps: list[tuple[int, int]], first: int = 0) -> list[int]:
@@ -371,11 +381,8 @@ def track_samples(
         points = seq[i].scan().xyzi()
         for d in range(draws):
             sigma_t, sigma_yaw = PERTURBATIONS[(i * draws + d) % len(PERTURBATIONS)]
-            yaw = np.radians(rng.normal(0.0, sigma_yaw))
-            c, s = np.cos(yaw), np.sin(yaw)
-            T = T_true.copy()
-            T[:3, :3] = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]) @ T[:3, :3]
-            T[:2, 3] += rng.normal(0.0, sigma_t, size=2)
+            dyaw = rng.normal(0.0, sigma_yaw)
+            T = perturbed(T_true, rng.normal(0.0, sigma_t, size=2), dyaw)
             r = loc.localize(points, seed=Seed(T, 100.0, 180.0))
             if r.T_map_sensor_estimate is None or r.tracking is None:
                 continue

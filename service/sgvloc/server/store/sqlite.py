@@ -26,7 +26,7 @@ import json
 import logging
 import sqlite3
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -322,20 +322,23 @@ class SqliteMapStore(MapStore):
             raise NotFoundError(f"keyframe {keyframe_id} does not exist")
         return self._row(r)
 
+    _PAGE = f"SELECT {_COLUMNS} FROM keyframes WHERE id > ? ORDER BY id LIMIT ?"
+
+    def _pages(self, fetch: Callable[[int], list[tuple]]) -> Iterator[KeyframeRow]:
+        """Every keyframe in id order, ``fetch(last id)`` giving the next page of rows."""
+        last = 0
+        while rows := fetch(last):
+            yield from (self._row(r) for r in rows)
+            last = rows[-1][0]
+
     def iter_keyframes(self, chunk: int = 256) -> Iterator[KeyframeRow]:
         """Every keyframe in id order, read in chunks (the lock is not held between them)."""
-        last = 0
-        while True:
+
+        def fetch(last: int) -> list[tuple]:
             with self._lock:
-                rows = self._conn.execute(
-                    f"SELECT {self._COLUMNS} FROM keyframes WHERE id > ? ORDER BY id LIMIT ?",
-                    (last, chunk),
-                ).fetchall()
-            if not rows:
-                return
-            for r in rows:
-                yield self._row(r)
-            last = rows[-1][0]
+                return self._conn.execute(self._PAGE, (last, chunk)).fetchall()
+
+        return self._pages(fetch)
 
     def select(
         self, where: KeyframeFilter, *, after_id: int = 0, limit: int = 1000
@@ -384,19 +387,8 @@ class SqliteMapStore(MapStore):
             )
             count = int(conn.execute("SELECT COUNT(*) FROM keyframes").fetchone()[0])
 
-            def rows() -> Iterator[KeyframeRow]:
-                last = 0
-                while True:
-                    chunk = conn.execute(
-                        f"SELECT {self._COLUMNS} FROM keyframes WHERE id > ? ORDER BY id LIMIT 256",
-                        (last,),
-                    ).fetchall()
-                    if not chunk:
-                        return
-                    yield from (self._row(r) for r in chunk)
-                    last = chunk[-1][0]
-
-            yield version, count, rows()
+            rows = self._pages(lambda last: conn.execute(self._PAGE, (last, 256)).fetchall())
+            yield version, count, rows
         finally:
             conn.close()
 

@@ -23,6 +23,7 @@ import numpy as np
 
 from sgvloc_client import wire
 
+from ..eval_track import perturbed
 from ..service_process import temporary_service
 from .http import FIXTURE
 
@@ -30,11 +31,8 @@ Echo = Callable[[str], None]
 
 
 def _seed(T: np.ndarray, rng: np.random.Generator) -> dict[str, Any]:
-    yaw = np.radians(3.0) * rng.choice([-1.0, 1.0])
-    c, s = np.cos(yaw), np.sin(yaw)
-    S = T.copy()
-    S[:3, :3] = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]) @ S[:3, :3]
-    S[:2, 3] += 0.3 * rng.standard_normal(2) / np.sqrt(2)
+    dyaw = 3.0 * rng.choice([-1.0, 1.0])
+    S = perturbed(T, 0.3 * rng.standard_normal(2) / np.sqrt(2), dyaw)
     return {"T_map_sensor": S, "sigma_m": 1.0, "sigma_yaw_deg": 5.0}
 
 
