@@ -172,3 +172,27 @@ def test_procedural_scans_without_the_fixture(tmp_path: Path) -> None:
     )
     assert claim["encoder"] == "handcrafted" and len(claim["fingerprint"]) > 8
     assert bases[0]["keypoints"].shape[0] <= 32 and bases[0]["local_features"].shape[1] == 33
+
+
+def test_pipeline_section_compares_the_paths_through_the_cli(tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from sgvloc.cli import app
+
+    out = tmp_path / "p.json"
+    args = ["bench", "--only", "pipeline", "--compare", "--pipeline-rounds", "1"]
+    run = CliRunner().invoke(app, [*args, "--out", str(out)])
+    assert run.exit_code == 0, run.output
+    assert "CPU / default" in run.output
+    res = json.loads(out.read_text())["pipeline"]
+    assert res["map_keyframes"] == 8 and res["queries"] == 7 and res["default_runtime"] == "onnx"
+    paths = {r["path"]: r for r in res["paths"]}
+    assert list(paths) == ["default", "default, no ICP", "earlier"]
+    for r in paths.values():
+        assert r["wall_p50_ms"] > 0 and r["cpu_p50_ms"] > 0
+        assert set(r["stages_p50_ms"]) == {"encode", "retrieve", "rerank", "pose", "verify"}
+    # the earlier path reaches the same verdicts and keyframes on the fixture's queries
+    agree = paths["earlier"]["agreement"]
+    assert agree["same_verdict"] == agree["same_keyframe"] == 7
+    assert agree["largest_position_difference_m"] < 0.2
+    assert paths["default"]["cpu_vs_default"] == 1.0

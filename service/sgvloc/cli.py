@@ -879,10 +879,17 @@ def bench_command(
     only: Annotated[
         str,
         typer.Option(
-            help="comma-separated sections: rerank, retrieval, encoding, http, scaling, prior, "
-            "tracking"
+            help="comma-separated sections: rerank, retrieval, encoding, pipeline, http, "
+            "scaling, prior, tracking"
         ),
-    ] = "rerank,retrieval,encoding,http,scaling,prior,tracking",
+    ] = "rerank,retrieval,encoding,pipeline,http,scaling,prior,tracking",
+    compare: Annotated[
+        bool,
+        typer.Option(
+            help="pipeline, http: also run the earlier path (network in torch, Open3D ICP) "
+            "in the same run, interleaved, and report ratios"
+        ),
+    ] = False,
     out: Annotated[Path, typer.Option(help="JSON file with every figure")] = Path("bench.json"),
     ks: Annotated[str, typer.Option(help="rerank: candidates per query")] = "2,5,10,20,50",
     ns: Annotated[str, typer.Option(help="rerank: keypoints (correspondences)")] = "128,256,1000",
@@ -930,6 +937,20 @@ def bench_command(
     prior_noise: Annotated[
         float, typer.Option(min=0.0, help="prior: position noise per axis (m)")
     ] = 5.0,
+    pipeline_data: Annotated[
+        Path | None,
+        typer.Option(
+            help="pipeline: KITTI-layout sequence (default: the shipped fixture)",
+            exists=True,
+            file_okay=False,
+        ),
+    ] = None,
+    pipeline_map_every: Annotated[
+        int, typer.Option(min=2, help="pipeline: the map is every Nth scan, queries the rest")
+    ] = 2,
+    pipeline_rounds: Annotated[
+        int, typer.Option(min=1, help="pipeline: timed rounds over the queries")
+    ] = 3,
     track_data: Annotated[
         Path | None,
         typer.Option(
@@ -943,9 +964,9 @@ def bench_command(
     ] = 2,
     threads: ThreadsOpt = None,
 ) -> None:
-    """Measure re-ranking, retrieval, encoding, the service end to end (http, scaling),
-    localize with a prior (prior) and tracked against global localize (tracking); print
-    tables and write --out (JSON).
+    """Measure re-ranking, retrieval, encoding, one localization by stage (pipeline), the
+    service end to end (http, scaling), localize with a prior (prior) and tracked against
+    global localize (tracking); print tables and write --out (JSON).
 
     Medians after warm-up, every comparison in one process on the same inputs. The
     defaults take a few minutes on 2 cores; CUDA timings of SGV are added when a GPU is
@@ -1025,6 +1046,38 @@ def export_weights_command(
         path = export_weights(checkpoint, out, note)
     except SgvlocError as exc:
         typer.echo(f"sgvloc export-weights: {exc}", err=True)
+        raise typer.Exit(2) from None
+    typer.echo(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB)")
+    typer.echo(f"for ONNX Runtime on CPU: sgvloc export-onnx {path}")
+
+
+@app.command("export-onnx", epilog=ONE_THREAD)
+def export_onnx_command(
+    weights: Annotated[
+        Path | None,
+        typer.Argument(help="weights file of the 'learned' encoder (default: the shipped one)"),
+    ] = None,
+    out: Annotated[
+        Path | None, typer.Option(help="ONNX file to write (default: WEIGHTS with suffix .onnx)")
+    ] = None,
+    threads: ThreadsOpt = None,
+) -> None:
+    """Export the network of a weights file to ONNX, beside it, for ONNX Runtime.
+
+    The 'learned' encoder runs the network in ONNX Runtime on CPU when onnxruntime is
+    installed and WEIGHTS.onnx was exported from these weights (runtime 'auto'); the
+    package ships one for its own weights. Needs the onnx and onnxscript packages
+    (the dev extra).
+    """
+    _cap_threads(threads)
+    from .core.encoders.learned import shipped_weights_path
+    from .core.errors import SgvlocError
+    from .tools.train import export_onnx
+
+    try:
+        path = export_onnx(weights or shipped_weights_path(), out)
+    except SgvlocError as exc:
+        typer.echo(f"sgvloc export-onnx: {exc}", err=True)
         raise typer.Exit(2) from None
     typer.echo(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB)")
 

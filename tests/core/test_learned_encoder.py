@@ -200,3 +200,81 @@ def test_cuda_gives_the_cpu_features(enc: LearnedEncoder, scans: list[np.ndarray
     a, b = enc.encode(scans[0]), gpu.encode(scans[0])
     np.testing.assert_allclose(a.global_descriptor, b.global_descriptor, atol=1e-3)
     assert a.identity == b.identity
+
+
+# -- ONNX Runtime ------------------------------------------------------------------------
+
+
+def _same_features(a, b) -> None:
+    assert np.array_equal(a.keypoints, b.keypoints)
+    np.testing.assert_allclose(a.local_features, b.local_features, atol=1e-5)
+    np.testing.assert_allclose(a.global_descriptor, b.global_descriptor, atol=1e-5)
+
+
+@pytest.mark.parametrize(
+    "config",
+    [LearnedEncoderConfig(), LearnedEncoderConfig(global_descriptor="network")],
+    ids=["polar global (default)", "network global, 4 rotations"],
+)
+def test_onnx_and_torch_give_the_same_features(
+    scans: list[np.ndarray], config: LearnedEncoderConfig
+) -> None:
+    onnx = LearnedEncoder(config, runtime="onnx")
+    torch_enc = LearnedEncoder(config, runtime="torch")
+    assert (onnx.runtime, torch_enc.runtime) == ("onnx", "torch")
+    assert onnx.identity == torch_enc.identity  # same weights, same features: one identity
+    for scan in scans:
+        _same_features(onnx.encode(scan), torch_enc.encode(scan))
+
+
+def test_auto_runs_the_shipped_weights_in_onnx_runtime(enc: LearnedEncoder) -> None:
+    assert enc.runtime == "onnx"  # onnxruntime is a service dependency
+    assert make_encoder(EncoderSpec(kind="learned", runtime="torch")).runtime == "torch"
+
+
+def _other_weights(tmp_path: Path) -> Path:
+    blob = torch.load(shipped_weights_path(), map_location="cpu", weights_only=True)
+    name = next(iter(blob["state_dict"]))
+    blob["state_dict"][name] = blob["state_dict"][name] * 1.01
+    path = tmp_path / "other.pt"
+    torch.save(blob, path)
+    return path
+
+
+def test_onnx_runtime_needs_an_export_of_these_weights(tmp_path: Path) -> None:
+    weights = _other_weights(tmp_path)
+    with pytest.raises(InputError, match="no ONNX export"):
+        LearnedEncoder(model_path=weights, runtime="onnx")
+    assert LearnedEncoder(model_path=weights).runtime == "torch"  # auto falls back
+    # an export of other weights beside them is not used
+    (tmp_path / "other.onnx").write_bytes(shipped_weights_path().with_suffix(".onnx").read_bytes())
+    with pytest.raises(InputError, match="exported from other weights"):
+        LearnedEncoder(model_path=weights, runtime="onnx")
+    assert LearnedEncoder(model_path=weights).runtime == "torch"
+    with pytest.raises(InputError, match="runtime must be one of"):
+        LearnedEncoder(runtime="tensorrt")
+
+
+def test_export_onnx_command_makes_an_export_the_encoder_uses(
+    tmp_path: Path, scans: list[np.ndarray]
+) -> None:
+    from typer.testing import CliRunner
+
+    from sgvloc.cli import app
+
+    weights = _other_weights(tmp_path)
+    res = CliRunner().invoke(app, ["export-onnx", str(weights)])
+    assert res.exit_code == 0, res.output
+    assert (tmp_path / "other.onnx").is_file() and "wrote" in res.output
+    onnx = LearnedEncoder(model_path=weights, runtime="onnx")
+    _same_features(
+        onnx.encode(scans[0]), LearnedEncoder(model_path=weights, runtime="torch").encode(scans[0])
+    )
+
+
+def test_the_shipped_export_is_of_the_shipped_weights() -> None:
+    from sgvloc.core.encoders.learned import OnnxNet, onnx_path
+
+    path = onnx_path(shipped_weights_path())
+    assert path.is_file() and path.stat().st_size < 5_000_000
+    assert OnnxNet.weights_sha256(path) == file_sha256(shipped_weights_path())

@@ -6,7 +6,14 @@ import pytest
 from sgvloc.core.config import HandcraftedEncoderConfig, PoseConfig, PreprocessConfig
 from sgvloc.core.encoders import HandcraftedEncoder
 from sgvloc.core.errors import InputError
-from sgvloc.core.pose import check_rigid, fgr_pose, is_rigid, ransac_pose, refine_icp
+from sgvloc.core.pose import (
+    IcpTarget,
+    check_rigid,
+    fgr_pose,
+    is_rigid,
+    ransac_pose,
+    refine_icp,
+)
 from sgvloc.core.sequence import KittiSequence, relative_pose
 
 
@@ -74,28 +81,85 @@ def test_ransac_finds_a_known_pose_among_outliers():
     assert not ransac_pose(src, feats, dst, shuffled).localized
 
 
-def test_icp_refines_and_verifies(pair):
+ICP_VARIANTS = {
+    "default (small_gicp, point-to-plane, 0.6 m source voxels)": {},
+    "small_gicp point-to-point, every point": {
+        "icp_method": "point_to_point",
+        "icp_source_voxel_m": 0.0,
+    },
+    "Open3D point-to-point, every point (the earlier path)": {
+        "icp_backend": "open3d",
+        "icp_method": "point_to_point",
+        "icp_source_voxel_m": 0.0,
+        "ransac_first_batch": 1000,
+    },
+    "Open3D point-to-plane": {"icp_backend": "open3d"},
+}
+
+
+@pytest.mark.parametrize("settings", list(ICP_VARIANTS.values()), ids=list(ICP_VARIANTS))
+def test_icp_refines_and_verifies(pair, settings):
     src, dst, src_cloud, dst_cloud, T_gt = pair
-    cfg = PoseConfig()
+    cfg = PoseConfig(**settings)
     res = ransac_pose(src.keypoints, src.local_features, dst.keypoints, dst.local_features, cfg)
     before = translation_error(res.T_target_source, T_gt)
     res = refine_icp(res, src_cloud, dst_cloud, cfg)
     assert res.refined and res.localized, res.reason
     assert res.icp["fitness"] >= cfg.min_icp_fitness
     assert translation_error(res.T_target_source, T_gt) <= before
+    assert translation_error(res.T_target_source, T_gt) < 0.1
     assert rotation_error_deg(res.T_target_source[:3, :3], T_gt[:3, :3]) < 1.0
 
 
-def test_icp_rejects_a_wrong_pose(pair):
+def test_icp_backends_agree_on_the_fit(pair):
+    """Fitness and RMSE mean the same in every implementation: over every point of the
+    query cloud under the final pose (within 1 % and 2 cm here)."""
+    src, dst, src_cloud, dst_cloud, _ = pair
+    fits = {}
+    for name, settings in ICP_VARIANTS.items():
+        cfg = PoseConfig(**settings)
+        res = ransac_pose(src.keypoints, src.local_features, dst.keypoints, dst.local_features)
+        fits[name] = refine_icp(res, src_cloud, dst_cloud, cfg).icp
+    fitness = [f["fitness"] for f in fits.values()]
+    rmse = [f["inlier_rmse"] for f in fits.values()]
+    assert max(fitness) - min(fitness) < 0.01, fits
+    assert max(rmse) - min(rmse) < 0.02, fits
+
+
+def test_a_prepared_target_gives_the_same_answer(pair):
+    src, dst, src_cloud, dst_cloud, _ = pair
+    cfg = PoseConfig()
+    a = ransac_pose(src.keypoints, src.local_features, dst.keypoints, dst.local_features, cfg)
+    b = ransac_pose(src.keypoints, src.local_features, dst.keypoints, dst.local_features, cfg)
+    a = refine_icp(a, src_cloud, dst_cloud, cfg)
+    b = refine_icp(b, src_cloud, dst_cloud, cfg, IcpTarget(dst_cloud))
+    assert np.array_equal(a.T_target_source, b.T_target_source)
+    assert a.icp == b.icp and a.icp["iterations"] >= 1
+
+
+@pytest.mark.parametrize("settings", list(ICP_VARIANTS.values()), ids=list(ICP_VARIANTS))
+def test_icp_rejects_a_wrong_pose(pair, settings):
     _, _, src_cloud, dst_cloud, T_gt = pair
     wrong = T_gt.copy()
     wrong[:3, 3] += [12.0, -9.0, 0.0]
     res = ransac_pose(np.zeros((0, 3)), np.zeros((0, 33)), np.zeros((0, 3)), np.zeros((0, 33)))
     assert not res.localized and "too few keypoints" in res.reason
     res.T_target_source = wrong
-    res = refine_icp(res, src_cloud, dst_cloud, PoseConfig())
+    res = refine_icp(res, src_cloud, dst_cloud, PoseConfig(**settings))
     assert not res.localized
     assert "min_icp_fitness" in res.reason
+
+
+def test_ransac_batches_stop_early_on_an_easy_match(pair):
+    """The first batch of 64 hypotheses settles a clean match: the same pose as batches
+    of 1000 within a few centimetres."""
+    src, dst, *_ = pair
+    args = (src.keypoints, src.local_features, dst.keypoints, dst.local_features)
+    small = ransac_pose(*args, PoseConfig())
+    large = ransac_pose(*args, PoseConfig(ransac_first_batch=1000))
+    assert small.localized and large.localized
+    assert translation_error(small.T_target_source, large.T_target_source) < 0.1
+    assert small.inliers >= 0.9 * large.inliers
 
 
 def test_fgr_runs_on_the_same_matches(pair):

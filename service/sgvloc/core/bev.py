@@ -39,7 +39,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from .errors import InputError
-from .preprocess import as_points, finite, voxel_downsample
+from .preprocess import all_columns, as_points, finite, voxel_downsample
 
 
 class BEVRasterConfig(BaseModel):
@@ -85,7 +85,7 @@ class BEVRaster:
 
 def crop_box(points: np.ndarray, extent: float) -> np.ndarray:
     """Keep points with ``|x|``, ``|y|`` and ``|z|`` all strictly below ``extent``."""
-    return points[(np.abs(points) < extent).all(axis=1)]
+    return points[all_columns(lambda c: np.abs(c) < extent, points)]
 
 
 def prepare_points(points: np.ndarray, config: BEVRasterConfig = KITTI_BEV) -> np.ndarray:

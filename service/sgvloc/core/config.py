@@ -82,6 +82,13 @@ class PoseConfig(_Section):
     ransac_n: int = Field(3, ge=3, le=10)
     edge_length_ratio: float = Field(0.8, gt=0.0, lt=1.0)
     max_iterations: int = Field(10000, ge=1, le=1_000_000)
+    ransac_first_batch: int = Field(
+        64,
+        ge=1,
+        le=1000,
+        description="hypotheses in RANSAC's first batch; each next batch doubles (up to "
+        "1000); the confidence stop is checked after every batch",
+    )
     confidence: float = Field(0.999, gt=0.0, le=1.0)
     mutual_filter: bool = True
     seed: int = Field(0, ge=0, le=2**32 - 1)
@@ -90,6 +97,23 @@ class PoseConfig(_Section):
         1.0, gt=0.0, le=100.0, description="ICP correspondence distance (m)"
     )
     icp_iterations: int = Field(30, ge=1, le=1000)
+    icp_method: Literal["point_to_plane", "point_to_point"] = Field(
+        "point_to_plane",
+        description="ICP error: distance to the keyframe cloud's local plane (normals from "
+        "10 neighbours) or to its nearest point",
+    )
+    icp_source_voxel_m: float = Field(
+        0.6,
+        ge=0.0,
+        le=10.0,
+        description="the query cloud is downsampled to this voxel size for the ICP "
+        "iterations (0 = every point); fitness and RMSE are always over every point",
+    )
+    icp_backend: Literal["small_gicp", "open3d"] = Field(
+        "small_gicp",
+        description="ICP implementation: small_gicp (one thread, the keyframe's KD-tree "
+        "and normals cached) or Open3D (its OpenMP pool)",
+    )
     min_icp_fitness: float = Field(
         0.5,
         ge=0.0,

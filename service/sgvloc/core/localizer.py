@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from ._rwlock import RWLock
+from .cache import BuildCache
 from .confidence import (
     AGREEMENT_CANDIDATES,
     Calibration,
@@ -33,13 +34,13 @@ from .deadline import check as check_deadline
 from .encoders import Encoder
 from .errors import ConflictError, InputError, NotFoundError
 from .features import Features
-from .pose import PoseResult, check_rigid, ransac_pose, refine_icp
+from .pose import IcpTarget, PoseResult, check_rigid, ransac_pose, refine_icp
 from .prior import PositionGrid, Prior, yaw_deg
 from .rerank import Candidate, RerankOutput, check_method, rerank
 from .retrieval import FaissIndex
 from .tracking import (
     Seed,
-    SubmapCache,
+    Submap,
     TrackResult,
     build_submap,
     register,
@@ -47,6 +48,9 @@ from .tracking import (
 )
 
 log = logging.getLogger(__name__)
+
+#: keyframe clouds kept indexed for ICP per map (about 0.3 MB each at 5k points)
+ICP_CACHED_KEYFRAMES = 64
 
 
 @dataclass
@@ -141,7 +145,10 @@ class Localizer:
         self._next_id = itertools.count(1)
         self._lock = RWLock()
         self.version = 0  # changes on every insert and removal
-        self._submaps = SubmapCache(self.config.tracking.cached_submaps)
+        self._submaps: BuildCache[Submap | None] = BuildCache(self.config.tracking.cached_submaps)
+        #: keyframe clouds indexed for ICP, by (keyframe id, id of the cloud array): the
+        #: entry holds the array, so its id cannot be reused while the entry lives
+        self._icp_targets: BuildCache[IcpTarget] = BuildCache(ICP_CACHED_KEYFRAMES)
 
     # -- the map ------------------------------------------------------------------------
 
@@ -279,7 +286,7 @@ class Localizer:
         with self._lock.write():
             self.config = config
             self.calibration = calibration
-            self._submaps = SubmapCache(config.tracking.cached_submaps)
+            self._submaps = BuildCache(config.tracking.cached_submaps)
 
     def _fresh_id(self) -> int:
         while True:
@@ -585,7 +592,12 @@ class Localizer:
                 "keeps keyframe clouds (keep_clouds=True)",
             }
             return pose
-        return refine_icp(pose, query_cloud, best.cloud, self.config.pose)
+        cfg = self.config.pose
+        target = None
+        if cfg.icp_backend == "small_gicp" and len(best.cloud) >= 3:
+            cloud = best.cloud
+            target = self._icp_targets.get((best.id, id(cloud)), lambda: IcpTarget(cloud))
+        return refine_icp(pose, query_cloud, best.cloud, cfg, target)
 
 
 def _encoder_kind(encoder: Encoder) -> str:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 
 import numpy as np
 
@@ -24,7 +25,22 @@ def as_points(points: np.ndarray, name: str = "scan") -> np.ndarray:
 
 def finite(points: np.ndarray) -> np.ndarray:
     """Drop rows with NaN or inf coordinates."""
-    return points[np.isfinite(points).all(axis=1)]
+    return points[all_columns(np.isfinite, points)]
+
+
+def all_columns(test: Callable[[np.ndarray], np.ndarray], points: np.ndarray) -> np.ndarray:
+    """``test(points).all(axis=1)`` for ``[P, C]``, column by column (NumPy reduces a
+    narrow array along its rows about ten times more slowly)."""
+    keep = test(points[:, 0])
+    for d in range(1, points.shape[1]):
+        keep &= test(points[:, d])
+    return keep
+
+
+def column_min_max(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-column minimum and maximum of ``[P, C]`` (column by column, as above)."""
+    cols = [values[:, d] for d in range(values.shape[1])]
+    return np.array([c.min() for c in cols]), np.array([c.max() for c in cols])
 
 
 def crop_range(points: np.ndarray, min_range: float, max_range: float) -> np.ndarray:
@@ -42,9 +58,10 @@ def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
     if voxel_size <= 0 or len(points) == 0:
         return points
     cells = np.floor(points / voxel_size).astype(np.int64)  # [P, 3]
-    cells -= cells.min(axis=0)
+    lo, hi = column_min_max(cells)
+    cells -= lo
     # one integer key per cell: np.unique on a 1-D key is several times faster than axis=0
-    key = np.ravel_multi_index(cells.T, tuple(cells.max(axis=0) + 1))  # [P]
+    key = np.ravel_multi_index(cells.T, tuple(hi - lo + 1))  # [P]
     _, inverse = np.unique(key, return_inverse=True)
     counts = np.bincount(inverse)
     sums = np.stack([np.bincount(inverse, weights=points[:, d]) for d in range(3)], axis=1)

@@ -14,8 +14,6 @@ from __future__ import annotations
 import functools
 import json
 import math
-import threading
-from collections import OrderedDict
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -205,39 +203,6 @@ def _require_small_gicp() -> None:
 def rotation_angle_deg(R: np.ndarray) -> float:
     """The angle of a rotation matrix (degrees, 0..180)."""
     return math.degrees(math.acos(float(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
-
-
-class SubmapCache:
-    """Submaps by (map version, cell), least recently used first out. Thread-safe; a
-    submap is built once even when several requests ask for it at the same time."""
-
-    def __init__(self, capacity: int) -> None:
-        self.capacity = capacity
-        self._items: OrderedDict[tuple, Submap | None] = OrderedDict()
-        self._lock = threading.Lock()
-        self._building: dict[tuple, threading.Event] = {}
-
-    def get(self, key: tuple, build: Callable[[], Submap | None]) -> Submap | None:
-        while True:
-            with self._lock:
-                if key in self._items:
-                    self._items.move_to_end(key)
-                    return self._items[key]
-                waiting = self._building.get(key)
-                if waiting is None:
-                    self._building[key] = threading.Event()
-                    break
-            waiting.wait()
-        try:
-            submap = build()
-            with self._lock:
-                self._items[key] = submap
-                while len(self._items) > self.capacity:
-                    self._items.popitem(last=False)
-            return submap
-        finally:
-            with self._lock:
-                self._building.pop(key).set()
 
 
 def build_submap(

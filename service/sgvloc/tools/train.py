@@ -464,3 +464,52 @@ def export_weights(checkpoint: str | Path, out: str | Path, note: str = "") -> P
     torch.save(blob, tmp)
     tmp.replace(out)
     return out
+
+
+def export_onnx(weights: str | Path, out: str | Path | None = None) -> Path:
+    """Export the network of a weights file to ONNX (``out``, default beside it with
+    suffix ``.onnx``), the file the ``learned`` encoder runs in ONNX Runtime on CPU.
+
+    The batch dimension is dynamic; the file records the weights' SHA-256 (the encoder
+    uses it only for those weights). Needs the ``onnx`` and ``onnxscript`` packages.
+    Raises :class:`InputError` if the weights cannot be read or the exporter is missing.
+    """
+    import warnings
+
+    from sgvloc.core.bevnet import INPUT_SIZE
+    from sgvloc.core.encoders.learned import ONNX_WEIGHTS_KEY, load_weights, onnx_path
+    from sgvloc.core.encoders.torchscript import file_sha256
+
+    weights = Path(weights)
+    out = Path(out) if out else onnx_path(weights)
+    model, _ = load_weights(weights)
+    try:
+        import onnx
+        import onnxscript  # noqa: F401 - the exporter needs it
+    except ImportError as exc:
+        raise InputError(
+            f"exporting to ONNX needs the onnx and onnxscript packages: {exc}"
+        ) from None
+    x = torch.zeros(2, 1, INPUT_SIZE, INPUT_SIZE)
+    quiet = logging.getLogger("torch.onnx")  # skipped torchvision operators, progress
+    level = quiet.level
+    quiet.setLevel(logging.ERROR)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        program = torch.onnx.export(
+            model,
+            (x,),
+            input_names=["image"],
+            output_names=["global", "local", "saliency"],
+            dynamic_shapes=({0: torch.export.Dim("batch", min=1, max=1024)},),
+            dynamo=True,
+            verbose=False,
+        )
+    quiet.setLevel(level)
+    proto = program.model_proto
+    onnx.helper.set_model_props(proto, {ONNX_WEIGHTS_KEY: file_sha256(weights)})
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_suffix(out.suffix + ".tmp")
+    onnx.save(proto, str(tmp))
+    tmp.replace(out)
+    return out

@@ -109,8 +109,8 @@ class EncoderSpec(BaseModel):
     - ``kind="torchscript"``: uses ``preprocess``, ``model_path`` and ``device``;
     - ``kind="precomputed"``: uses ``name``, ``global_dim`` and ``local_dim``;
     - ``kind="bev"``: uses ``bev`` (its own box crop and voxels; ``preprocess`` is unused);
-    - ``kind="learned"``: uses ``learned``, ``model_path`` (unset: the shipped weights) and
-      ``device`` (the same box crop and voxels as ``bev``).
+    - ``kind="learned"``: uses ``learned``, ``model_path`` (unset: the shipped weights),
+      ``device`` and ``runtime`` (the same box crop and voxels as ``bev``).
     """
 
     model_config = ConfigDict(extra="forbid")
@@ -128,6 +128,11 @@ class EncoderSpec(BaseModel):
     device: Literal["auto", "cpu", "cuda"] = Field(
         "cpu",
         description="torchscript, learned: where the model runs ('auto' = CUDA if present)",
+    )
+    runtime: Literal["auto", "torch", "onnx"] = Field(
+        "auto",
+        description="learned: what runs the network on CPU ('auto' = ONNX Runtime when "
+        "installed and the weights have their ONNX export, else torch)",
     )
     name: str | None = Field(None, description="precomputed: the client's network, e.g. 'egonn'")
     global_dim: int | None = Field(
@@ -171,7 +176,9 @@ def make_encoder(spec: EncoderSpec) -> Encoder:
     if spec.kind == "learned":
         from .learned import LearnedEncoder
 
-        return LearnedEncoder(spec.learned, spec.model_path, device=spec.device)
+        return LearnedEncoder(
+            spec.learned, spec.model_path, device=spec.device, runtime=spec.runtime
+        )
     if spec.kind == "torchscript":
         from .torchscript import TorchScriptEncoder
 

@@ -23,6 +23,12 @@ Per scan (deterministic):
    dependence between them; or ``"polar"``: the polar/FFT descriptor of the same image
    (:func:`sgvloc.core.encoders.bev.polar_fft_descriptor`, yaw-invariant by construction).
 
+The network runs in torch, or in ONNX Runtime on CPU (``runtime``; ``"auto"`` picks ONNX
+Runtime when it is installed and the weights have their ONNX export beside them,
+``<weights>.onnx``, made by ``sgvloc export-onnx`` and recording the weights' SHA-256; the
+package ships one for its weights). Both give the same outputs to about 1e-5; torch stays
+the path for training, CUDA and in-memory models.
+
 The weights file (``model_path``; the weights shipped in the package when unset) holds
 ``{"format": "sgvloc-bevnet", "arch": {...}, "state_dict": {...}, "meta": {...}}``
 (:func:`sgvloc.tools.train.export_weights` writes one). Its SHA-256 is part of the identity, so
@@ -64,6 +70,87 @@ SHIPPED_WEIGHTS = "bevnet-v1.pt"
 #: global_descriptor "polar": the grid of the 'bev' encoder's default
 POLAR_RINGS, POLAR_SECTORS = 20, 60
 POLAR_DIM = POLAR_RINGS * (POLAR_SECTORS // 2 + 1)
+
+
+#: the ONNX model's metadata key holding the SHA-256 of the weights it was exported from
+ONNX_WEIGHTS_KEY = "sgvloc_weights_sha256"
+RUNTIMES = ("auto", "torch", "onnx")
+
+
+def onnx_path(weights: str | Path) -> Path:
+    """Where the ONNX export of a weights file lives: beside it, suffix ``.onnx``."""
+    return Path(weights).with_suffix(".onnx")
+
+
+def onnxruntime_available() -> bool:
+    try:
+        import onnxruntime  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+class OnnxNet:
+    """BEVNet's forward pass in ONNX Runtime (CPU), called like the torch model: tensors
+    in, ``(global, local, saliency)`` tensors out. Sessions are thread-safe; one
+    intra-op thread per call unless ``threads`` says more (the service's thread policy)."""
+
+    def __init__(self, path: Path, model: Any, threads: int) -> None:
+        import onnxruntime as ort
+
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = max(1, threads)
+        opts.inter_op_num_threads = 1
+        opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
+        self.session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+        self.path = path
+        self._model = model  # the torch model: global_descriptor() of turned images
+
+    @staticmethod
+    def weights_sha256(path: Path) -> str:
+        """The weights SHA-256 recorded in an ONNX export ("" when absent)."""
+        import onnxruntime as ort
+
+        opts = ort.SessionOptions()
+        opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_DISABLE_ALL
+        sess = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+        return sess.get_modelmeta().custom_metadata_map.get(ONNX_WEIGHTS_KEY, "")
+
+    def __call__(self, x: Any) -> tuple[Any, Any, Any]:
+        import torch
+
+        outs = self.session.run(None, {"image": x.numpy()})
+        return tuple(torch.from_numpy(o) for o in outs)  # type: ignore[return-value]
+
+    def global_descriptor(self, x: Any) -> Any:
+        return self._model.global_descriptor(x)
+
+
+def _pick_runtime(runtime: str, device: str, weights: Path | None, sha256: str) -> Path | None:
+    """The ONNX file to run, or None for torch; raises :class:`InputError` when
+    ``runtime="onnx"`` cannot be honoured."""
+    if runtime not in RUNTIMES:
+        raise InputError(f"learned encoder: runtime must be one of {RUNTIMES}, got {runtime!r}")
+    if runtime == "torch":
+        return None
+    why = ""
+    path = onnx_path(weights) if weights is not None else None
+    if device != "cpu":
+        why = f"ONNX Runtime is used on CPU only (device {device!r})"
+    elif path is None:
+        why = "an in-memory model has no ONNX export"
+    elif not onnxruntime_available():
+        why = "onnxruntime is not installed"
+    elif not path.is_file():
+        why = f"no ONNX export at {str(path)!r} (make one with 'sgvloc export-onnx')"
+    elif OnnxNet.weights_sha256(path) != sha256:
+        why = f"{str(path)!r} was exported from other weights"
+    if not why:
+        return path
+    if runtime == "onnx":
+        raise InputError(f"learned encoder: runtime 'onnx' unavailable: {why}")
+    log.debug("learned encoder runs in torch: %s", why)
+    return None
 
 
 def shipped_weights_path() -> Path:
@@ -118,15 +205,19 @@ class LearnedEncoder(Encoder):
         config: LearnedEncoderConfig | None = None,
         model_path: str | Path | None = None,
         device: str = "cpu",
+        runtime: str = "auto",
     ) -> None:
         """Load the weights (``model_path``, or the shipped ones) onto ``device``
-        (``"cpu"``, ``"cuda"`` or ``"auto"``).
+        (``"cpu"``, ``"cuda"`` or ``"auto"``), to run in ``runtime`` (``"auto"``,
+        ``"torch"`` or ``"onnx"``; see the module docstring).
 
-        Raises :class:`InputError` if the weights cannot be loaded or CUDA is absent.
+        Raises :class:`InputError` if the weights cannot be loaded, CUDA is absent or
+        ``runtime="onnx"`` cannot be honoured.
         """
         path = Path(model_path) if model_path else shipped_weights_path()
         model, meta = load_weights(path)
-        self._setup(model, config, file_sha256(path)[:16], device, meta)
+        sha = file_sha256(path)
+        self._setup(model, config, sha[:16], device, meta, runtime, path, sha)
 
     @classmethod
     def from_model(
@@ -149,6 +240,9 @@ class LearnedEncoder(Encoder):
         weights_id: str,
         device: str,
         meta: dict[str, Any],
+        runtime: str = "torch",
+        weights: Path | None = None,
+        sha256: str = "",
     ) -> None:
         import torch
 
@@ -159,6 +253,12 @@ class LearnedEncoder(Encoder):
         self.device = torch.device(device)
         self.config = config or LearnedEncoderConfig()
         self.model = model.to(self.device).eval()
+        onnx_file = _pick_runtime(runtime, device, weights, sha256)
+        #: what runs the network: the torch model or an :class:`OnnxNet`
+        self.net: Any = (
+            OnnxNet(onnx_file, self.model, torch.get_num_threads()) if onnx_file else self.model
+        )
+        self.runtime = "onnx" if onnx_file else "torch"
         self.meta = meta
         self.min_grey = int(meta.get("min_grey", 0))
         polar = self.config.global_descriptor == "polar"
@@ -235,10 +335,10 @@ class LearnedEncoder(Encoder):
         c = self.config
         with torch.inference_mode():
             x = to_input(image[None]).to(self.device)  # [1, 1, 152, 152]
-            g, local, sal = self.model(x)
+            g, local, sal = self.net(x)
             if c.global_descriptor == "network" and c.global_rotations == 4:
                 turned = torch.cat([torch.rot90(x, t, dims=(2, 3)) for t in (1, 2, 3)])
-                g = torch.cat([g, self.model.global_descriptor(turned)])
+                g = torch.cat([g, self.net.global_descriptor(turned)])
                 g = F.normalize(g.mean(dim=0, keepdim=True), dim=1)
             occ = occupied_cells(x)[0]
             s = sal[0].masked_fill(~occ, -math.inf)
@@ -290,4 +390,10 @@ class LearnedEncoder(Encoder):
         )
 
 
-__all__ = ["LearnedEncoder", "load_weights", "shipped_weights_path"]
+__all__ = [
+    "LearnedEncoder",
+    "OnnxNet",
+    "load_weights",
+    "onnx_path",
+    "shipped_weights_path",
+]

@@ -1,6 +1,7 @@
-"""``sgvloc bench``: the engine's stages (:mod:`.engine`: rerank, retrieval, encoding, prior) and
-the service end to end (:mod:`.http`: http, scaling), tracking against global localization
-(:mod:`.tracking`), one JSON file of every figure."""
+"""``sgvloc bench``: the engine's stages (:mod:`.engine`: rerank, retrieval, encoding, prior),
+one localization's cost by stage (:mod:`.pipeline`), the service end to end (:mod:`.http`:
+http, scaling), tracking against global localization (:mod:`.tracking`), one JSON file of
+every figure."""
 
 from __future__ import annotations
 
@@ -10,7 +11,16 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-SECTIONS = ("rerank", "retrieval", "encoding", "http", "scaling", "prior", "tracking")
+SECTIONS = (
+    "rerank",
+    "retrieval",
+    "encoding",
+    "pipeline",
+    "http",
+    "scaling",
+    "prior",
+    "tracking",
+)
 
 
 def check_sections(sections: list[str]) -> list[str]:
@@ -29,7 +39,7 @@ def run_bench(
 
     ``sections`` are checked with :func:`check_sections` first.
     """
-    from . import engine, http, tracking
+    from . import engine, http, pipeline, tracking
 
     check_sections(sections)
     o = options
@@ -42,6 +52,10 @@ def run_bench(
             o["sizes"], dim=o["dim"], large_dim=o["large_dim"], hnsw_max=o["hnsw_max"], echo=echo
         ),
         "encoding": lambda: engine.bench_encoding(o["scan_sizes"], echo=echo),
+        "pipeline": lambda: pipeline.bench_pipeline(
+            data=o["pipeline_data"], map_every=o["pipeline_map_every"],
+            rounds=o["pipeline_rounds"], compare=o["compare"], echo=echo,
+        ),
         "prior": lambda: engine.bench_prior(
             o["prior_sizes"], radius_m=o["prior_radius"], noise_m=o["prior_noise"], echo=echo
         ),
@@ -61,7 +75,9 @@ def run_bench(
             echo=echo,
         ),
     }  # fmt: skip
-    formatters = {**engine.FORMATTERS, **http.FORMATTERS, **tracking.FORMATTERS}
+    formatters = {
+        **engine.FORMATTERS, **pipeline.FORMATTERS, **http.FORMATTERS, **tracking.FORMATTERS
+    }  # fmt: skip
     result: dict = {"machine": engine.machine_info(), "command": " ".join(sys.argv)}
     for section in sections:
         echo(f"## {section}")
