@@ -35,6 +35,7 @@ def test_http_section_tiny(tmp_path: Path) -> None:
         raw_scans=2,
         raw_batch=1,
         points=12_000,
+        compare=True,
         work_dir=tmp_path,
     )
     json.dumps(res)
@@ -53,9 +54,16 @@ def test_http_section_tiny(tmp_path: Path) -> None:
     m = res["map"]
     assert m["encoder"] == "bevnet" and m["global_dim"] == 620 and m["local_dim"] == 64
     assert m["store_mib"] > 0
+    # the raw-scan map localized with ICP and without, and the earlier path's map
+    icp = [(r["path"], r["refine"], r["clients"]) for r in res["icp"]]
+    assert icp == [("default", "icp", 1), ("default", "none", 1), ("earlier", "icp", 1)]
+    for r in res["icp"]:
+        assert r["errors"] == 0 and r["refused"] == 0 and r["ok"] > 0, r["error_samples"]
     assert {t["unit"] for t in res["targets"]} == {"ms", "keyframes/s"}  # no 4-client row
+    assert any("with ICP" in t["name"] for t in res["targets"])
     table = bs.format_http(res)
     assert "p99 ms" in table and "kf/s median" in table and "ratio" in table
+    assert "earlier" in table and "refine" in table
     assert res["notes"]
     # the service was stopped and its temporary data directory removed
     assert res["server"]["pids"] and all(_gone(p) for p in res["server"]["pids"])

@@ -238,10 +238,15 @@ def synthetic_keyframe(
 
 
 def query_bodies(
-    scans: list[np.ndarray], points: int, count: int, top_k: int, seed: int = 1
+    scans: list[np.ndarray],
+    points: int,
+    count: int,
+    top_k: int,
+    seed: int = 1,
+    refine: str = "none",
 ) -> list[bytes]:
     """``count`` localize bodies (MessagePack): the query scans in turn, densified to
-    ``points`` points with 5 cm jitter, raw, SGV re-ranking of ``top_k``, no ICP."""
+    ``points`` points with 5 cm jitter, raw, SGV re-ranking of ``top_k``, ``refine``."""
     from .engine import densify
 
     rng = np.random.default_rng(seed)
@@ -251,7 +256,7 @@ def query_bodies(
                 "points": densify(scans[i % len(scans)], points, rng),
                 "top_k": top_k,
                 "rerank": "sgv",
-                "refine": "none",
+                "refine": refine,
             }
         )
         for i in range(count)
@@ -515,11 +520,14 @@ def bench_http(
     points: int = 25_000,
     top_k: int = 20,
     workers: int = 2,
+    compare: bool = False,
     work_dir: Path | None = None,
     echo: Echo = _quiet,
 ) -> dict[str, Any]:
     """Localize p50/p99/QPS at each client count on a ``keyframes`` map; bulk insert
-    keyframes/s with precomputed features and with raw scans. See the module docstring."""
+    keyframes/s with precomputed features and with raw scans; on the raw-scan map,
+    localize with ICP (the default) and without, and with ``compare`` on a second map of
+    the same scans with the earlier path's settings. See the module docstring."""
     from sgvloc.core.encoders import EncoderSpec
 
     clients = _check_clients(clients or [1, 4, 16])
@@ -591,9 +599,14 @@ def bench_http(
                 f"  insert, raw scans: median {ins_raw['median_kf_s']:.1f} keyframes/s per "
                 f"request of {ins_raw['batch']}, overall {ins_raw['overall_kf_s']:.1f}/s"
             )
+            result["icp"] = _icp_rows(
+                srv.url, cp, scans, queries, points, top_k, clients, duration_s, raw_batch,
+                compare, echo,
+            )  # fmt: skip
         result["server"]["memory_end"] = srv.memory_mib()
 
     by_clients = {r["clients"]: r for r in rows}
+    icp_targets = _icp_targets(result.get("icp", []), compare)
     result["targets"] = [
         _target(
             f"localize p50, {min(clients)} client(s) ({points}-point scan, {keyframes} keyframes, "
@@ -615,6 +628,7 @@ def bench_http(
         result["targets"].insert(
             1, _target("localize QPS, 4 clients", by_clients[4]["qps"], TARGET_QPS_4, "QPS", True)
         )
+    result["targets"] += icp_targets
     result["notes"] = [
         f"service: 'sgvloc serve --dev', {workers} worker threads, default settings except "
         f"max_inflight_localize={env['SGVLOC_MAX_INFLIGHT_LOCALIZE']} (no 429 by design); "
@@ -631,12 +645,84 @@ def bench_http(
         "warm-up; latency = client send to answer read; QPS = answers / window; 'server' "
         "columns = medians of the answer's timings_ms; 'outside' = latency minus the "
         "service's total (HTTP, decoding, waiting for one of the worker threads)",
+        "ICP rows: the raw-scan map (real scans, each keeps its cloud), the same queries "
+        "with refine icp (the default) and none; 'earlier' (--compare) = a second map of "
+        "the same scans whose encoder runs the network in torch and whose pose step has "
+        "the earlier settings (RANSAC batches of 1000, Open3D point-to-point ICP over every "
+        "point), loaded in turn with the default map in the same service",
         "insert: keyframes/s per request (median over requests; bodies made before the "
         "clock starts), overall = all keyframes / all request time; raw scans go to a "
         "second map of the same encoder that keeps clouds (server-side encoding + cloud "
         "storage)",
     ]
     return result
+
+
+def _icp_rows(
+    url: str,
+    cp: ClientProcess,
+    scans: list[np.ndarray],
+    queries: list[np.ndarray],
+    points: int,
+    top_k: int,
+    clients: list[int],
+    duration_s: float,
+    batch: int,
+    compare: bool,
+    echo: Echo,
+) -> list[dict[str, Any]]:
+    """Localize load on the raw-scan map with ICP and without (and on the earlier path's
+    map with ICP when ``compare``), at the fewest clients and at 4 if measured."""
+    from sgvloc.core.encoders import EncoderSpec
+
+    from .pipeline import EARLIER_POSE
+
+    maps = {"default": "bench-raw"}
+    if compare:
+        maps["earlier"] = "bench-raw-earlier"
+        spec = EncoderSpec(runtime="torch").model_dump(mode="json")
+        _create_map(
+            url,
+            {"name": maps["earlier"], "encoder": spec, "localizer": {"pose": EARLIER_POSE}},
+        )
+        cp.run(_insert_scans, url, maps["earlier"], scans, batch)
+    n_bodies = max(6, len(queries))
+    bodies = {
+        refine: query_bodies(queries, points, n_bodies, top_k, refine=refine)
+        for refine in ("icp", "none")
+    }
+    rows = []
+    for n in sorted({min(clients), *(c for c in clients if c == 4)}):
+        for path, name in maps.items():
+            for refine in ("icp", "none") if path == "default" else ("icp",):
+                load = _summarise_load(
+                    cp.run(_localize_load, url, name, bodies[refine], n, duration_s, 2)
+                )
+                load.update(path=path, refine=refine)
+                rows.append(load)
+                echo(f"  {path}, refine {refine}: " + _load_line(load))
+    return rows
+
+
+def _icp_targets(rows: list[dict[str, Any]], compare: bool) -> list[dict[str, Any]]:
+    """p50 at one client with ICP, and with ``compare`` the QPS ratio at 4 clients."""
+    by = {(r["path"], r["refine"], r["clients"]): r for r in rows}
+    out = []
+    one = by.get(("default", "icp", 1))
+    if one:
+        out.append(_target("localize p50 with ICP, 1 client", one["p50_ms"], 35.0, "ms", False))
+    new, old = by.get(("default", "icp", 4)), by.get(("earlier", "icp", 4))
+    if compare and new and old and old["qps"]:
+        out.append(
+            _target(
+                "QPS with ICP, 4 clients, default / earlier path (same run)",
+                new["qps"] / old["qps"],
+                1.8,
+                "x",
+                True,
+            )
+        )
+    return out
 
 
 def _load_line(r: dict[str, Any]) -> str:
@@ -885,7 +971,23 @@ def format_http(res: dict[str, Any]) -> str:
         ["insert", "requests", "KiB/keyframe", "kf/s median", "kf/s min", "kf/s overall", "MiB/s"],
         ins_rows,
     )
-    return "\n\n".join([loc, ins, format_targets(res.get("targets", []))])
+    icp = _table(
+        ["map (path)", "refine", "clients", "errors", "p50 ms", "p99 ms", "QPS", "server pose"],
+        [
+            [
+                r["path"],
+                r["refine"],
+                str(r["clients"]),
+                str(r["errors"] + r["refused"]),
+                _f(r["p50_ms"]),
+                _f(r["p99_ms"]),
+                f"{r['qps']:.1f}",
+                _f(r["server_median_ms"].get("pose")),
+            ]
+            for r in res.get("icp", [])
+        ],
+    )
+    return "\n\n".join([loc, ins, icp, format_targets(res.get("targets", []))])
 
 
 def format_targets(targets: list[dict[str, Any]]) -> str:
