@@ -36,6 +36,7 @@ def test_http_section_tiny(tmp_path: Path) -> None:
         raw_batch=1,
         points=12_000,
         compare=True,
+        batch_wait_ms=50.0,
         work_dir=tmp_path,
     )
     json.dumps(res)
@@ -61,9 +62,17 @@ def test_http_section_tiny(tmp_path: Path) -> None:
         assert r["errors"] == 0 and r["refused"] == 0 and r["ok"] > 0, r["error_samples"]
     assert {t["unit"] for t in res["targets"]} == {"ms", "keyframes/s"}  # no 4-client row
     assert any("with ICP" in t["name"] for t in res["targets"])
+    # a second service with dynamic batching, loaded at every client count
+    assert [(r["path"], r["clients"]) for r in res["batching"]] == [
+        ("batching 50 ms", 1),
+        ("batching 50 ms", 2),
+    ]
+    for r in res["batching"]:
+        assert r["errors"] == 0 and r["ok"] > 0, r["error_samples"]
+        assert r["mean_batch_forward"] >= 1.0
     table = bs.format_http(res)
     assert "p99 ms" in table and "kf/s median" in table and "ratio" in table
-    assert "earlier" in table and "refine" in table
+    assert "earlier" in table and "refine" in table and "batch (sgv)" in table
     assert res["notes"]
     # the service was stopped and its temporary data directory removed
     assert res["server"]["pids"] and all(_gone(p) for p in res["server"]["pids"])

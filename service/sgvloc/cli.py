@@ -912,6 +912,14 @@ def bench_command(
     http_batch: Annotated[int, typer.Option(min=1, help="http: keyframes per insert")] = 250,
     raw_scans: Annotated[int, typer.Option(min=0, help="http: raw scans to insert")] = 24,
     raw_batch: Annotated[int, typer.Option(min=1, help="http: raw scans per insert")] = 8,
+    batch_wait_ms: Annotated[
+        float,
+        typer.Option(
+            min=0.0,
+            help="http: also load a second service with dynamic batching on (this wait, ms) "
+            "at every client count; 0 = not measured",
+        ),
+    ] = 0.0,
     scale_sizes: Annotated[
         str, typer.Option(help="scaling: map sizes (keyframes)")
     ] = "1000,3000,10000,30000,100000",

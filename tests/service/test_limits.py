@@ -53,6 +53,8 @@ def test_config_reports_the_limits(client: httpx.Client) -> None:
         "threads_per_worker": max(1, usable_cpus() // 2),
     }
     assert cfg["auth"]["enabled"] is False  # the shared test server is in development mode
+    # dynamic batching is off by default on CPU
+    assert cfg["batching"] == {"enabled": False, "wait_ms": 0.0, "max_size": 16}
 
 
 def test_library_threads_follow_workers_and_cores() -> None:

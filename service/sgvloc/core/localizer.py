@@ -9,15 +9,18 @@ of truth and feeds keyframes in with :meth:`Localizer.add_keyframe`).
 
 from __future__ import annotations
 
+import functools
 import itertools
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import partial
 from typing import Any
 
 import numpy as np
 
+from . import batching
 from ._rwlock import RWLock
 from .cache import BuildCache
 from .confidence import (
@@ -48,6 +51,19 @@ from .tracking import (
 )
 
 log = logging.getLogger(__name__)
+
+
+def _under_way(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """Count the call as a localization under way for dynamic batching, whose batches
+    wait only for localizations that could still join (:mod:`sgvloc.core.batching`)."""
+
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        with batching.localizing():
+            return fn(*args, **kwargs)
+
+    return wrapper
+
 
 #: keyframe clouds kept indexed for ICP per map (about 0.3 MB each at 5k points)
 ICP_CACHED_KEYFRAMES = 64
@@ -296,6 +312,7 @@ class Localizer:
 
     # -- localization -------------------------------------------------------------------
 
+    @_under_way
     def localize(
         self,
         scan: np.ndarray | None = None,

@@ -751,7 +751,7 @@ def sgv_rerank_scores(
         else:
             dst_np = np.zeros((k, n, 3), dtype=np.float32)
         src_np = np.broadcast_to(qk[None], (k, n, 3))  # [k, N, 3]
-        res = sgv_scores(src_np, dst_np, valid.numpy(), cfg, dense_budget_bytes=dense_budget_bytes)
+        res = _scores(src_np, dst_np, valid.numpy(), cfg, dense_budget_bytes)
         return replace(res, matches=idx_np.astype(np.int64))
 
     # src = query keypoints (same for all k), dst = the matched candidate keypoints.
@@ -763,5 +763,60 @@ def sgv_rerank_scores(
     src = torch.as_tensor(qk, device=device)[None].expand(k, n, 3)  # [k, N, 3]
 
     # Score all candidates in one batch.
-    res = sgv_scores(src, dst, valid, cfg, dense_budget_bytes=dense_budget_bytes)
+    res = _scores(src, dst, valid, cfg, dense_budget_bytes)
     return replace(res, matches=idx.cpu().numpy().astype(np.int64))
+
+
+def _scores(src: Any, dst: Any, mask: Any, cfg: SGVConfig, budget: int) -> SGVScores:
+    """:func:`sgv_scores` of one query's candidates, in one kernel call with concurrent
+    localizations' candidates when dynamic batching is on (:mod:`sgvloc.core.batching`)."""
+    from . import batching
+
+    batcher = batching.current()
+    if batcher is None:
+        return sgv_scores(src, dst, mask, cfg, dense_budget_bytes=budget)
+    key = (cfg.model_dump_json(), budget, type(src).__name__)
+    return batcher.run("sgv", key, (src, dst, mask), lambda items: _scores_many(items, cfg, budget))
+
+
+def _scores_many(items: list[tuple[Any, Any, Any]], cfg: SGVConfig, budget: int) -> list[SGVScores]:
+    """Several queries' ``(src [k, n, 3], dst, mask [k, n])`` scored in one call: padded
+    to the largest n (masked entries do not count), stacked along k, split again."""
+    n = max(m.shape[1] for _, _, m in items)
+    if isinstance(items[0][0], torch.Tensor):
+
+        def pad(a: Any, width: int) -> Any:
+            return torch.nn.functional.pad(a, (0, 0, 0, width) if a.dim() == 3 else (0, width))
+
+        cat = torch.cat
+    else:
+
+        def pad(a: Any, width: int) -> Any:
+            extra = [(0, 0), (0, width)] + [(0, 0)] * (a.ndim - 2)
+            return np.pad(a, extra)
+
+        cat = np.concatenate
+    srcs, dsts, masks = zip(
+        *[
+            (pad(s, n - m.shape[1]), pad(d, n - m.shape[1]), pad(m, n - m.shape[1]))
+            for s, d, m in items
+        ],
+        strict=True,
+    )
+    res = sgv_scores(cat(srcs), cat(dsts), cat(masks), cfg, dense_budget_bytes=budget)
+    out, k0 = [], 0
+    for _, _, m in items:
+        k, width = m.shape
+        sl = slice(k0, k0 + k)
+        out.append(
+            replace(
+                res,
+                score=res.score[sl],
+                normalised=res.normalised[sl],
+                eigenvalue=res.eigenvalue[sl],
+                n=res.n[sl],
+                v=res.v[sl, :width],
+            )
+        )
+        k0 += k
+    return out

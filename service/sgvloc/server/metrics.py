@@ -135,8 +135,27 @@ class Metrics:
             buckets=_WAIT_BUCKETS,
             registry=r,
         )
+        self.batch_size = Histogram(
+            "sgvloc_batch_size",
+            "Localizations per dynamic batch, by stage (forward: the network; sgv: re-ranking)",
+            ["stage"],
+            buckets=(1, 2, 3, 4, 6, 8, 12, 16, 24, 32, 64),
+            registry=r,
+        )
+        self.batch_wait = Histogram(
+            "sgvloc_batch_wait_seconds",
+            "Time the first localization of a dynamic batch waited for the others",
+            ["stage"],
+            buckets=_STAGE_BUCKETS,
+            registry=r,
+        )
         self._lock = threading.Lock()
         self._maps: set[str] = set()  # maps with per-map series
+
+    def observe_batch(self, stage: str, size: int, waited_s: float) -> None:
+        """A dynamic batch ran (:class:`sgvloc.core.batching.MicroBatcher`'s observer)."""
+        self.batch_size.labels(stage).observe(size)
+        self.batch_wait.labels(stage).observe(waited_s)
 
     def watch_maps(self, sizes: MapSizes) -> None:
         """Export the map gauges, read from ``sizes`` at every scrape."""

@@ -37,6 +37,16 @@ class Settings(BaseSettings):
         "numba, torch) may use inside one request. Default: usable cores // workers, at "
         "least 1, so that the worker threads do not oversubscribe the cores",
     )
+    batch_wait_ms: float | None = Field(
+        None,
+        ge=0.0,
+        le=100.0,
+        description="dynamic batching: how long the first of concurrent localizations waits "
+        "for others to share one network forward and one SGV kernel call (0 = off). "
+        "Default: 2 ms when CUDA is present, else off (on CPU a batch is no cheaper per "
+        "scan; sgvloc bench --only http --batch-wait-ms measures it)",
+    )
+    batch_max: int = Field(16, ge=1, le=256, description="dynamic batching: largest batch")
     max_body_bytes: int = Field(64 * 1024 * 1024, ge=1024, description="413 above this")
     max_batch: int = Field(1000, ge=1, description="keyframes per insert request")
     max_import_bytes: int = Field(

@@ -319,6 +319,24 @@ class LearnedEncoder(Encoder):
 
     # -- shared ------------------------------------------------------------------------
 
+    def _forward(self, x: Any) -> tuple[Any, Any, Any]:
+        """The network on one image ``[1, 1, 152, 152]``, batched with concurrent
+        localizations' images when dynamic batching is on (:mod:`sgvloc.core.batching`)."""
+        from .. import batching
+
+        batcher = batching.current()
+        if batcher is None:
+            return self.net(x)
+        key = (self.identity.params["weights_sha256"], self.runtime, str(self.device))
+        return batcher.run("forward", key, x, self._forward_many)
+
+    def _forward_many(self, xs: list[Any]) -> list[tuple[Any, Any, Any]]:
+        import torch
+
+        with torch.inference_mode():
+            g, local, sal = self.net(torch.cat(xs))
+        return [(g[i : i + 1], local[i : i + 1], sal[i : i + 1]) for i in range(len(xs))]
+
     def _encode(self, image: np.ndarray, raster: BEVRaster | None) -> Features:
         import torch
         import torch.nn.functional as F
@@ -335,7 +353,7 @@ class LearnedEncoder(Encoder):
         c = self.config
         with torch.inference_mode():
             x = to_input(image[None]).to(self.device)  # [1, 1, 152, 152]
-            g, local, sal = self.net(x)
+            g, local, sal = self._forward(x)
             if c.global_descriptor == "network" and c.global_rotations == 4:
                 turned = torch.cat([torch.rot90(x, t, dims=(2, 3)) for t in (1, 2, 3)])
                 g = torch.cat([g, self.net.global_descriptor(turned)])

@@ -26,6 +26,7 @@ from fastapi_offline import FastAPIOffline
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from sgvloc.about import __version__
+from sgvloc.core import batching
 
 from ..maps import MapManager
 from ..metrics import Metrics
@@ -130,6 +131,13 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
         settings.inflight_limit,
         settings.request_timeout_s,
     )
+    batcher = batching.configure(
+        settings.batch_wait_ms, settings.batch_max, observe=app.state.metrics.observe_batch
+    )
+    log.info(
+        "dynamic batching: %s",
+        f"wait {batcher.wait_ms:g} ms, at most {batcher.max_size}" if batcher.enabled else "off",
+    )
     loader = threading.Thread(target=_load_maps, args=(manager,), name="sgvloc-load", daemon=True)
     loader.start()
     hup = _reload_keys_on_sighup(app)
@@ -140,6 +148,7 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
         manager.stop_loading()  # a start-up still loading maps ends after the current one
         await anyio.to_thread.run_sync(loader.join, settings.shutdown_timeout_s)
         await anyio.to_thread.run_sync(manager.close)
+        batching.reset()
         log.info("shut down: snapshots saved, stores closed")
 
 

@@ -661,12 +661,21 @@ class AuthOut(BaseModel):
     readyz: Literal["open", "viewer"]
 
 
+class BatchingOut(BaseModel):
+    """Dynamic batching in force (settings ``batch_wait_ms``, ``batch_max``)."""
+
+    enabled: bool
+    wait_ms: float = Field(description="0 = off")
+    max_size: int
+
+
 class ConfigOut(BaseModel):
     """``GET /v1/config``: the service's limits and access settings."""
 
     version: str
     limits: LimitsOut
     auth: AuthOut
+    batching: BatchingOut
     snapshot_every: int
     snapshot_delay_s: float
 

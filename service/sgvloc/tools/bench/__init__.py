@@ -63,7 +63,7 @@ def run_bench(
             keyframes=o["http_keyframes"], clients=o["http_clients"],
             duration_s=o["http_duration"], batch=o["http_batch"], raw_scans=o["raw_scans"],
             raw_batch=o["raw_batch"], workers=o["service_workers"], compare=o["compare"],
-            echo=echo,
+            batch_wait_ms=o["batch_wait_ms"], echo=echo,
         ),
         "scaling": lambda: http.bench_scaling(
             sizes=o["scale_sizes"], clients=o["scale_clients"], duration_s=o["scale_duration"],

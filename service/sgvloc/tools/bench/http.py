@@ -521,13 +521,16 @@ def bench_http(
     top_k: int = 20,
     workers: int = 2,
     compare: bool = False,
+    batch_wait_ms: float = 0.0,
     work_dir: Path | None = None,
     echo: Echo = _quiet,
 ) -> dict[str, Any]:
     """Localize p50/p99/QPS at each client count on a ``keyframes`` map; bulk insert
     keyframes/s with precomputed features and with raw scans; on the raw-scan map,
     localize with ICP (the default) and without, and with ``compare`` on a second map of
-    the same scans with the earlier path's settings. See the module docstring."""
+    the same scans with the earlier path's settings. With ``batch_wait_ms`` > 0, a second
+    service with dynamic batching on (that wait) is loaded the same way (raw-scan map,
+    ICP) at every client count, next to the first (off). See the module docstring."""
     from sgvloc.core.encoders import EncoderSpec
 
     clients = _check_clients(clients or [1, 4, 16])
@@ -605,6 +608,11 @@ def bench_http(
             )  # fmt: skip
         result["server"]["memory_end"] = srv.memory_mib()
 
+    if batch_wait_ms > 0 and raw_scans:
+        result["batching"] = _batching_rows(
+            work_dir, workers, env, batch_wait_ms, scans, queries, points, top_k, clients,
+            duration_s, raw_batch, echo,
+        )  # fmt: skip
     by_clients = {r["clients"]: r for r in rows}
     icp_targets = _icp_targets(result.get("icp", []), compare)
     result["targets"] = [
@@ -702,6 +710,52 @@ def _icp_rows(
                 rows.append(load)
                 echo(f"  {path}, refine {refine}: " + _load_line(load))
     return rows
+
+
+def _batching_rows(
+    work_dir: Path | None,
+    workers: int,
+    env: dict[str, str],
+    wait_ms: float,
+    scans: list[np.ndarray],
+    queries: list[np.ndarray],
+    points: int,
+    top_k: int,
+    clients: list[int],
+    duration_s: float,
+    batch: int,
+    echo: Echo,
+) -> list[dict[str, Any]]:
+    """Localize load (raw-scan map, ICP) on a second service with dynamic batching on,
+    at every client count; the batches' mean size from its metrics."""
+    env = {**env, "SGVLOC_BATCH_WAIT_MS": str(wait_ms)}
+    bodies = query_bodies(queries, points, max(6, len(queries)), top_k, refine="icp")
+    rows = []
+    with temporary_service(work_dir, "batch", workers, env) as srv, ClientProcess() as cp:
+        _create_map(srv.url, {"name": "bench-raw"})
+        cp.run(_insert_scans, srv.url, "bench-raw", scans, batch)
+        for n in clients:
+            before = httpx.get(f"{srv.url}/metrics").text
+            load = _summarise_load(
+                cp.run(_localize_load, srv.url, "bench-raw", bodies, n, duration_s, 2)
+            )
+            after = httpx.get(f"{srv.url}/metrics").text
+            for stage in ("forward", "sgv"):
+                count, items = (
+                    _metric_sum(after, f'sgvloc_batch_size_{w}{{stage="{stage}"}}')
+                    - _metric_sum(before, f'sgvloc_batch_size_{w}{{stage="{stage}"}}')
+                    for w in ("count", "sum")
+                )
+                load[f"mean_batch_{stage}"] = items / count if count else None
+            load.update(path=f"batching {wait_ms:g} ms", refine="icp")
+            rows.append(load)
+            echo(f"  batching {wait_ms:g} ms: " + _load_line(load))
+    return rows
+
+
+def _metric_sum(text: str, name: str) -> float:
+    """The sum of the samples of ``name`` (with its labels) in a /metrics text."""
+    return sum(float(ln.split()[-1]) for ln in text.splitlines() if ln.startswith(name + " "))
 
 
 def _icp_targets(rows: list[dict[str, Any]], compare: bool) -> list[dict[str, Any]]:
@@ -987,7 +1041,31 @@ def format_http(res: dict[str, Any]) -> str:
             for r in res.get("icp", [])
         ],
     )
-    return "\n\n".join([loc, ins, icp, format_targets(res.get("targets", []))])
+    batched = _table(
+        [
+            "service",
+            "clients",
+            "p50 ms",
+            "p99 ms",
+            "QPS",
+            "mean batch (forward)",
+            "mean batch (sgv)",
+        ],
+        [
+            [
+                r["path"],
+                str(r["clients"]),
+                _f(r["p50_ms"]),
+                _f(r["p99_ms"]),
+                f"{r['qps']:.1f}",
+                _f(r.get("mean_batch_forward"), 2),
+                _f(r.get("mean_batch_sgv"), 2),
+            ]
+            for r in res.get("batching", [])
+        ],
+    )
+    parts = [loc, ins, icp] + ([batched] if res.get("batching") else [])
+    return "\n\n".join([*parts, format_targets(res.get("targets", []))])
 
 
 def format_targets(targets: list[dict[str, Any]]) -> str:

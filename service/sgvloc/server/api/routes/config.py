@@ -11,7 +11,7 @@ from ..body import encode
 from ..deps import SettingsDep
 from ..errors import ApiError
 from ..openapi import error_responses
-from ..schemas import AuthOut, ConfigOut, KeysReloaded, LimitsOut
+from ..schemas import AuthOut, BatchingOut, ConfigOut, KeysReloaded, LimitsOut
 
 router = APIRouter(prefix="/v1", tags=["service"], dependencies=[Depends(authorize)])
 
@@ -50,10 +50,20 @@ async def get_config(request: Request, settings: SettingsDep) -> Response:
                 metrics=s.metrics_auth,
                 readyz=s.readyz_auth,
             ),
+            batching=_batching(),
             snapshot_every=s.snapshot_every,
             snapshot_delay_s=s.snapshot_delay_s,
         ),
     )
+
+
+def _batching() -> BatchingOut:
+    from sgvloc.core import batching
+
+    b = batching.installed()
+    if b is None:
+        return BatchingOut(enabled=False, wait_ms=0.0, max_size=1)
+    return BatchingOut(enabled=b.enabled, wait_ms=b.wait_ms, max_size=b.max_size)
 
 
 @router.post(

@@ -1,0 +1,199 @@
+"""Dynamic batching: concurrent localizations share network forwards and SGV kernel
+calls, and get exactly the answers they get alone (real scans, real encoder)."""
+
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sgvloc.core import batching
+from sgvloc.core.batching import MicroBatcher
+from sgvloc.core.config import LocalizerConfig
+from sgvloc.core.encoders import EncoderSpec, make_encoder
+from sgvloc.core.localizer import Localizer
+from sgvloc.core.sequence import KittiSequence
+
+
+@pytest.fixture(autouse=True)
+def _no_batcher_left():
+    batching.reset()
+    yield
+    batching.reset()
+
+
+def _threads(fns) -> list:
+    out = [None] * len(fns)
+    start = threading.Barrier(len(fns))
+
+    def run(i: int) -> None:
+        start.wait()
+        out[i] = fns[i]()
+
+    ts = [threading.Thread(target=run, args=(i,)) for i in range(len(fns))]
+    for t in ts:
+        t.start()
+    for t in ts:
+        t.join(60)
+    return out
+
+
+def test_callers_share_one_batch_and_get_their_own_results() -> None:
+    b = MicroBatcher(wait_ms=5000, max_size=8)
+    calls = []
+
+    def square_all(items: list[int]) -> list[int]:
+        calls.append(list(items))
+        return [x * x for x in items]
+
+    def one(x: int):
+        def f():
+            with b.localizing():
+                time.sleep(0.01 * x)  # arrive one after another
+                return b.run("stage", "key", x, square_all)
+
+        return f
+
+    assert _threads([one(x) for x in range(1, 5)]) == [1, 4, 9, 16]
+    assert len(calls) == 1 and sorted(calls[0]) == [1, 2, 3, 4]
+    assert b.stats["stage"] == {"batches": 1, "items": 4, "largest": 4}
+
+
+def test_a_lone_caller_does_not_wait_and_a_full_batch_runs_at_once() -> None:
+    b = MicroBatcher(wait_ms=5000, max_size=2)
+    t0 = time.perf_counter()
+    with b.localizing():
+        assert b.run("s", "k", 3, lambda xs: [x + 1 for x in xs]) == 4
+    assert time.perf_counter() - t0 < 1.0  # nobody else under way: no wait
+
+    def one(x: int):
+        def f():
+            with b.localizing():
+                time.sleep(0.05)  # all four under way before the first arrives
+                return b.run("s", "k", x, lambda xs: [len(xs)] * len(xs))
+
+        return f
+
+    # four callers, batches of at most two
+    assert _threads([one(x) for x in range(4)]) == [2, 2, 2, 2]
+    assert b.stats["s"]["largest"] == 2
+
+
+def test_a_failure_reaches_every_member_of_the_batch() -> None:
+    b = MicroBatcher(wait_ms=5000, max_size=4)
+
+    def boom(items):
+        raise ValueError("bad batch")
+
+    def one():
+        with b.localizing():
+            time.sleep(0.05)
+            try:
+                b.run("s", "k", 1, boom)
+            except ValueError as exc:
+                return str(exc)
+        return "no error"
+
+    assert _threads([one, one, one]) == ["bad batch"] * 3
+
+
+def test_different_keys_never_share_a_batch() -> None:
+    b = MicroBatcher(wait_ms=300, max_size=8)
+
+    def one(key: str):
+        def f():
+            with b.localizing():
+                time.sleep(0.05)
+                return b.run("s", key, key, lambda xs: ["".join(xs)] * len(xs))
+
+        return f
+
+    assert _threads([one("a"), one("b")]) == ["a", "b"]
+    assert b.stats["s"]["batches"] == 2
+
+
+def test_bad_settings_are_refused() -> None:
+    with pytest.raises(ValueError):
+        MicroBatcher(wait_ms=-1, max_size=4)
+    with pytest.raises(ValueError):
+        MicroBatcher(wait_ms=1, max_size=0)
+
+
+# -- the localizer on real scans ---------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def two_maps(balm_mini_dir: Path):
+    """Two maps of the fixture's database scans, each with its own encoder instance."""
+    seq = KittiSequence(balm_mini_dir)
+    roles = [
+        ln.split()[1]
+        for ln in (balm_mini_dir / "scans.txt").read_text().splitlines()
+        if ln and not ln.startswith("#")
+    ]
+    maps = []
+    for _ in range(2):
+        loc = Localizer(make_encoder(EncoderSpec()), LocalizerConfig(top_k=6))
+        for f, r in zip(seq, roles, strict=True):
+            if r == "database":
+                loc.add_keyframe(f.T_world_sensor, scan=f.scan().points)
+        maps.append(loc)
+    queries = [f.scan().points for f, r in zip(seq, roles, strict=True) if r == "query"]
+    return maps, queries
+
+
+def _key(res) -> tuple:
+    return (
+        res.localized,
+        res.keyframe_id,
+        res.confidence,
+        None if res.T_map_sensor is None else res.T_map_sensor.tobytes(),
+        tuple((c.keyframe_id, c.score) for c in res.reranked),
+        res.reason,
+    )
+
+
+def test_batched_answers_equal_unbatched_ones_across_maps(two_maps) -> None:
+    maps, queries = two_maps
+    jobs = [(m, q) for q in queries for m in range(2)]  # every query on both maps
+    alone = [
+        _key(maps[m].localize(queries[q]))
+        for m, q in [(m, i) for i in range(len(queries)) for m in range(2)]
+    ]
+    b = batching.configure(wait_ms=5000, max_size=8)
+    together = _threads([lambda m=m, q=q: _key(maps[m].localize(q)) for m, q in jobs])
+    assert together == alone
+    for stage in ("forward", "sgv"):
+        s = b.stats[stage]
+        assert s["items"] == len(jobs) and s["largest"] > 1, b.stats
+        assert s["batches"] < len(jobs)
+
+
+def test_two_maps_share_one_forward_and_one_sgv_call(two_maps) -> None:
+    maps, queries = two_maps
+    alone = [_key(maps[m].localize(queries[0])) for m in range(2)]
+    b = batching.configure(wait_ms=10_000, max_size=8)
+    together = _threads([lambda m=m: _key(maps[m].localize(queries[0])) for m in range(2)])
+    assert together == alone
+    assert b.stats["forward"] == {"batches": 1, "items": 2, "largest": 2}
+    assert b.stats["sgv"] == {"batches": 1, "items": 2, "largest": 2}
+
+
+def test_wait_zero_is_the_unbatched_path(two_maps) -> None:
+    maps, queries = two_maps
+    before = [_key(maps[0].localize(q)) for q in queries[:3]]
+    b = batching.configure(wait_ms=0, max_size=8)
+    assert batching.current() is None  # every stage calls straight through
+    after = _threads([lambda q=q: _key(maps[0].localize(q)) for q in queries[:3]])
+    assert after == before and b.stats == {}
+
+
+def test_auto_is_off_without_cuda() -> None:
+    import torch
+
+    b = batching.configure(wait_ms=None, max_size=8)
+    assert b.wait_ms == (batching.CUDA_WAIT_MS if torch.cuda.is_available() else 0.0)
+    assert np.isfinite(b.wait_ms)
