@@ -64,12 +64,17 @@ def test_http_section_tiny(tmp_path: Path) -> None:
     assert any("with ICP" in t["name"] for t in res["targets"])
     # a second service with dynamic batching, loaded at every client count
     assert [(r["path"], r["clients"]) for r in res["batching"]] == [
+        ("batching off", 1),
         ("batching 50 ms", 1),
+        ("batching off", 2),
         ("batching 50 ms", 2),
     ]
     for r in res["batching"]:
         assert r["errors"] == 0 and r["ok"] > 0, r["error_samples"]
-        assert r["mean_batch_forward"] >= 1.0
+        if r["path"] == "batching off":
+            assert r["mean_batch_forward"] is None  # that service does not batch
+        else:
+            assert r["mean_batch_forward"] >= 1.0
     table = bs.format_http(res)
     assert "p99 ms" in table and "kf/s median" in table and "ratio" in table
     assert "earlier" in table and "refine" in table and "batch (sgv)" in table

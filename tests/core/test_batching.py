@@ -53,33 +53,58 @@ def test_callers_share_one_batch_and_get_their_own_results() -> None:
         def f():
             with b.localizing():
                 time.sleep(0.01 * x)  # arrive one after another
-                return b.run("stage", "key", x, square_all)
+                return b.run("forward", "key", x, square_all)
 
         return f
 
     assert _threads([one(x) for x in range(1, 5)]) == [1, 4, 9, 16]
     assert len(calls) == 1 and sorted(calls[0]) == [1, 2, 3, 4]
-    assert b.stats["stage"] == {"batches": 1, "items": 4, "largest": 4}
+    assert b.stats["forward"] == {"batches": 1, "items": 4, "largest": 4}
 
 
 def test_a_lone_caller_does_not_wait_and_a_full_batch_runs_at_once() -> None:
     b = MicroBatcher(wait_ms=5000, max_size=2)
     t0 = time.perf_counter()
     with b.localizing():
-        assert b.run("s", "k", 3, lambda xs: [x + 1 for x in xs]) == 4
+        assert b.run("forward", "k", 3, lambda xs: [x + 1 for x in xs]) == 4
     assert time.perf_counter() - t0 < 1.0  # nobody else under way: no wait
 
     def one(x: int):
         def f():
             with b.localizing():
                 time.sleep(0.05)  # all four under way before the first arrives
-                return b.run("s", "k", x, lambda xs: [len(xs)] * len(xs))
+                return b.run("forward", "k", x, lambda xs: [len(xs)] * len(xs))
 
         return f
 
     # four callers, batches of at most two
     assert _threads([one(x) for x in range(4)]) == [2, 2, 2, 2]
-    assert b.stats["s"]["largest"] == 2
+    assert b.stats["forward"]["largest"] == 2
+
+
+def test_nobody_waits_for_a_localization_already_past_the_stage() -> None:
+    b = MicroBatcher(wait_ms=5000, max_size=8)
+    past = threading.Event()
+    done = threading.Event()
+
+    def busy_elsewhere() -> None:  # ran its forward, now in a long later stage
+        with b.localizing():
+            b.run("forward", "k", 0, lambda xs: xs)
+            past.set()
+            done.wait(30)
+
+    t = threading.Thread(target=busy_elsewhere)
+    t.start()
+    try:
+        assert past.wait(10)
+        t0 = time.perf_counter()
+        with b.localizing():
+            assert b.run("forward", "k", 1, lambda xs: xs) == 1
+        assert time.perf_counter() - t0 < 1.0  # not the 5 s wait
+    finally:
+        done.set()
+        t.join(10)
+    assert b.stats["forward"] == {"batches": 2, "items": 2, "largest": 1}
 
 
 def test_a_failure_reaches_every_member_of_the_batch() -> None:
@@ -92,7 +117,7 @@ def test_a_failure_reaches_every_member_of_the_batch() -> None:
         with b.localizing():
             time.sleep(0.05)
             try:
-                b.run("s", "k", 1, boom)
+                b.run("forward", "k", 1, boom)
             except ValueError as exc:
                 return str(exc)
         return "no error"
@@ -107,12 +132,12 @@ def test_different_keys_never_share_a_batch() -> None:
         def f():
             with b.localizing():
                 time.sleep(0.05)
-                return b.run("s", key, key, lambda xs: ["".join(xs)] * len(xs))
+                return b.run("forward", key, key, lambda xs: ["".join(xs)] * len(xs))
 
         return f
 
     assert _threads([one("a"), one("b")]) == ["a", "b"]
-    assert b.stats["s"]["batches"] == 2
+    assert b.stats["forward"]["batches"] == 2
 
 
 def test_bad_settings_are_refused() -> None:

@@ -10,8 +10,9 @@ runtime; the same SGV settings), at most ``max_size`` in all, then runs them as 
 candidate) pair, padded to a common size), and every caller continues with its own
 slice on its own thread (keypoint selection, RANSAC, ICP, the verdict: in parallel).
 
-The leader waits only while other localizations are under way that could still join
-(:func:`localizing` counts them): a lone request never waits. With ``wait_ms = 0``
+The leader waits only while other localizations are under way that have not reached
+this stage yet and so could still join (:func:`localizing` counts them, per stage): a
+lone request never waits, nor does one whose peers are all past the stage. With ``wait_ms = 0``
 nothing is batched and every stage runs exactly as without this module. Batched and
 unbatched answers are the same: ONNX Runtime's and the numba kernel's results do not
 depend on the batch around them (tested), and requests for different maps share a batch
@@ -33,6 +34,8 @@ from typing import Any
 
 #: wait used when the setting is "auto" and CUDA is present
 CUDA_WAIT_MS = 2.0
+#: the stages that batch, in the order a localization reaches them
+STAGES = ("forward", "sgv")
 
 
 @dataclass
@@ -64,7 +67,9 @@ class MicroBatcher:
         self._observe = observe
         self._cond = threading.Condition()
         self._open: dict[Hashable, _Batch] = {}
-        self._inflight = 0
+        #: per stage: localizations under way that have not reached it yet
+        self._ahead: dict[str, int] = {stage: 0 for stage in STAGES}
+        self._reached = threading.local()  # this thread's stages reached in its localization
         #: per stage: batches run, items in them, the largest batch
         self.stats: dict[str, dict[str, int]] = {}
 
@@ -74,15 +79,24 @@ class MicroBatcher:
 
     @contextlib.contextmanager
     def localizing(self) -> Iterator[None]:
-        """Count a localization as under way (a possible member of the next batches)."""
+        """Count this thread's localization as under way: a possible member of the next
+        batch of every stage until it reaches that stage or ends."""
+        if getattr(self._reached, "stages", None) is not None:  # nested: counted already
+            yield
+            return
         with self._cond:
-            self._inflight += 1
+            for stage in STAGES:
+                self._ahead[stage] += 1
+        self._reached.stages = set()
         try:
             yield
         finally:
             with self._cond:
-                self._inflight -= 1
+                for stage in STAGES:
+                    if stage not in self._reached.stages:
+                        self._ahead[stage] -= 1
                 self._cond.notify_all()
+            self._reached.stages = None
 
     def run(
         self, stage: str, key: Hashable, item: Any, fn: Callable[[list[Any]], list[Any]]
@@ -90,7 +104,11 @@ class MicroBatcher:
         if not self.enabled:
             return fn([item])[0]
         key = (stage, key)
+        reached = getattr(self._reached, "stages", None)
         with self._cond:
+            if reached is not None and stage in self._ahead and stage not in reached:
+                reached.add(stage)
+                self._ahead[stage] -= 1
             batch = self._open.get(key)
             leader = batch is None
             if leader:
@@ -108,7 +126,7 @@ class MicroBatcher:
             with self._cond:
                 while (
                     self._open.get(key) is batch
-                    and self._inflight > len(batch.items)
+                    and self._ahead.get(stage, 0) > 0
                     and (left := deadline - time.perf_counter()) > 0
                 ):
                     self._cond.wait(left)

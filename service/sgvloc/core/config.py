@@ -109,6 +109,14 @@ class PoseConfig(_Section):
         description="the query cloud is downsampled to this voxel size for the ICP "
         "iterations (0 = every point); fitness and RMSE are always over every point",
     )
+    icp_stop_m: float = Field(
+        0.005,
+        gt=0.0,
+        le=1.0,
+        description="small_gicp: ICP stops once an iteration moves the pose less than this "
+        "(m) and turns it less than icp_stop_deg",
+    )
+    icp_stop_deg: float = Field(0.25, gt=0.0, le=10.0, description="small_gicp: see icp_stop_m")
     icp_backend: Literal["small_gicp", "open3d"] = Field(
         "small_gicp",
         description="ICP implementation: small_gicp (one thread, the keyframe's KD-tree "

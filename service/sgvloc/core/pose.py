@@ -8,6 +8,7 @@ Frames are named as in ``T_target_source``: the transform that maps points of th
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -344,6 +345,8 @@ def _icp_small_gicp(
         registration_type="PLANE_ICP" if cfg.icp_method == "point_to_plane" else "ICP",
         max_correspondence_distance=cfg.icp_max_distance,
         max_iterations=cfg.icp_iterations,
+        translation_epsilon=cfg.icp_stop_m,
+        rotation_epsilon=math.radians(cfg.icp_stop_deg),
         num_threads=1,
     )
     T = np.asarray(res.T_target_source, dtype=np.float64).copy()

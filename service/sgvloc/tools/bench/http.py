@@ -529,8 +529,8 @@ def bench_http(
     keyframes/s with precomputed features and with raw scans; on the raw-scan map,
     localize with ICP (the default) and without, and with ``compare`` on a second map of
     the same scans with the earlier path's settings. With ``batch_wait_ms`` > 0, a second
-    service with dynamic batching on (that wait) is loaded the same way (raw-scan map,
-    ICP) at every client count, next to the first (off). See the module docstring."""
+    service with dynamic batching on (that wait) is started beside the first and both are
+    loaded in turn (raw-scan map, ICP) at every client count. See the module docstring."""
     from sgvloc.core.encoders import EncoderSpec
 
     clients = _check_clients(clients or [1, 4, 16])
@@ -606,13 +606,13 @@ def bench_http(
                 srv.url, cp, scans, queries, points, top_k, clients, duration_s, raw_batch,
                 compare, echo,
             )  # fmt: skip
+            if batch_wait_ms > 0:
+                result["batching"] = _batching_rows(
+                    srv.url, cp, work_dir, workers, env, batch_wait_ms, scans, queries, points,
+                    top_k, clients, duration_s, raw_batch, echo,
+                )  # fmt: skip
         result["server"]["memory_end"] = srv.memory_mib()
 
-    if batch_wait_ms > 0 and raw_scans:
-        result["batching"] = _batching_rows(
-            work_dir, workers, env, batch_wait_ms, scans, queries, points, top_k, clients,
-            duration_s, raw_batch, echo,
-        )  # fmt: skip
     by_clients = {r["clients"]: r for r in rows}
     icp_targets = _icp_targets(result.get("icp", []), compare)
     result["targets"] = [
@@ -713,6 +713,8 @@ def _icp_rows(
 
 
 def _batching_rows(
+    url: str,
+    cp: ClientProcess,
     work_dir: Path | None,
     workers: int,
     env: dict[str, str],
@@ -726,30 +728,33 @@ def _batching_rows(
     batch: int,
     echo: Echo,
 ) -> list[dict[str, Any]]:
-    """Localize load (raw-scan map, ICP) on a second service with dynamic batching on,
-    at every client count; the batches' mean size from its metrics."""
+    """At every client count, localize load (raw-scan map, ICP) on the running service
+    (batching off) and then on a second one with dynamic batching on, started beside it
+    with the same scans: pairs measured one right after the other. The batched rows
+    carry the batches' mean size from that service's metrics."""
     env = {**env, "SGVLOC_BATCH_WAIT_MS": str(wait_ms)}
     bodies = query_bodies(queries, points, max(6, len(queries)), top_k, refine="icp")
     rows = []
-    with temporary_service(work_dir, "batch", workers, env) as srv, ClientProcess() as cp:
+    with temporary_service(work_dir, "batch", workers, env) as srv:
         _create_map(srv.url, {"name": "bench-raw"})
         cp.run(_insert_scans, srv.url, "bench-raw", scans, batch)
         for n in clients:
-            before = httpx.get(f"{srv.url}/metrics").text
-            load = _summarise_load(
-                cp.run(_localize_load, srv.url, "bench-raw", bodies, n, duration_s, 2)
-            )
-            after = httpx.get(f"{srv.url}/metrics").text
-            for stage in ("forward", "sgv"):
-                count, items = (
-                    _metric_sum(after, f'sgvloc_batch_size_{w}{{stage="{stage}"}}')
-                    - _metric_sum(before, f'sgvloc_batch_size_{w}{{stage="{stage}"}}')
-                    for w in ("count", "sum")
+            for label, base in (("batching off", url), (f"batching {wait_ms:g} ms", srv.url)):
+                before = httpx.get(f"{base}/metrics").text
+                load = _summarise_load(
+                    cp.run(_localize_load, base, "bench-raw", bodies, n, duration_s, 2)
                 )
-                load[f"mean_batch_{stage}"] = items / count if count else None
-            load.update(path=f"batching {wait_ms:g} ms", refine="icp")
-            rows.append(load)
-            echo(f"  batching {wait_ms:g} ms: " + _load_line(load))
+                after = httpx.get(f"{base}/metrics").text
+                for stage in ("forward", "sgv"):
+                    count, items = (
+                        _metric_sum(after, f'sgvloc_batch_size_{w}{{stage="{stage}"}}')
+                        - _metric_sum(before, f'sgvloc_batch_size_{w}{{stage="{stage}"}}')
+                        for w in ("count", "sum")
+                    )
+                    load[f"mean_batch_{stage}"] = items / count if count else None
+                load.update(path=label, refine="icp")
+                rows.append(load)
+                echo(f"  {label}: " + _load_line(load))
     return rows
 
 
