@@ -222,3 +222,31 @@ def test_auto_is_off_without_cuda() -> None:
     b = batching.configure(wait_ms=None, max_size=8)
     assert b.wait_ms == (batching.CUDA_WAIT_MS if torch.cuda.is_available() else 0.0)
     assert np.isfinite(b.wait_ms)
+
+
+@pytest.mark.parametrize("backend", ["numba", "torch"])
+def test_one_sgv_call_scores_several_queries_as_separate_calls(backend: str) -> None:
+    """The batched SGV path: queries with different k and n padded into one call give
+    each query's own scores (numba: exactly; torch: to float rounding)."""
+    import torch
+
+    from sgvloc.core.config import SGVConfig
+    from sgvloc.core.sgv import _scores_many, sgv_scores
+
+    rng = np.random.default_rng(0)
+    cfg = SGVConfig(backend=backend)
+    items = []
+    for k, n in ((3, 40), (5, 64), (2, 17)):
+        src = rng.uniform(-20, 20, (k, n, 3)).astype(np.float32)
+        dst = src + rng.normal(0, 0.3, (k, n, 3)).astype(np.float32)
+        mask = rng.random((k, n)) < 0.9
+        if backend == "torch":
+            src, dst, mask = torch.from_numpy(src), torch.from_numpy(dst), torch.from_numpy(mask)
+        items.append((src, dst, mask))
+    batched = _scores_many(items, cfg, 1 << 26)
+    for (src, dst, mask), got in zip(items, batched, strict=True):
+        alone = sgv_scores(src, dst, mask, cfg)
+        tol = 0 if backend == "numba" else 1e-5
+        np.testing.assert_allclose(got.score, alone.score, rtol=tol, atol=tol)
+        np.testing.assert_allclose(got.v, alone.v, rtol=tol, atol=tol)
+        assert np.array_equal(got.n, alone.n)

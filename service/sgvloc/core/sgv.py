@@ -785,24 +785,18 @@ def _scores_many(items: list[tuple[Any, Any, Any]], cfg: SGVConfig, budget: int)
     n = max(m.shape[1] for _, _, m in items)
     if isinstance(items[0][0], torch.Tensor):
 
-        def pad(a: Any, width: int) -> Any:
-            return torch.nn.functional.pad(a, (0, 0, 0, width) if a.dim() == 3 else (0, width))
+        def pad(a: Any, width: int) -> Any:  # zeros (False for the mask) after column n
+            return torch.cat([a, a.new_zeros((a.shape[0], width, *a.shape[2:]))], dim=1)
 
         cat = torch.cat
     else:
 
         def pad(a: Any, width: int) -> Any:
-            extra = [(0, 0), (0, width)] + [(0, 0)] * (a.ndim - 2)
-            return np.pad(a, extra)
+            return np.pad(a, [(0, 0), (0, width)] + [(0, 0)] * (a.ndim - 2))
 
         cat = np.concatenate
-    srcs, dsts, masks = zip(
-        *[
-            (pad(s, n - m.shape[1]), pad(d, n - m.shape[1]), pad(m, n - m.shape[1]))
-            for s, d, m in items
-        ],
-        strict=True,
-    )
+    padded = [[pad(a, n - m.shape[1]) for a in (s, d, m)] for s, d, m in items]
+    srcs, dsts, masks = zip(*padded, strict=True)
     res = sgv_scores(cat(srcs), cat(dsts), cat(masks), cfg, dense_budget_bytes=budget)
     out, k0 = [], 0
     for _, _, m in items:
