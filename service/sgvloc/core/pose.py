@@ -307,7 +307,7 @@ class IcpTarget:
     def __init__(self, cloud: np.ndarray) -> None:
         import small_gicp
 
-        self.source = cloud  # the array it was built from (a cache checks identity)
+        self.source = cloud  # kept alive: the localizer caches targets by its id()
         self.cloud = small_gicp.PointCloud(np.asarray(cloud, dtype=np.float64))
         self.tree = small_gicp.KdTree(self.cloud, num_threads=1)
         small_gicp.estimate_normals(
