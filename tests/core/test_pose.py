@@ -199,3 +199,24 @@ def test_shape_errors_and_rigidity_checks():
     assert not is_rigid(reflect)
     with pytest.raises(InputError, match="4x4"):
         check_rigid(np.eye(3), "T")
+
+
+@pytest.mark.parametrize("block", [2**20, 37])
+@pytest.mark.parametrize("mutual", [True, False])
+def test_feature_matching_equals_a_kd_tree_search(pair, monkeypatch, block, mutual):
+    """Nearest neighbours by one matrix product (in blocks of rows) are the KD-tree's."""
+    from scipy.spatial import cKDTree
+
+    from sgvloc.core import pose
+
+    monkeypatch.setattr(pose, "_FEATURE_BLOCK", block)
+    src, dst, *_ = pair
+    a, b = src.local_features[:900], dst.local_features[:700]
+    fwd = cKDTree(b).query(a, k=1)[1]
+    want = np.stack([np.arange(len(a)), fwd], axis=1)
+    if mutual:
+        back = cKDTree(a).query(b, k=1)[1]
+        want = want[back[fwd] == want[:, 0]]
+    got = pose.feature_correspondences(a, b, mutual)
+    assert np.array_equal(got, want) and len(got) > 50
+    assert pose.feature_correspondences(a[:0], b, mutual).shape == (0, 2)

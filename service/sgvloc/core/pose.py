@@ -79,16 +79,40 @@ def to_cloud(points: np.ndarray):
     return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
 
 
+#: entries of one block of the feature-distance matrix in :func:`feature_correspondences`
+_FEATURE_BLOCK = 2**20
+
+
 def feature_correspondences(
     src_feats: np.ndarray, dst_feats: np.ndarray, mutual: bool
 ) -> np.ndarray:
-    """Nearest neighbours in feature space ``[C, 2]`` (src index, dst index), optionally mutual."""
-    from scipy.spatial import cKDTree
+    """Nearest neighbours in feature space ``[C, 2]`` (src index, dst index), optionally mutual.
 
-    fwd = cKDTree(dst_feats).query(src_feats, k=1)[1]  # [Ns]
-    pairs = np.stack([np.arange(len(src_feats)), fwd], axis=1)
+    Squared L2 distances ``|a|^2 + |b|^2 - 2 a.b`` in float64, a block of source rows at a
+    time (at most ``_FEATURE_BLOCK`` entries, 8 MB); ties go to the lowest index. One
+    matrix product: several times faster than a KD-tree in 33 to 64 dimensions.
+    """
+    a = np.asarray(src_feats, dtype=np.float64)
+    b = np.asarray(dst_feats, dtype=np.float64)
+    if len(a) == 0 or len(b) == 0:
+        return np.zeros((0, 2), dtype=np.int64)
+    bb = np.einsum("ij,ij->i", b, b)  # [Nd]
+    fwd = np.empty(len(a), dtype=np.int64)  # [Ns] nearest dst of each src
+    back = np.zeros(len(b), dtype=np.int64)  # [Nd] nearest src of each dst
+    back_d2 = np.full(len(b), np.inf)
+    cols = np.arange(len(b))
+    rows = max(1, _FEATURE_BLOCK // len(b))
+    for r0 in range(0, len(a), rows):
+        blk = a[r0 : r0 + rows]
+        d2 = np.einsum("ij,ij->i", blk, blk)[:, None] + bb[None, :] - 2.0 * (blk @ b.T)
+        fwd[r0 : r0 + rows] = d2.argmin(axis=1)
+        if mutual:
+            m = d2.argmin(axis=0)  # [Nd] within this block
+            v = d2[m, cols]
+            better = v < back_d2  # strictly: an earlier block keeps a tie
+            back_d2[better], back[better] = v[better], m[better] + r0
+    pairs = np.stack([np.arange(len(a)), fwd], axis=1)
     if mutual:
-        back = cKDTree(src_feats).query(dst_feats, k=1)[1]  # [Nd]
         pairs = pairs[back[fwd] == pairs[:, 0]]
     return pairs.astype(np.int64)
 
