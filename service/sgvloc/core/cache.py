@@ -12,9 +12,9 @@ T = TypeVar("T")
 
 
 class BuildCache(Generic[T]):
-    """Items by key, least recently used first out, at most ``capacity`` (0: nothing is
-    kept). Thread-safe; an item is built once even when several threads ask for it at
-    the same time (the others wait for that build)."""
+    """Items by key, least recently used first out, at most ``capacity``. Thread-safe; an
+    item is built once even when several threads ask for it at the same time (the others
+    wait for that build)."""
 
     def __init__(self, capacity: int) -> None:
         self.capacity = capacity
@@ -22,12 +22,7 @@ class BuildCache(Generic[T]):
         self._lock = threading.Lock()
         self._building: dict[Hashable, threading.Event] = {}
 
-    def __len__(self) -> int:
-        return len(self._items)
-
     def get(self, key: Hashable, build: Callable[[], T]) -> T:
-        if self.capacity <= 0:
-            return build()
         while True:
             with self._lock:
                 if key in self._items:

@@ -103,7 +103,6 @@ class OnnxNet:
         opts.inter_op_num_threads = 1
         opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
         self.session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
-        self.path = path
         self._model = model  # the torch model: global_descriptor() of turned images
 
     @staticmethod
