@@ -70,7 +70,8 @@ class MicroBatcher:
         #: per stage: localizations under way that have not reached it yet
         self._ahead: dict[str, int] = {stage: 0 for stage in STAGES}
         self._reached = threading.local()  # this thread's stages reached in its localization
-        #: per stage: batches run, items in them, the largest batch
+        #: per stage: batches run, items in them, the largest batch, and the batches whose
+        #: leader waited the whole ``wait_ms`` for peers that had not arrived
         self.stats: dict[str, dict[str, int]] = {}
 
     @property
@@ -124,11 +125,12 @@ class MicroBatcher:
             t0 = time.perf_counter()
             deadline = t0 + self.wait_ms / 1e3
             with self._cond:
-                while (
-                    self._open.get(key) is batch
-                    and self._ahead.get(stage, 0) > 0
-                    and (left := deadline - time.perf_counter()) > 0
-                ):
+                waited_out = False  # the wait ended by its deadline, peers still to come
+                while self._open.get(key) is batch and self._ahead.get(stage, 0) > 0:
+                    left = deadline - time.perf_counter()
+                    if left <= 0:
+                        waited_out = True
+                        break
                     self._cond.wait(left)
                 if self._open.get(key) is batch:
                     del self._open[key]
@@ -136,23 +138,26 @@ class MicroBatcher:
             try:
                 batch.results = fn(batch.items)
                 if len(batch.results) != len(batch.items):
-                    raise RuntimeError("a batched stage returned a result per item")
+                    raise RuntimeError("a batched stage did not return one result per item")
             except BaseException as exc:  # every member sees the failure
                 batch.error = exc
             finally:
-                self._record(stage, len(batch.items), waited)
+                self._record(stage, len(batch.items), waited, waited_out)
                 batch.done.set()
         if batch.error is not None:
             raise batch.error
         assert batch.results is not None
         return batch.results[index]
 
-    def _record(self, stage: str, size: int, waited: float) -> None:
+    def _record(self, stage: str, size: int, waited: float, waited_out: bool) -> None:
         with self._cond:
-            s = self.stats.setdefault(stage, {"batches": 0, "items": 0, "largest": 0})
+            s = self.stats.setdefault(
+                stage, {"batches": 0, "items": 0, "largest": 0, "waited_out": 0}
+            )
             s["batches"] += 1
             s["items"] += size
             s["largest"] = max(s["largest"], size)
+            s["waited_out"] += waited_out
         if self._observe is not None:
             self._observe(stage, size, waited)
 
