@@ -339,13 +339,19 @@ class IcpTarget:
         )
 
 
+def nearest_squared_distances(tree: Any, pts: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """Squared distance ``[N]`` float64 from each point ``pts`` ``[N, 3]`` moved by ``T`` to
+    its nearest neighbour in a small_gicp ``KdTree`` (one thread)."""
+    _, sq = tree.batch_nearest_neighbor_search(pts @ T[:3, :3].T + T[:3, 3], num_threads=1)
+    return np.asarray(sq, dtype=np.float64)
+
+
 def _fit_quality(
     tree: Any, pts: np.ndarray, T: np.ndarray, max_distance: float
 ) -> tuple[float, float]:
     """(fitness, RMSE) of every point under ``T``: the share with a target point within
     ``max_distance``, and the RMS distance of those."""
-    _, sq = tree.batch_nearest_neighbor_search(pts @ T[:3, :3].T + T[:3, 3], num_threads=1)
-    sq = np.asarray(sq, dtype=np.float64)
+    sq = nearest_squared_distances(tree, pts, T)
     inl = sq <= max_distance**2
     return float(inl.mean()), float(np.sqrt(sq[inl].mean())) if inl.any() else 0.0
 

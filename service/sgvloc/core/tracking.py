@@ -24,7 +24,7 @@ from sgvloc.about import PACKAGE_DIR
 
 from .config import TrackingConfig
 from .errors import InputError
-from .pose import check_rigid
+from .pose import check_rigid, nearest_squared_distances
 from .preprocess import as_points, crop_range, finite
 
 try:  # the service extra installs it; the engine still imports without it
@@ -247,10 +247,7 @@ def register(points: np.ndarray, seed: Seed, submap: Submap, cfg: TrackingConfig
         num_threads=1,
     )
     T = np.asarray(res.T_target_source, dtype=np.float64)
-    src = source.points()[:, :3]
-    moved = src @ T[:3, :3].T + T[:3, 3]
-    _, sq = submap.tree.batch_nearest_neighbor_search(moved, num_threads=1)
-    sq = np.asarray(sq, dtype=np.float64)
+    sq = nearest_squared_distances(submap.tree, source.points()[:, :3], T)
     inl = sq <= cfg.inlier_distance_m**2
     fitness = float(inl.mean()) if len(sq) else 0.0
     fine = float((sq <= FINE_M**2).mean()) if len(sq) else 0.0

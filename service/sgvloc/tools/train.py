@@ -494,18 +494,20 @@ def export_onnx(weights: str | Path, out: str | Path | None = None) -> Path:
     quiet = logging.getLogger("torch.onnx")  # skipped torchvision operators, progress
     level = quiet.level
     quiet.setLevel(logging.ERROR)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        program = torch.onnx.export(
-            model,
-            (x,),
-            input_names=["image"],
-            output_names=["global", "local", "saliency"],
-            dynamic_shapes=({0: torch.export.Dim("batch", min=1, max=1024)},),
-            dynamo=True,
-            verbose=False,
-        )
-    quiet.setLevel(level)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            program = torch.onnx.export(
+                model,
+                (x,),
+                input_names=["image"],
+                output_names=["global", "local", "saliency"],
+                dynamic_shapes=({0: torch.export.Dim("batch", min=1, max=1024)},),
+                dynamo=True,
+                verbose=False,
+            )
+    finally:
+        quiet.setLevel(level)
     proto = program.model_proto
     onnx.helper.set_model_props(proto, {ONNX_WEIGHTS_KEY: file_sha256(weights)})
     out.parent.mkdir(parents=True, exist_ok=True)

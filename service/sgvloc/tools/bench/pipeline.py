@@ -30,6 +30,8 @@ from typing import Any
 
 import numpy as np
 
+from ..evaluation.metrics import rre, rte
+from .engine import _table
 from .http import FIXTURE
 
 Echo = Callable[[str], None]
@@ -138,9 +140,7 @@ def _agreement(ref: dict[int, Any], other: dict[int, Any]) -> dict[str, Any]:
         same_verdict += a.localized == b.localized
         same_kf += a.keyframe_id == b.keyframe_id
         if a.T_map_sensor is not None and b.T_map_sensor is not None:
-            dt = float(np.linalg.norm(a.T_map_sensor[:3, 3] - b.T_map_sensor[:3, 3]))
-            cos = (np.trace(a.T_map_sensor[:3, :3].T @ b.T_map_sensor[:3, :3]) - 1.0) / 2.0
-            dr = float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+            dt, dr = rte(b.T_map_sensor, a.T_map_sensor), rre(b.T_map_sensor, a.T_map_sensor)
             worst_m = max(worst_m, dt)
             close += dt <= 0.05 and dr <= 0.1
     return {
@@ -154,25 +154,23 @@ def _agreement(ref: dict[int, Any], other: dict[int, Any]) -> dict[str, Any]:
 
 def format_pipeline(res: dict[str, Any]) -> str:
     """The section's table."""
-    rows = [
-        "| path | wall p50 (ms) | CPU p50 (ms) | CPU / default | encode | rerank | pose | "
-        "verify | same verdict | pose within 5 cm |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
-    ]
+    header = ["path", "wall p50 (ms)", "CPU p50 (ms)", "CPU / default", "encode", "rerank"]
+    header += ["pose", "verify", "same verdict", "pose within 5 cm"]
+    rows = []
     for r in res["paths"]:
         st, ag = r["stages_p50_ms"], r["agreement"]
         n = ag["queries"]
         rows.append(
-            f"| {r['path']} | {r['wall_p50_ms']:.1f} | {r['cpu_p50_ms']:.1f} | "
-            f"{r['cpu_vs_default']:.2f}x | {st['encode']:.1f} | {st['rerank']:.1f} | "
-            f"{st['pose']:.1f} | {st['verify']:.1f} | {ag['same_verdict']}/{n} | "
-            f"{ag['pose_within_5cm_0.1deg']}/{n} |"
+            [r["path"], f"{r['wall_p50_ms']:.1f}", f"{r['cpu_p50_ms']:.1f}"]
+            + [f"{r['cpu_vs_default']:.2f}x"]
+            + [f"{st[k]:.1f}" for k in ("encode", "rerank", "pose", "verify")]
+            + [f"{ag['same_verdict']}/{n}", f"{ag['pose_within_5cm_0.1deg']}/{n}"]
         )
-    rows.append(
-        f"\n{res['queries']} query scans x {res['rounds']} rounds, map of "
-        f"{res['map_keyframes']} keyframes ({res['data']}); stages are wall-time medians"
+    return (
+        f"{_table(header, rows)}\n\n{res['queries']} query scans x {res['rounds']} rounds, "
+        f"map of {res['map_keyframes']} keyframes ({res['data']}); stages are wall-time "
+        "medians"
     )
-    return "\n".join(rows)
 
 
 FORMATTERS = {"pipeline": format_pipeline}
