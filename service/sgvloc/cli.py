@@ -100,6 +100,14 @@ def serve(
         Path | None,
         typer.Option(help="where maps are stored (env SGVLOC_DATA_DIR, default ./data)"),
     ] = None,
+    store: Annotated[
+        str | None,
+        typer.Option(
+            help="postgresql://user:password@host:port/db: keep the maps in PostgreSQL, "
+            "shared by every replica started with the same URL (env SGVLOC_STORE_URL; "
+            "default: SQLite under --data-dir). See docs/SCALING.md"
+        ),
+    ] = None,
     workers: Annotated[
         int | None,
         typer.Option(
@@ -148,7 +156,8 @@ def serve(
     the like are already set. There is deliberately no option for several worker
     processes, --preload or fork: FAISS/OpenMP can hang in forked children, each process
     would hold its own copy of every map, and Prometheus metrics would split across
-    processes. Scale out with more containers, each loading the maps.
+    processes. Scale out with more replicas sharing one PostgreSQL store (--store): each
+    loads the maps and follows the others' writes.
     """
     # nothing that loads numpy, FAISS, Open3D or torch before run_service caps their threads
     from .server.run import StartupError
@@ -159,6 +168,7 @@ def serve(
         "host": host,
         "port": port,
         "data_dir": data_dir,
+        "store_url": store,
         "workers": workers,
         "threads_per_worker": threads,
         "log_level": log_level.lower() if log_level else None,

@@ -254,6 +254,27 @@ class Localizer:
                 self._grid.remove(i)
             self.version += 1
 
+    def apply_changes(self, add: list[Keyframe], remove: list[int], version: int) -> None:
+        """Apply writes another process made to the map's store, in one step: remove
+        the ``remove`` ids held, add the ``add`` keyframes not held (ids kept), and take
+        ``version``. Ids already in the wanted state are skipped, so a change applied
+        twice changes nothing."""
+        with self._lock.write():
+            gone = [int(i) for i in remove if int(i) in self._keyframes]
+            if gone:
+                self.index.remove(np.asarray(gone, dtype=np.int64))
+                for i in gone:
+                    del self._keyframes[i]
+                    self._grid.remove(i)
+            new = [kf for kf in add if kf.id not in self._keyframes]
+            if new:
+                descs = np.stack([kf.features.global_descriptor for kf in new])
+                self.index.add(np.asarray([kf.id for kf in new], dtype=np.int64), descs)
+                for kf in new:
+                    self._keyframes[kf.id] = kf
+                    self._grid.add(kf.id, kf.T_map_sensor[:3, 3])
+            self.version = int(version)
+
     def memory_bytes(self) -> int:
         """Bytes held by the keyframes' arrays (features, clouds, poses) and the index's
         vectors: the map's share of the process's memory, roughly."""

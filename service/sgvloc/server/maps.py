@@ -21,6 +21,7 @@ snapshot that does not hold exactly the stored ids is ignored and rebuilt.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import re
 import shutil
@@ -56,15 +57,18 @@ from sgvloc.core.tracking import Seed
 from .archive import ArchiveError, read_archive, write_archive
 from .store import (
     INDEX_NAME,
+    DuplicateKeyError,
     KeyframeFilter,
     KeyframeRow,
     KeyframeSummary,
     MapRecord,
     MapStore,
+    SharedBackend,
     SqliteBackend,
     StoreBackend,
     StoreClosedError,
     StoreError,
+    StoreUnavailableError,
     raise_if_full,
     utc_now,
 )
@@ -181,8 +185,19 @@ def _encoder_features(
     return feats
 
 
+def _keyframe(encoder: Encoder, row: KeyframeRow) -> Keyframe:
+    """A stored keyframe as the localizer holds it."""
+    feats = Features(row.global_descriptor, row.keypoints, row.local_features, encoder.identity)
+    return Keyframe(row.id, row.T_map_sensor, feats, row.cloud, row.metadata)
+
+
 class MapUnavailableError(SgvlocError):
     """The map's folder exists but could not be loaded (503 until it is reloaded)."""
+
+
+class StaleError(SgvlocError):
+    """This replica has not caught up with the map version a request asked for (503
+    ``stale`` with Retry-After: another replica, or this one a moment later, can answer)."""
 
 
 # -- one map -----------------------------------------------------------------------------
@@ -193,7 +208,7 @@ class MapHandle:
     """A loaded map: its store, its localizer and its write lock."""
 
     name: str
-    path: Path
+    path: Path | None  # the map's folder; None in a shared store (no local files)
     record: MapRecord
     store: MapStore
     localizer: Localizer
@@ -217,8 +232,8 @@ class MapHandle:
         return len(self.localizer)
 
     @property
-    def index_path(self) -> Path:
-        return self.path / INDEX_NAME
+    def index_path(self) -> Path | None:
+        return None if self.path is None else self.path / INDEX_NAME
 
 
 class MapManager:
@@ -236,10 +251,15 @@ class MapManager:
         snapshot_every: int = 1000,
         snapshot_delay_s: float = 30.0,
         on_change: Callable[[str, int | None], None] | None = None,
-        backend: StoreBackend | None = None,
+        backend: StoreBackend | SharedBackend | None = None,
+        follow_poll_s: float = 1.0,
     ) -> None:
         self.maps_dir = Path(maps_dir)
         self.backend = backend or SqliteBackend()
+        #: a store other replicas write too: maps are followed, not kept in folders
+        self.shared = isinstance(self.backend, SharedBackend)
+        self.follow_poll_s = follow_poll_s
+        self.follow_errors = 0  # failed catch-ups in a row (the store is unreachable)
         self.snapshot_every = snapshot_every
         self.snapshot_delay_s = snapshot_delay_s
         self._on_change = on_change or (lambda name, n: None)
@@ -254,7 +274,12 @@ class MapManager:
     # -- start-up and shutdown ----------------------------------------------------------
 
     def load_all(self) -> None:
-        """Load every map folder; a map that fails is logged and listed in ``failed``."""
+        """Load every map folder; a map that fails is logged and listed in ``failed``.
+        With a shared store: connect (waiting while it cannot be reached) and load every
+        map it holds."""
+        if self.shared:
+            self._load_all_shared()
+            return
         self.maps_dir.mkdir(parents=True, exist_ok=True)
         for leftover in self.maps_dir.iterdir():
             if leftover.name.startswith((_TMP_PREFIX, _TRASH_PREFIX)):
@@ -286,12 +311,69 @@ class MapManager:
             )
         self.loaded.set()
 
+    def _load_all_shared(self) -> None:
+        backend = self.backend
+        assert isinstance(backend, SharedBackend)
+        wait = 0.5
+        while not self._stop.is_set():
+            try:
+                backend.start()
+                catalog = backend.catalog()
+                break
+            except StoreUnavailableError as exc:
+                log.warning("%s; trying again in %.0f s", exc, wait)
+                self._stop.wait(wait)
+                wait = min(10.0, wait * 2)
+        else:
+            return
+        log.info("store: %s, %d map(s)", backend.describe(), len(catalog))
+        for name in sorted(catalog):
+            if self._stop.is_set():
+                log.warning("shutting down: maps from %r on were not loaded", name)
+                return
+            self._load_named(name)
+        self.loaded.set()
+
+    def _load_named(self, name: str) -> None:
+        """Load map ``name`` from the shared store and serve it (or list it as failed;
+        an unreachable store is left to the next catch-up)."""
+        backend = self.backend
+        assert isinstance(backend, SharedBackend)
+        with self._lock:
+            if name in self._maps or name in self._reserved:
+                return
+            self._reserved.add(name)
+        t0 = time.perf_counter()
+        try:
+            handle = self._load_store(backend.open(name), None, name)
+        except (StoreUnavailableError, NotFoundError):
+            raise
+        except Exception as exc:
+            why = str(exc) or type(exc).__name__
+            log.error("map %r could not be loaded: %s", name, why)
+            self.failed[name] = why
+            return
+        finally:
+            with self._lock:
+                self._reserved.discard(name)
+        self._publish(handle)
+        log.info(
+            "loaded map %r: %d keyframes, version %d, in %.2f s",
+            name,
+            handle.num_keyframes,
+            handle.version,
+            time.perf_counter() - t0,
+        )
+
     def _load(self, folder: Path) -> MapHandle:
-        store = self.backend.open(folder)
+        return self._load_store(self.backend.open(folder), folder, folder.name)  # type: ignore[arg-type]
+
+    def _load_store(self, store: MapStore, folder: Path | None, name: str) -> MapHandle:
+        """A map in memory from its store (closed again if it fails)."""
         try:
             record = store.record()
-            if record.name != folder.name:
-                raise StoreError(f"{folder}: database names map {record.name!r}")
+            if record.name != name:
+                raise StoreError(f"{folder or name}: database names map {record.name!r}")
             encoder = make_encoder(record.encoder_spec)
             if encoder.identity.fingerprint != record.encoder_fingerprint:
                 raise StoreError(
@@ -306,20 +388,9 @@ class MapManager:
                 keep_clouds=record.keep_clouds,
                 calibration=record.calibration,
             )
-            keyframes = [
-                Keyframe(
-                    row.id,
-                    row.T_map_sensor,
-                    Features(
-                        row.global_descriptor, row.keypoints, row.local_features, encoder.identity
-                    ),
-                    row.cloud,
-                    row.metadata,
-                )
-                for row in store.iter_keyframes()
-            ]
-            version = store.version()
-            handle = MapHandle(record.name, folder, record, store, localizer)
+            with store.snapshot() as (version, _, rows):
+                keyframes = [_keyframe(encoder, row) for row in rows]
+            handle = MapHandle(name, folder, record, store, localizer)
             index = self._usable_snapshot(handle, [kf.id for kf in keyframes])
             localizer.restore(keyframes, version, index)
             if index is None:
@@ -332,6 +403,8 @@ class MapManager:
     def _usable_snapshot(self, handle: MapHandle, ids: list[int]) -> FaissIndex | None:
         """The saved FAISS snapshot if it agrees with the store, else None (logged)."""
         path = handle.index_path
+        if path is None:  # a shared store keeps no snapshot: the index is built
+            return None
         if not path.exists():
             log.info("map %r: no index snapshot, rebuilding from the store", handle.name)
             return None
@@ -355,30 +428,137 @@ class MapManager:
         return None
 
     def start_snapshotter(self) -> None:
-        """Start the background thread that saves changed maps' snapshots."""
+        """Start the background thread that saves changed maps' snapshots, or with a
+        shared store the one that follows the other replicas' changes."""
         if self._snapshotter is None:
-            self._snapshotter = threading.Thread(
-                target=self._snapshot_loop, name="sgvloc-snapshots", daemon=True
+            loop, name = (
+                (self._follow_loop, "sgvloc-follow")
+                if self.shared
+                else (self._snapshot_loop, "sgvloc-snapshots")
             )
+            self._snapshotter = threading.Thread(target=loop, name=name, daemon=True)
             self._snapshotter.start()
 
-    def _snapshot_loop(self) -> None:
-        tick = min(1.0, self.snapshot_delay_s / 4)
-        while not self._stop.wait(tick):
-            now = time.monotonic()
-            for handle in self.list():
-                since = handle.unsaved_since
-                due = since is not None and now - since >= self.snapshot_delay_s
-                if due and now >= handle.snapshot_retry_at:
-                    self.snapshot(handle.name)
+    # -- following a shared store -------------------------------------------------------
 
-    def _scrubbed(self, why: str, folder: Path) -> str:
-        """``why`` as callers may see it: the map's name, never the server's paths."""
-        return (
-            why.replace(str(folder), f"map {folder.name}")
-            .replace(str(self.maps_dir.resolve()), "<maps>")
-            .replace(str(self.maps_dir), "<maps>")
+    def _follow_loop(self) -> None:
+        """Catch up whenever a change is announced, and at least every ``follow_poll_s``."""
+        backend = self.backend
+        assert isinstance(backend, SharedBackend)
+        while not self._stop.is_set():
+            backend.wait_for_change(self.follow_poll_s)
+            if self._stop.is_set():
+                return
+            try:
+                self.sync()
+            except (StoreUnavailableError, *backend.errors) as exc:
+                self.follow_errors += 1
+                level = logging.WARNING if self.follow_errors == 1 else logging.DEBUG
+                log.log(level, "catching up with the store failed (serving what is held): %s", exc)
+                self._stop.wait(min(5.0, 0.5 * self.follow_errors))
+                continue
+            if self.follow_errors:
+                log.info("caught up with the store again after %d failed tries", self.follow_errors)
+            self.follow_errors = 0
+
+    def sync(self) -> None:
+        """Bring every map in line with the shared store: load maps made elsewhere, drop
+        maps deleted elsewhere, apply keyframe changes and settings changes."""
+        backend = self.backend
+        assert isinstance(backend, SharedBackend)
+        catalog = backend.catalog()
+        with self._lock:
+            local = dict(self._maps)
+        for name, handle in local.items():
+            entry = catalog.get(name)
+            if entry is None or entry[0] != getattr(handle.store, "incarnation", None):
+                self._forget(handle, "deleted by another replica")
+        for name, (_, version, settings_version) in catalog.items():
+            with self._lock:
+                handle = self._maps.get(name)
+            if handle is None:
+                if name not in self.failed:
+                    self._load_named(name)
+                continue
+            if version != handle.version:
+                with handle.write_lock:
+                    if not handle.closed:
+                        self._catch_up(handle)
+            if settings_version != handle.record.settings_version:
+                self._refresh_settings(handle)
+
+    def sync_map(self, handle: MapHandle) -> None:
+        """Catch one map up with the shared store now (no-op for a local store)."""
+        if self.shared:
+            with handle.write_lock:
+                if not handle.closed:
+                    self._catch_up(handle)
+
+    def _forget(self, handle: MapHandle, why: str) -> None:
+        with self._lock:
+            if self._maps.get(handle.name) is handle:
+                del self._maps[handle.name]
+        with handle.write_lock:
+            handle.closed = True
+            handle.store.close()
+        self._on_change(handle.name, None)
+        log.info("map %r: %s", handle.name, why)
+
+    def _refresh_settings(self, handle: MapHandle) -> None:
+        with handle.write_lock:
+            if handle.closed:
+                return
+            record = handle.store.record()
+            cal = record.calibration or shipped_calibration(record.encoder_spec.kind)
+            handle.localizer.update_settings(record.localizer_config, cal)
+            handle.record = record
+        log.info("map %r: settings version %d applied", handle.name, record.settings_version)
+
+    def _catch_up(self, handle: MapHandle, until: int | None = None) -> None:
+        """Apply the store's changes after the version held, up to ``until`` (all when
+        None). Call under the map's write lock. A feed that no longer reaches back
+        reloads the map whole."""
+        have = handle.localizer.version
+        changes = handle.store.changes_since(have)
+        if changes is None:
+            log.warning("map %r: too far behind the change feed, reloading it", handle.name)
+            with handle.store.snapshot() as (version, _, rows):
+                keyframes = [_keyframe(handle.encoder, row) for row in rows]
+            if until is None or version <= until:
+                handle.localizer.restore(keyframes, version)
+            self._on_change(handle.name, handle.num_keyframes)
+            return
+        changes = [c for c in changes if until is None or c.version <= until]
+        if not changes:
+            return
+        add: set[int] = set()
+        remove: set[int] = set()
+        for change in changes:
+            if change.kind == "insert":
+                add |= set(change.ids)
+                remove -= set(change.ids)
+            else:
+                add -= set(change.ids)
+                remove |= set(change.ids)
+        rows = handle.store.fetch(sorted(add)) if add else []
+        handle.localizer.apply_changes(
+            [_keyframe(handle.encoder, row) for row in rows], sorted(remove), changes[-1].version
         )
+        self._on_change(handle.name, handle.num_keyframes)
+        log.debug("map %r: caught up to version %d", handle.name, handle.version)
+
+    def _before_own(self, handle: MapHandle, version: int) -> bool:
+        """After this replica's write made ``version``: apply the writes of other
+        replicas that came before it, so that the own change can follow. False when that
+        failed (the follower applies everything later; the write itself is stored)."""
+        if not self.shared:
+            return True
+        try:
+            self._catch_up(handle, until=version - 1)
+        except (StoreUnavailableError, StoreError) as exc:
+            log.warning("map %r: catching up after a write failed (%s); later", handle.name, exc)
+            return False
+        return handle.localizer.version == version - 1
 
     def reload(self, name: str) -> MapHandle:
         """Load a map whose folder failed to load (at start-up or by an earlier reload),
@@ -391,11 +571,21 @@ class MapManager:
             self._reserved.add(name)
         folder = self.maps_dir / name
         try:
-            if not MAP_NAME_RE.fullmatch(name) or not folder.is_dir():
+            if not MAP_NAME_RE.fullmatch(name) or not (self.shared or folder.is_dir()):
                 self.failed.pop(name, None)
                 raise NotFoundError(f"map {name!r} does not exist")
             try:
-                handle = self._load(folder)
+                if self.shared:
+                    try:
+                        store = self.backend.open(name)  # type: ignore[arg-type]
+                    except NotFoundError:
+                        self.failed.pop(name, None)
+                        raise
+                    handle = self._load_store(store, None, name)
+                else:
+                    handle = self._load(folder)
+            except (NotFoundError, StoreUnavailableError):
+                raise
             except Exception as exc:
                 why = str(exc) or type(exc).__name__
                 log.error("map %r could not be reloaded: %s", name, why)
@@ -436,6 +626,8 @@ class MapManager:
                     self._save_snapshot(handle)
                 handle.closed = True
                 handle.store.close()
+        if isinstance(self.backend, SharedBackend):
+            self.backend.close()
 
     # -- maps ---------------------------------------------------------------------------
 
@@ -475,7 +667,7 @@ class MapManager:
         with self._lock:
             if name in self._maps or name in self._reserved:
                 raise ConflictError(f"map {name!r} exists already")
-            if (self.maps_dir / name).exists():
+            if not self.shared and (self.maps_dir / name).exists():
                 why = self.failed.get(name, "unknown reason")
                 raise ConflictError(
                     f"a folder for map {name!r} exists but could not be loaded ({why}); "
@@ -524,7 +716,8 @@ class MapManager:
         self._check_name(name)
         encoder_spec = encoder_spec or EncoderSpec()
         localizer_config = localizer_config or LocalizerConfig()
-        with self._building(name) as (tmp, folder):
+
+        def build() -> tuple[MapRecord, Localizer]:
             with at_field("encoder"):
                 encoder = make_encoder(encoder_spec)
             record = MapRecord(
@@ -542,12 +735,27 @@ class MapManager:
                 keep_clouds=record.keep_clouds,
                 calibration=record.calibration,
             )
-            self.backend.create(tmp, record).close()
-            localizer.index.save(tmp / INDEX_NAME)
-            tmp.rename(folder)
-            handle = MapHandle(name, folder, record, self.backend.open(folder), localizer)
-            self._publish(handle)
-        log.info("created map %r (encoder %r)", name, encoder.identity.name)
+            return record, localizer
+
+        if isinstance(self.backend, SharedBackend):
+            self._reserve(name)
+            try:
+                record, localizer = build()
+                store = self.backend.create(name, record)
+                handle = MapHandle(name, None, record, store, localizer)
+                self._publish(handle)
+            finally:
+                with self._lock:
+                    self._reserved.discard(name)
+        else:
+            with self._building(name) as (tmp, folder):
+                record, localizer = build()
+                self.backend.create(tmp, record).close()
+                localizer.index.save(tmp / INDEX_NAME)
+                tmp.rename(folder)
+                handle = MapHandle(name, folder, record, self.backend.open(folder), localizer)
+                self._publish(handle)
+        log.info("created map %r (encoder %r)", name, localizer.encoder.identity.name)
         return handle
 
     def delete(self, name: str) -> None:
@@ -556,9 +764,25 @@ class MapManager:
             handle = self._maps.pop(name, None)
         if handle is None:
             raise NotFoundError(f"map {name!r} does not exist")
+        if isinstance(self.backend, SharedBackend):
+            with handle.write_lock:
+                try:
+                    self.backend.drop(handle.store)  # one transaction; replicas follow
+                except StoreUnavailableError:
+                    with self._lock:  # nothing changed: keep serving it
+                        self._maps.setdefault(name, handle)
+                    raise
+                except NotFoundError:  # another replica deleted it meanwhile
+                    pass
+                handle.closed = True
+                handle.store.close()
+            self._on_change(name, None)
+            log.info("deleted map %r", name)
+            return
         with handle.write_lock:
             handle.closed = True
             handle.store.close()
+            assert handle.path is not None
             trash = self.maps_dir / f"{_TRASH_PREFIX}{name}-{uuid.uuid4().hex[:8]}"
             handle.path.rename(trash)  # one atomic step; the rest is clean-up
         shutil.rmtree(trash, ignore_errors=True)
@@ -694,34 +918,48 @@ class MapManager:
         with handle.write_lock:
             if handle.closed:
                 raise NotFoundError(f"map {name!r} does not exist")
-            # keys may have appeared (or gone) while encoding: decide again under the lock
-            known = handle.store.find_keys(keys) if keys else {}
-            for i, it in enumerate(items):
-                if i not in prepared and (it.key is None or it.key not in known):
-                    with at_field(f"keyframes[{i}]"):
-                        prepared[i] = self._make_keyframe(handle, it)
-            new = [i for i in sorted(prepared) if items[i].key is None or items[i].key not in known]
-            ids: dict[int, int] = {}
-            version = handle.version
-            if new:
-                # 2. one SQLite transaction for the batch (the acknowledgement point)
+            for attempt in range(3):
+                # keys may have appeared (or gone) while encoding: decide again under the lock
+                known = handle.store.find_keys(keys) if keys else {}
+                for i, it in enumerate(items):
+                    if i not in prepared and (it.key is None or it.key not in known):
+                        with at_field(f"keyframes[{i}]"):
+                            prepared[i] = self._make_keyframe(handle, it)
+                new = [
+                    i for i in sorted(prepared) if items[i].key is None or items[i].key not in known
+                ]
+                ids: dict[int, int] = {}
+                version = handle.version
+                if not new:
+                    break
+                # 2. one store transaction for the batch (the acknowledgement point)
                 rows = [self._row(items[i], prepared[i]) for i in new]
-                new_ids, version = handle.store.insert(rows)
+                try:
+                    new_ids, version = handle.store.insert(rows)
+                except DuplicateKeyError:  # another replica stored one of the keys first
+                    if attempt == 2:
+                        raise ConflictError(
+                            "keys of this batch keep being stored by other writers; retry"
+                        ) from None
+                    continue
                 kfs = []
                 for i, kf_id in zip(new, new_ids, strict=True):
                     prepared[i].id = kf_id
                     kfs.append(prepared[i])
                     ids[i] = kf_id
-                # 3. into the localizer; if that fails, undo the rows
-                try:
-                    handle.localizer.add_keyframes(kfs)
-                except BaseException:
-                    log.exception("map %r: in-memory insert failed, undoing the rows", name)
-                    handle.store.delete(new_ids, set_version=version - 1)
-                    raise
-                if handle.localizer.version != version:  # keep both counters equal
-                    handle.localizer.version = version
+                # 3. into the localizer (after other replicas' earlier writes); if that
+                # fails, undo the rows
+                if self._before_own(handle, version):
+                    try:
+                        handle.localizer.add_keyframes(kfs)
+                    except BaseException:
+                        log.exception("map %r: in-memory insert failed, undoing the rows", name)
+                        handle.store.delete(new_ids, set_version=version - 1)
+                        raise
+                    if handle.localizer.version != version:  # keep both counters equal
+                        handle.localizer.version = version
                 self._mark_unsaved(handle, len(new))
+                break
         out_ids = [ids[i] if i in ids else known[items[i].key] for i in range(len(items))]
         created = [i in ids for i in range(len(items))]
         if new:
@@ -755,13 +993,20 @@ class MapManager:
         with handle.write_lock:
             if handle.closed:
                 raise NotFoundError(f"map {name!r} does not exist")
+            if self.shared:
+                self._catch_up(handle)  # a keyframe another replica just stored is known
             handle.localizer.keyframe(keyframe_id)  # NotFoundError before touching anything
             version = handle.store.delete([keyframe_id])
-            handle.localizer.remove_keyframe(keyframe_id)
-            handle.localizer.version = version
-            self._mark_unsaved(handle, 1)
+            self._remove_own(handle, [keyframe_id], version)
         self._on_change(name, handle.num_keyframes)
         return version
+
+    def _remove_own(self, handle: MapHandle, ids: list[int], version: int) -> None:
+        """Take keyframes this replica deleted from the store (as ``version``) out of
+        memory (call under the write lock)."""
+        if self._before_own(handle, version):
+            handle.localizer.apply_changes([], ids, version)
+        self._mark_unsaved(handle, len(ids))
 
     def list_keyframes(
         self, name: str, where: KeyframeFilter, *, after_id: int = 0, limit: int = 1000
@@ -784,9 +1029,7 @@ class MapManager:
             if not ids:
                 return 0, handle.version
             version = handle.store.delete(ids)
-            handle.localizer.remove_keyframes(ids)
-            handle.localizer.version = version
-            self._mark_unsaved(handle, len(ids))
+            self._remove_own(handle, ids, version)
         self._on_change(name, handle.num_keyframes)
         log.info("map %r: deleted %d keyframes (version %d)", name, len(ids), version)
         return len(ids), version
@@ -800,7 +1043,10 @@ class MapManager:
             last_write = handle.store.last_write()
         except StoreClosedError:
             raise NotFoundError(f"map {name!r} does not exist") from None
-        disk = _folder_bytes(handle.path)
+        try:
+            disk = handle.store.disk_bytes() if handle.path is None else _folder_bytes(handle.path)
+        except StoreClosedError:
+            raise NotFoundError(f"map {name!r} does not exist") from None
         return {
             "map": name,
             "version": handle.version,
@@ -860,22 +1106,44 @@ class MapManager:
                 "features cannot be used with this server"
             )
         record = replace(record, name=name, encoder_spec=spec)
-        with self._building(name) as (tmp, folder):
-            store = self.backend.create(tmp, record)
+
+        def fill(store: MapStore) -> None:
+            for rows in chunks:
+                for row in rows:
+                    self._check_archived(encoder, row)
+                try:
+                    store.insert_exact(rows, header.version)
+                except self.backend.errors as exc:
+                    raise_if_full(exc)
+                    raise ArchiveError(f"the archive's keyframes clash: {exc}") from None
+
+        if isinstance(self.backend, SharedBackend):
+            # filled under a hidden name, published (renamed) in one step at the end
+            self._reserve(name)
             try:
-                for rows in chunks:
-                    for row in rows:
-                        self._check_archived(encoder, row)
-                    try:
-                        store.insert_exact(rows, header.version)
-                    except self.backend.errors as exc:
-                        raise_if_full(exc)
-                        raise ArchiveError(f"the archive's keyframes clash: {exc}") from None
+                store = self.backend.staging(record)
+                try:
+                    fill(store)
+                    self.backend.publish(store, name)
+                except BaseException:
+                    with contextlib.suppress(Exception):
+                        self.backend.drop(store)
+                    raise
+                handle = self._load_store(store, None, name)
+                self._publish(handle)
             finally:
-                store.close()
-            tmp.rename(folder)
-            handle = self._load(folder)
-            self._publish(handle)
+                with self._lock:
+                    self._reserved.discard(name)
+        else:
+            with self._building(name) as (tmp, folder):
+                store = self.backend.create(tmp, record)
+                try:
+                    fill(store)
+                finally:
+                    store.close()
+                tmp.rename(folder)
+                handle = self._load(folder)
+                self._publish(handle)
         log.info(
             "imported map %r: %d keyframes, version %d (exported by sgvloc %s)",
             name,
@@ -943,6 +1211,8 @@ class MapManager:
 
     def _mark_unsaved(self, handle: MapHandle, changes: int) -> None:
         """Count changes (call under the write lock); save now past ``snapshot_every``."""
+        if handle.path is None:  # a shared store: no snapshot to keep
+            return
         handle.unsaved += changes
         if handle.unsaved_since is None:
             handle.unsaved_since = time.monotonic()
@@ -958,6 +1228,8 @@ class MapManager:
 
     @staticmethod
     def _save_snapshot(handle: MapHandle) -> None:
+        if handle.index_path is None:
+            return
         t0 = time.perf_counter()
         try:
             handle.localizer.index.save(handle.index_path)

@@ -35,10 +35,11 @@ def serve(settings: Settings) -> None:
 
     from .api import create_app
     from .api.auth import KeysError
+    from .store import StoreError
 
     try:
         application = create_app(settings)
-    except KeysError as exc:
+    except (KeysError, StoreError) as exc:
         raise StartupError(str(exc)) from None
     json_logs = settings.log_format == "json"
     config = uvicorn.Config(

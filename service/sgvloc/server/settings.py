@@ -26,6 +26,29 @@ class Settings(BaseSettings):
     host: str = Field("127.0.0.1", description="interface to bind (0.0.0.0 in containers)")
     port: int = Field(8470, ge=1, le=65535)
     data_dir: Path = Field(Path("./data"), description="maps live in <data_dir>/maps/<name>/")
+    store_url: str | None = Field(
+        None,
+        description="postgresql://user:password@host:port/db: keep every map in PostgreSQL, "
+        "shared by any number of replicas (each follows the others' writes); unset: one "
+        "SQLite database per map under data_dir",
+    )
+    store_pool_size: int = Field(
+        8, ge=2, le=200, description="connections each replica keeps to a PostgreSQL store"
+    )
+    follow_poll_s: float = Field(
+        1.0,
+        gt=0,
+        le=60,
+        description="PostgreSQL store: longest time between two catch-ups with the other "
+        "replicas' writes (announced writes are applied at once)",
+    )
+    catch_up_wait_s: float = Field(
+        2.0,
+        ge=0,
+        le=30,
+        description="longest a localize with min_map_version waits for this replica to "
+        "catch up; beyond it 503 stale with Retry-After",
+    )
     workers: int = Field(
         2, ge=1, le=256, description="threads running CPU work (encode, search, re-rank, pose)"
     )

@@ -31,8 +31,8 @@ from sgvloc.core.errors import (
 from sgvloc_client.wire import WireError
 
 from ..logs import REQUEST_ID_HEADER, current_request_id
-from ..maps import MapUnavailableError
-from ..store import storage_full
+from ..maps import MapUnavailableError, StaleError
+from ..store import StoreUnavailableError, storage_full
 
 log = logging.getLogger(__name__)
 
@@ -105,6 +105,8 @@ def validation_message(errors: Sequence[dict[str, Any]]) -> tuple[str, str | Non
 #: engine error -> status, code, and whether the answer carries Retry-After
 _ENGINE_CODES: list[tuple[type[SgvlocError], int, str, bool]] = [
     (DeadlineExceeded, 503, "deadline_exceeded", True),
+    (StoreUnavailableError, 503, "store_unavailable", True),
+    (StaleError, 503, "stale", True),
     (StorageFullError, 507, "insufficient_storage", False),
     (MapUnavailableError, 503, "map_unavailable", False),
     (EncoderMismatchError, 409, "encoder_mismatch", False),

@@ -32,6 +32,7 @@ from ..maps import MapManager
 from ..metrics import Metrics
 from ..recent import RecentLocalizations
 from ..settings import Settings
+from ..store import open_backend
 from .auth import KeyRing, KeysError, reload_keys
 from .deps import Admission
 from .errors import install_error_handlers
@@ -123,10 +124,11 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     app.state.cpu_limiter = anyio.CapacityLimiter(settings.workers)
     app.state.thread_limiter = anyio.CapacityLimiter(settings.workers)
     log.info(
-        "sgvloc %s: data dir %s, %d worker thread(s), at most %d localize request(s) in "
+        "sgvloc %s: data dir %s, store %s, %d worker thread(s), at most %d localize request(s) in "
         "flight, %g s queue timeout",
         __version__,
         settings.data_dir.resolve(),
+        manager.backend.describe() if manager.shared else "SQLite",  # type: ignore[union-attr]
         settings.workers,
         settings.inflight_limit,
         settings.request_timeout_s,
@@ -172,6 +174,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         snapshot_every=settings.snapshot_every,
         snapshot_delay_s=settings.snapshot_delay_s,
         on_change=on_change,
+        backend=open_backend(settings.store_url, pool_size=settings.store_pool_size),
+        follow_poll_s=settings.follow_poll_s,
     )
     about = dict(
         title="sgvloc",

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import errno
 import io
+import json
 from abc import ABC, abstractmethod
 from collections.abc import Iterator
 from contextlib import AbstractContextManager
@@ -29,6 +30,15 @@ INDEX_NAME = "index.faiss"  # the FAISS snapshot in a map's folder (a start-up c
 
 class StoreError(SgvlocError):
     """A map database is missing, damaged or from an unknown schema."""
+
+
+class StoreUnavailableError(StoreError):
+    """The shared store cannot be reached now (503 ``store_unavailable``; retry)."""
+
+
+class DuplicateKeyError(StoreError):
+    """An insert met a keyframe key that another writer stored meanwhile; nothing was
+    stored (the map manager decides again which keys are new)."""
 
 
 def storage_full(exc: BaseException) -> StorageFullError | None:
@@ -72,6 +82,16 @@ def blob_to_array(blob: bytes) -> np.ndarray:
 
 
 @dataclass(frozen=True)
+class Change:
+    """One write to a map, as the change feed of a shared store gives it: the map's
+    ``version`` after it, and the keyframes it inserted or deleted."""
+
+    version: int
+    kind: str  # "insert" | "delete"
+    ids: list[int]
+
+
+@dataclass(frozen=True)
 class MapRecord:
     """A map's settings as stored: what it needs to be rebuilt in memory.
 
@@ -90,6 +110,44 @@ class MapRecord:
     calibration: Calibration | None = None
     settings_version: int = 0
     settings_updated_at: str | None = None
+
+
+def record_to_meta(record: MapRecord) -> dict[str, str]:
+    """A map's settings as text values (the form both backends store)."""
+    meta = {
+        "name": record.name,
+        "encoder_spec": record.encoder_spec.model_dump_json(),
+        "localizer_config": record.localizer_config.model_dump_json(),
+        "encoder_fingerprint": record.encoder_fingerprint,
+        "keep_clouds": json.dumps(record.keep_clouds),
+        "created_at": record.created_at,
+        "settings_version": str(record.settings_version),
+    }
+    if record.settings_updated_at is not None:
+        meta["settings_updated_at"] = record.settings_updated_at
+    if record.calibration is not None:
+        meta["calibration"] = json.dumps(record.calibration.to_dict())
+    return meta
+
+
+def record_from_meta(m: dict[str, str], where: str) -> MapRecord:
+    """Inverse of :func:`record_to_meta`; :class:`StoreError` naming ``where`` if damaged."""
+    try:
+        return MapRecord(
+            name=m["name"],
+            encoder_spec=EncoderSpec.model_validate_json(m["encoder_spec"]),
+            localizer_config=LocalizerConfig.model_validate_json(m["localizer_config"]),
+            encoder_fingerprint=m["encoder_fingerprint"],
+            keep_clouds=bool(json.loads(m["keep_clouds"])),
+            created_at=m["created_at"],
+            calibration=Calibration.from_dict(json.loads(m["calibration"]))
+            if "calibration" in m
+            else None,
+            settings_version=int(m.get("settings_version", "0")),
+            settings_updated_at=m.get("settings_updated_at"),
+        )
+    except (KeyError, ValueError) as exc:
+        raise StoreError(f"{where}: damaged map settings: {exc}") from None
 
 
 @dataclass
@@ -240,8 +298,77 @@ class MapStore(ABC):
         """Delete keyframes in one transaction; returns the new version.
 
         The version is bumped, or set to ``set_version`` (to undo an insert whose
-        in-memory half failed). Unknown ids raise ``NotFoundError``, deleting nothing.
+        in-memory half failed; a shared store bumps instead, since other replicas may
+        have seen the insert). Unknown ids raise ``NotFoundError``, deleting nothing.
         """
+
+    def changes_since(self, version: int) -> list[Change] | None:
+        """The writes after ``version``, in order; None when the feed no longer reaches
+        back that far (reload the whole map). A store only this process writes has no
+        feed: nothing changes behind the caller's back."""
+        return []
+
+    def fetch(self, ids: list[int]) -> list[KeyframeRow]:
+        """Those of ``ids`` that exist, in id order (one read)."""
+        out = []
+        for i in sorted(ids):
+            try:
+                out.append(self.get(i))
+            except KeyError:
+                continue
+        return out
+
+
+class SharedBackend(ABC):
+    """A store that several replicas share (PostgreSQL): maps by name, a change feed.
+
+    The map manager keeps no files for it: every replica rebuilds its maps from the
+    store and follows its changes (:meth:`catalog`, :meth:`wait_for_change`,
+    :meth:`MapStore.changes_since`).
+    """
+
+    errors: tuple[type[BaseException], ...] = ()
+
+    @abstractmethod
+    def start(self) -> None:
+        """Connect and create or migrate the schema; :class:`StoreUnavailableError` if
+        the store cannot be reached."""
+
+    @abstractmethod
+    def close(self) -> None: ...
+
+    @abstractmethod
+    def catalog(self) -> dict[str, tuple[int, int, int]]:
+        """Every map: ``{name: (incarnation, version, settings_version)}``; the
+        incarnation differs when a map was deleted and made again under the same name."""
+
+    @abstractmethod
+    def create(self, name: str, record: MapRecord) -> MapStore:
+        """A new empty map; :class:`~sgvloc.core.errors.ConflictError` if it exists."""
+
+    @abstractmethod
+    def open(self, name: str) -> MapStore:
+        """The map ``name``; :class:`~sgvloc.core.errors.NotFoundError` if none."""
+
+    @abstractmethod
+    def drop(self, store: MapStore) -> None:
+        """Delete the map and everything in it (one transaction)."""
+
+    @abstractmethod
+    def staging(self, record: MapRecord) -> MapStore:
+        """A map under a hidden name, to be filled and then :meth:`publish` ed."""
+
+    @abstractmethod
+    def publish(self, store: MapStore, name: str) -> None:
+        """Give a staged map its name (ConflictError if taken), in one step."""
+
+    @abstractmethod
+    def wait_for_change(self, timeout_s: float) -> bool:
+        """Block until another writer announces a change (True) or ``timeout_s`` passes."""
+
+    def describe(self) -> str:
+        """Where the store is, without credentials (for logs and /v1/config)."""
+        return type(self).__name__
 
 
 class StoreBackend(ABC):

@@ -34,7 +34,6 @@ import numpy as np
 
 from sgvloc.core.confidence import Calibration
 from sgvloc.core.config import LocalizerConfig
-from sgvloc.core.encoders import EncoderSpec
 from sgvloc.core.errors import NotFoundError
 
 from .base import (
@@ -49,6 +48,8 @@ from .base import (
     array_to_blob,
     blob_to_array,
     raise_if_full,
+    record_from_meta,
+    record_to_meta,
     utc_now,
 )
 
@@ -156,21 +157,7 @@ class SqliteMapStore(MapStore):
         if path.exists():
             raise StoreError(f"{path} exists already")
         conn = cls._connect(path)
-        meta = {
-            "schema_version": str(SCHEMA_VERSION),
-            "name": record.name,
-            "encoder_spec": record.encoder_spec.model_dump_json(),
-            "localizer_config": record.localizer_config.model_dump_json(),
-            "encoder_fingerprint": record.encoder_fingerprint,
-            "keep_clouds": json.dumps(record.keep_clouds),
-            "created_at": record.created_at,
-            "version": "0",
-            "settings_version": str(record.settings_version),
-        }
-        if record.settings_updated_at is not None:
-            meta["settings_updated_at"] = record.settings_updated_at
-        if record.calibration is not None:
-            meta["calibration"] = json.dumps(record.calibration.to_dict())
+        meta = {"schema_version": str(SCHEMA_VERSION), "version": "0", **record_to_meta(record)}
         conn.executescript(_SCHEMA)
         conn.execute("BEGIN IMMEDIATE")
         conn.executemany("INSERT INTO meta (key, value) VALUES (?, ?)", meta.items())
@@ -214,23 +201,7 @@ class SqliteMapStore(MapStore):
 
     def record(self) -> MapRecord:
         """The map's stored settings."""
-        m = self._meta()
-        try:
-            return MapRecord(
-                name=m["name"],
-                encoder_spec=EncoderSpec.model_validate_json(m["encoder_spec"]),
-                localizer_config=LocalizerConfig.model_validate_json(m["localizer_config"]),
-                encoder_fingerprint=m["encoder_fingerprint"],
-                keep_clouds=bool(json.loads(m["keep_clouds"])),
-                created_at=m["created_at"],
-                calibration=Calibration.from_dict(json.loads(m["calibration"]))
-                if "calibration" in m
-                else None,
-                settings_version=int(m.get("settings_version", "0")),
-                settings_updated_at=m.get("settings_updated_at"),
-            )
-        except (KeyError, ValueError) as exc:
-            raise StoreError(f"{self.path}: damaged map settings: {exc}") from None
+        return record_from_meta(self._meta(), str(self.path))
 
     def update_settings(
         self, localizer_config: LocalizerConfig, calibration: Calibration

@@ -3,14 +3,19 @@
 from __future__ import annotations
 
 import time
+from typing import Annotated
 
+import anyio
+import anyio.to_thread
 import numpy as np
-from fastapi import APIRouter, Depends, Request, Response
+from fastapi import APIRouter, Depends, Query, Request, Response
 from scipy.spatial.transform import Rotation
 
+from sgvloc.core.errors import SgvlocError
 from sgvloc.core.localizer import LocalizationResult
 from sgvloc.core.rerank import Candidate
 
+from ...maps import MapManager, StaleError
 from ..auth import authorize, principal_of
 from ..body import encode
 from ..deps import (
@@ -130,6 +135,15 @@ async def localize(
     settings: SettingsDep,
     metrics: MetricsDep,
     worker: WorkerDep,
+    min_map_version: Annotated[
+        int | None,
+        Query(
+            ge=0,
+            description="answer from this map version or later (read-your-writes after an "
+            "insert on another replica): the replica waits up to catch_up_wait_s to catch "
+            "up, else 503 stale with Retry-After",
+        ),
+    ] = None,
 ) -> Response:
     """Localize a scan: retrieve, re-rank, estimate the pose against the top-1.
 
@@ -139,6 +153,8 @@ async def localize(
     and the answer is 503 ``deadline_exceeded``."""
     deadline_at = time.monotonic() + settings.request_timeout_s
     key_name = principal_of(request).name  # for the metrics: the key's name, never the key
+    if min_map_version is not None:  # waits off the worker threads
+        await _caught_up(manager, map_name, min_map_version, settings.catch_up_wait_s)
 
     def work() -> LocalizeOut:
         manager.get(map_name)
@@ -159,3 +175,24 @@ async def localize(
         return localize_out(map_name, result)
 
     return encode(request, await worker.run(work, deadline_at=deadline_at))
+
+
+async def _caught_up(manager: MapManager, name: str, version: int, wait_s: float) -> None:
+    """Return once map ``name`` is at ``version`` or later on this replica; StaleError
+    after ``wait_s`` (catch-ups run in the default thread pool, not the CPU workers)."""
+    handle = manager.get(name)
+    deadline = time.monotonic() + wait_s
+    while handle.version < version:
+        if manager.shared:
+            try:
+                await anyio.to_thread.run_sync(manager.sync_map, handle)
+            except SgvlocError:  # an unreachable store: the answer is stale, not an error
+                pass
+        if handle.version >= version:
+            return
+        if time.monotonic() >= deadline:
+            raise StaleError(
+                f"map {name!r} is at version {handle.version} on this replica, not yet at "
+                f"min_map_version {version} (waited {wait_s:g} s); retry"
+            )
+        await anyio.sleep(0.02)

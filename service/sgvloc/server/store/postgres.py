@@ -1,0 +1,693 @@
+"""The shared store backend: every map in one PostgreSQL database (``sgvloc serve --store
+postgresql://...``), so that any number of replicas serve the same maps.
+
+Tables (created and migrated by the service; ``sgvloc_schema`` holds the version)::
+
+    sgvloc_maps       one row per map: settings, version, next keyframe id
+    sgvloc_keyframes  (map_id, id) -> pose, features, cloud, key, metadata, position
+    sgvloc_changes    (map_id, version) -> the ids one write inserted or deleted
+
+Every write to a map locks its row in ``sgvloc_maps`` first, so writes to one map are
+serialised across replicas and its ``version`` is a gap-free sequence: the change feed
+is ``sgvloc_changes`` in version order, written in the same transaction as the keyframes
+and announced on commit with ``NOTIFY sgvloc_changes``. A replica applies the changes
+after the version it holds (:meth:`PgMapStore.changes_since`); the feed keeps the last
+``CHANGES_KEPT`` changes per map, and a replica further behind reloads the map.
+
+Keyframe ids come from the map's ``next_id`` counter (never reused after a delete, as in
+SQLite). Keys are unique per map: a key another replica stored first raises
+:class:`~sgvloc.server.store.base.DuplicateKeyError` and nothing is stored.
+
+Connections come from a psycopg pool with short connect and acquire timeouts: when the
+server cannot be reached a call fails within seconds with
+:class:`~sgvloc.server.store.base.StoreUnavailableError`, and the pool reconnects by itself.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Any
+from urllib.parse import urlsplit, urlunsplit
+
+import numpy as np
+import psycopg
+from psycopg import errors as pg_errors
+from psycopg_pool import ConnectionPool, PoolTimeout
+
+from sgvloc.core.confidence import Calibration
+from sgvloc.core.config import LocalizerConfig
+from sgvloc.core.errors import ConflictError, NotFoundError
+
+from .base import (
+    Change,
+    DuplicateKeyError,
+    KeyframeFilter,
+    KeyframeRow,
+    KeyframeSummary,
+    MapRecord,
+    MapStore,
+    SharedBackend,
+    StoreClosedError,
+    StoreError,
+    StoreUnavailableError,
+    array_to_blob,
+    blob_to_array,
+    record_from_meta,
+    record_to_meta,
+    utc_now,
+)
+
+log = logging.getLogger(__name__)
+
+SCHEMA_VERSION = 1
+CHANNEL = "sgvloc_changes"
+CHANGES_KEPT = 10_000  # changes kept per map; a replica further behind reloads the map
+_STAGING = ".tmp-"  # hidden names of maps being imported
+_STAGING_MAX_AGE = "1 hour"  # a staged map older than this was abandoned
+
+_SCHEMA = f"""
+CREATE TABLE IF NOT EXISTS sgvloc_maps (
+    map_id      BIGSERIAL PRIMARY KEY,
+    name        TEXT NOT NULL UNIQUE,
+    meta        JSONB NOT NULL,
+    version     BIGINT NOT NULL DEFAULT 0,
+    next_id     BIGINT NOT NULL DEFAULT 1,
+    settings_version BIGINT NOT NULL DEFAULT 0,
+    updated_at  TEXT,
+    made        TIMESTAMPTZ NOT NULL DEFAULT now()
+);
+CREATE TABLE IF NOT EXISTS sgvloc_keyframes (
+    map_id            BIGINT NOT NULL REFERENCES sgvloc_maps ON DELETE CASCADE,
+    id                BIGINT NOT NULL,
+    key               TEXT,
+    T_map_sensor      BYTEA NOT NULL,
+    global_descriptor BYTEA NOT NULL,
+    keypoints         BYTEA NOT NULL,
+    local_features    BYTEA NOT NULL,
+    cloud             BYTEA,
+    metadata          TEXT NOT NULL,
+    created_at        TEXT NOT NULL,
+    x DOUBLE PRECISION, y DOUBLE PRECISION, z DOUBLE PRECISION,
+    PRIMARY KEY (map_id, id),
+    UNIQUE (map_id, key)
+);
+CREATE TABLE IF NOT EXISTS sgvloc_changes (
+    map_id  BIGINT NOT NULL REFERENCES sgvloc_maps ON DELETE CASCADE,
+    version BIGINT NOT NULL,
+    kind    TEXT NOT NULL CHECK (kind IN ('insert', 'delete')),
+    ids     BIGINT[] NOT NULL,
+    at      TIMESTAMPTZ NOT NULL DEFAULT now(),
+    PRIMARY KEY (map_id, version)
+);
+INSERT INTO sgvloc_schema (version) SELECT {SCHEMA_VERSION}
+    WHERE NOT EXISTS (SELECT 1 FROM sgvloc_schema);
+"""
+
+#: schema version -> the SQL that takes it to the next one (none yet)
+_MIGRATIONS: dict[int, str] = {}
+
+
+def redact(url: str) -> str:
+    """``url`` without its password."""
+    parts = urlsplit(url)
+    if parts.password is None:
+        return url
+    host = parts.hostname or ""
+    netloc = f"{parts.username}:***@{host}" + (f":{parts.port}" if parts.port else "")
+    return urlunsplit(parts._replace(netloc=netloc))
+
+
+def _position(T: np.ndarray) -> tuple[float, float, float]:
+    x, y, z = np.asarray(T, dtype=np.float64)[:3, 3]
+    return float(x), float(y), float(z)
+
+
+def _where(f: KeyframeFilter) -> tuple[str, list[Any]]:
+    """SQL conditions (each starting with AND) and their parameters; the same meaning as
+    the SQLite backend's (a non-numeric ``timestamp`` never matches a time bound)."""
+    sql: list[str] = []
+    args: list[Any] = []
+    if f.key_prefix is not None:
+        sql.append("starts_with(key, %s)")
+        args.append(f.key_prefix)
+    if f.bbox is not None:
+        x0, y0, x1, y1 = f.bbox
+        sql.append("x BETWEEN %s AND %s AND y BETWEEN %s AND %s")
+        args += [x0, x1, y0, y1]
+    stamp = (
+        "(CASE WHEN jsonb_typeof(metadata::jsonb -> 'timestamp') = 'number' "
+        "THEN (metadata::jsonb ->> 'timestamp')::float8 END)"
+    )
+    if f.time_min is not None:
+        sql.append(f"{stamp} >= %s")
+        args.append(f.time_min)
+    if f.time_max is not None:
+        sql.append(f"{stamp} <= %s")
+        args.append(f.time_max)
+    if f.sequence is not None:
+        sql.append("metadata::jsonb ->> 'sequence' = %s")
+        args.append(f.sequence)
+    return "".join(f" AND {c}" for c in sql), args
+
+
+_COLUMNS = (
+    "id, key, T_map_sensor, global_descriptor, keypoints, local_features, cloud, "
+    "metadata, created_at"
+)
+_INSERT = (
+    "INSERT INTO sgvloc_keyframes (map_id, id, key, T_map_sensor, global_descriptor, "
+    "keypoints, local_features, cloud, metadata, created_at, x, y, z) "
+    "VALUES (%s, %s, %s, %s, %s, %s, %s, %s, %s, %s, %s, %s, %s)"
+)
+
+
+def _row(r: tuple) -> KeyframeRow:
+    return KeyframeRow(
+        id=int(r[0]),
+        key=r[1],
+        T_map_sensor=blob_to_array(r[2]),
+        global_descriptor=blob_to_array(r[3]),
+        keypoints=blob_to_array(r[4]),
+        local_features=blob_to_array(r[5]),
+        cloud=None if r[6] is None else blob_to_array(r[6]),
+        metadata=json.loads(r[7]),
+        created_at=r[8],
+    )
+
+
+def _values(map_id: int, row: KeyframeRow, keyframe_id: int, created_at: str) -> tuple:
+    T = np.asarray(row.T_map_sensor, dtype=np.float64)
+    return (
+        map_id,
+        keyframe_id,
+        row.key,
+        array_to_blob(T),
+        array_to_blob(row.global_descriptor),
+        array_to_blob(row.keypoints),
+        array_to_blob(row.local_features),
+        None if row.cloud is None else array_to_blob(row.cloud),
+        json.dumps(row.metadata),
+        created_at,
+        *_position(T),
+    )
+
+
+class PgBackend(SharedBackend):
+    """Every map in one PostgreSQL database, through a connection pool."""
+
+    errors = (psycopg.Error,)
+
+    def __init__(self, url: str, *, pool_size: int = 8, timeout_s: float = 3.0) -> None:
+        self.url = url
+        self.timeout_s = timeout_s
+        connect = {
+            "connect_timeout": max(1, int(round(timeout_s))),
+            # a server that stops answering (no RST) fails a call instead of hanging it
+            "tcp_user_timeout": int(timeout_s * 1000) * 3,
+            "keepalives_idle": 10,
+            "application_name": "sgvloc",
+        }
+        self.pool = ConnectionPool(
+            url,
+            min_size=1,
+            max_size=max(2, pool_size),
+            timeout=timeout_s,
+            kwargs=connect,
+            check=ConnectionPool.check_connection,
+            reconnect_timeout=0,  # keep trying to reconnect for as long as it takes
+            open=False,
+            name="sgvloc-store",
+        )
+        self._listener: psycopg.Connection | None = None
+        self._listen_lock = threading.Lock()
+        self._connect_kwargs = connect
+
+    def describe(self) -> str:
+        return f"postgresql ({redact(self.url)})"
+
+    # -- connections --------------------------------------------------------------------
+
+    @contextmanager
+    def transaction(self) -> Iterator[psycopg.Cursor]:
+        """A cursor in one transaction (committed when the block ends without error);
+        unreachable server -> :class:`StoreUnavailableError`."""
+        try:
+            with self.pool.connection() as conn, conn.transaction(), conn.cursor() as cur:
+                yield cur
+        except PoolTimeout:
+            raise StoreUnavailableError(
+                f"the map store (PostgreSQL) cannot be reached within {self.timeout_s:g} s; "
+                "nothing was changed (retry later)"
+            ) from None
+        except psycopg.OperationalError as exc:
+            raise StoreUnavailableError(
+                f"the map store (PostgreSQL) failed: {str(exc).strip() or type(exc).__name__}; "
+                "retry later"
+            ) from None
+
+    def start(self) -> None:
+        if self.pool.closed:
+            self.pool.open(wait=False)
+        with self.transaction() as cur:
+            # one replica at a time creates or migrates the schema
+            cur.execute("SELECT pg_advisory_xact_lock(hashtext('sgvloc_schema'))")
+            cur.execute("CREATE TABLE IF NOT EXISTS sgvloc_schema (version INT NOT NULL)")
+            cur.execute("SELECT version FROM sgvloc_schema")
+            row = cur.fetchone()
+            version = None if row is None else int(row[0])
+            if version is None:
+                cur.execute(_SCHEMA)
+                log.info("created the store's schema (version %d)", SCHEMA_VERSION)
+                version = SCHEMA_VERSION
+            while version in _MIGRATIONS:
+                log.info("migrating the store's schema from version %d", version)
+                cur.execute(_MIGRATIONS[version])
+                version += 1
+                cur.execute("UPDATE sgvloc_schema SET version = %s", (version,))
+            if version != SCHEMA_VERSION:
+                raise StoreError(
+                    f"the store's schema is version {version}, newer than this sgvloc "
+                    f"understands ({SCHEMA_VERSION}): upgrade sgvloc"
+                )
+            cur.execute(
+                f"DELETE FROM sgvloc_maps WHERE starts_with(name, '{_STAGING}') "
+                f"AND made < now() - interval '{_STAGING_MAX_AGE}'"
+            )
+
+    def close(self) -> None:
+        with self._listen_lock:
+            if self._listener is not None:
+                self._listener.close()
+                self._listener = None
+        self.pool.close()
+
+    # -- maps ---------------------------------------------------------------------------
+
+    def catalog(self) -> dict[str, tuple[int, int, int]]:
+        with self.transaction() as cur:
+            cur.execute(
+                "SELECT name, map_id, version, settings_version FROM sgvloc_maps "
+                f"WHERE NOT starts_with(name, '{_STAGING}')"
+            )
+            return {r[0]: (int(r[1]), int(r[2]), int(r[3])) for r in cur.fetchall()}
+
+    def _insert_map(self, name: str, record: MapRecord) -> PgMapStore:
+        try:
+            with self.transaction() as cur:
+                cur.execute(
+                    "INSERT INTO sgvloc_maps (name, meta) VALUES (%s, %s) RETURNING map_id",
+                    (name, json.dumps(record_to_meta(record))),
+                )
+                map_id = int(cur.fetchone()[0])
+                cur.execute("SELECT pg_notify(%s, %s)", (CHANNEL, name))
+        except pg_errors.UniqueViolation:
+            raise ConflictError(f"map {name!r} exists already") from None
+        return PgMapStore(self, map_id, name)
+
+    def create(self, name: str, record: MapRecord) -> PgMapStore:
+        return self._insert_map(name, record)
+
+    def open(self, name: str) -> PgMapStore:
+        with self.transaction() as cur:
+            cur.execute("SELECT map_id FROM sgvloc_maps WHERE name = %s", (name,))
+            row = cur.fetchone()
+        if row is None:
+            raise NotFoundError(f"map {name!r} does not exist")
+        return PgMapStore(self, int(row[0]), name)
+
+    def drop(self, store: MapStore) -> None:
+        assert isinstance(store, PgMapStore)
+        with self.transaction() as cur:
+            cur.execute("DELETE FROM sgvloc_maps WHERE map_id = %s", (store.map_id,))
+            if cur.rowcount != 1:
+                raise NotFoundError(f"map {store.name!r} does not exist")
+            cur.execute("SELECT pg_notify(%s, %s)", (CHANNEL, store.name))
+        store.close()
+
+    def staging(self, record: MapRecord) -> PgMapStore:
+        return self._insert_map(f"{_STAGING}{record.name}-{uuid.uuid4().hex[:8]}", record)
+
+    def publish(self, store: MapStore, name: str) -> None:
+        assert isinstance(store, PgMapStore)
+        try:
+            with self.transaction() as cur:
+                cur.execute(
+                    "UPDATE sgvloc_maps SET name = %s, made = now() WHERE map_id = %s",
+                    (name, store.map_id),
+                )
+                cur.execute("SELECT pg_notify(%s, %s)", (CHANNEL, name))
+        except pg_errors.UniqueViolation:
+            raise ConflictError(f"map {name!r} exists already") from None
+        store.name = name
+
+    # -- change notifications -----------------------------------------------------------
+
+    def wait_for_change(self, timeout_s: float) -> bool:
+        """LISTEN on a connection of its own; a lost connection is made again on the next
+        call (the caller polls anyway, so a missed notification costs one poll period)."""
+        with self._listen_lock:
+            try:
+                if self._listener is None or self._listener.closed:
+                    self._listener = psycopg.connect(
+                        self.url, autocommit=True, **self._connect_kwargs
+                    )
+                    self._listener.execute(f"LISTEN {CHANNEL}")
+                got = False
+                for _ in self._listener.notifies(timeout=timeout_s, stop_after=1):
+                    got = True
+                # drain what else arrived: one catch-up serves them all
+                for _ in self._listener.notifies(timeout=0.001):
+                    pass
+                return got
+            except psycopg.Error as exc:
+                log.debug("change notifications unavailable: %s", exc)
+                if self._listener is not None:
+                    self._listener.close()
+                    self._listener = None
+        time.sleep(timeout_s)
+        return False
+
+
+class PgMapStore(MapStore):
+    """One map's rows in the shared database. Thread-safe (a connection per call)."""
+
+    def __init__(self, backend: PgBackend, map_id: int, name: str) -> None:
+        self.backend = backend
+        self.map_id = map_id
+        self.name = name
+        self.closed = False
+
+    @property
+    def incarnation(self) -> int:
+        return self.map_id
+
+    @contextmanager
+    def _tx(self) -> Iterator[psycopg.Cursor]:
+        if self.closed:
+            raise StoreClosedError(f"map {self.name!r}: the store is closed")
+        with self.backend.transaction() as cur:
+            yield cur
+
+    def close(self) -> None:
+        self.closed = True
+
+    def _lock_map(self, cur: psycopg.Cursor) -> tuple[int, int]:
+        """Lock the map's row for this transaction: ``(version, next_id)``."""
+        cur.execute(
+            "SELECT version, next_id FROM sgvloc_maps WHERE map_id = %s FOR UPDATE",
+            (self.map_id,),
+        )
+        row = cur.fetchone()
+        if row is None:
+            raise StoreClosedError(f"map {self.name!r} was deleted")
+        return int(row[0]), int(row[1])
+
+    def _announce(self, cur: psycopg.Cursor) -> None:
+        cur.execute("SELECT pg_notify(%s, %s)", (CHANNEL, self.name))
+
+    # -- settings -----------------------------------------------------------------------
+
+    def _meta(self, cur: psycopg.Cursor) -> tuple[dict[str, str], int, int]:
+        cur.execute(
+            "SELECT meta, settings_version, version FROM sgvloc_maps WHERE map_id = %s",
+            (self.map_id,),
+        )
+        row = cur.fetchone()
+        if row is None:
+            raise StoreClosedError(f"map {self.name!r} was deleted")
+        return dict(row[0]), int(row[1]), int(row[2])
+
+    def record(self) -> MapRecord:
+        with self._tx() as cur:
+            meta, settings_version, _ = self._meta(cur)
+        meta["settings_version"] = str(settings_version)
+        return record_from_meta(meta, f"map {self.name!r}")
+
+    def update_settings(
+        self, localizer_config: LocalizerConfig, calibration: Calibration
+    ) -> MapRecord:
+        patch = {
+            "localizer_config": localizer_config.model_dump_json(),
+            "calibration": json.dumps(calibration.to_dict()),
+            "settings_updated_at": utc_now(),
+        }
+        with self._tx() as cur:
+            self._lock_map(cur)
+            cur.execute(
+                "UPDATE sgvloc_maps SET meta = meta || %s::jsonb, "
+                "settings_version = settings_version + 1 WHERE map_id = %s",
+                (json.dumps(patch), self.map_id),
+            )
+            self._announce(cur)
+        return self.record()
+
+    def version(self) -> int:
+        with self._tx() as cur:
+            return self._meta(cur)[2]
+
+    # -- reading ------------------------------------------------------------------------
+
+    def count(self) -> int:
+        with self._tx() as cur:
+            cur.execute("SELECT count(*) FROM sgvloc_keyframes WHERE map_id = %s", (self.map_id,))
+            return int(cur.fetchone()[0])
+
+    def ids(self) -> list[int]:
+        with self._tx() as cur:
+            cur.execute(
+                "SELECT id FROM sgvloc_keyframes WHERE map_id = %s ORDER BY id", (self.map_id,)
+            )
+            return [int(r[0]) for r in cur.fetchall()]
+
+    def find_keys(self, keys: list[str]) -> dict[str, int]:
+        if not keys:
+            return {}
+        with self._tx() as cur:
+            cur.execute(
+                "SELECT key, id FROM sgvloc_keyframes WHERE map_id = %s AND key = ANY(%s)",
+                (self.map_id, list(keys)),
+            )
+            return {r[0]: int(r[1]) for r in cur.fetchall()}
+
+    def get(self, keyframe_id: int) -> KeyframeRow:
+        rows = self.fetch([int(keyframe_id)])
+        if not rows:
+            raise NotFoundError(f"keyframe {keyframe_id} does not exist")
+        return rows[0]
+
+    def fetch(self, ids: list[int]) -> list[KeyframeRow]:
+        with self._tx() as cur:
+            cur.execute(
+                f"SELECT {_COLUMNS} FROM sgvloc_keyframes WHERE map_id = %s AND id = ANY(%s) "
+                "ORDER BY id",
+                (self.map_id, [int(i) for i in ids]),
+                binary=True,
+            )
+            return [_row(r) for r in cur.fetchall()]
+
+    def _page(self, cur: psycopg.Cursor, last: int, chunk: int) -> list[tuple]:
+        cur.execute(
+            f"SELECT {_COLUMNS} FROM sgvloc_keyframes WHERE map_id = %s AND id > %s "
+            "ORDER BY id LIMIT %s",
+            (self.map_id, last, chunk),
+            binary=True,
+        )
+        return cur.fetchall()
+
+    def iter_keyframes(self, chunk: int = 256) -> Iterator[KeyframeRow]:
+        last = 0
+        while True:
+            with self._tx() as cur:
+                rows = self._page(cur, last, chunk)
+            if not rows:
+                return
+            yield from (_row(r) for r in rows)
+            last = int(rows[-1][0])
+
+    def select(
+        self, where: KeyframeFilter, *, after_id: int = 0, limit: int = 1000
+    ) -> list[KeyframeSummary]:
+        cond, args = _where(where)
+        with self._tx() as cur:
+            cur.execute(
+                "SELECT id, key, T_map_sensor, metadata, created_at FROM sgvloc_keyframes "
+                f"WHERE map_id = %s AND id > %s{cond} ORDER BY id LIMIT %s",
+                [self.map_id, int(after_id), *args, int(limit)],
+                binary=True,
+            )
+            rows = cur.fetchall()
+        return [
+            KeyframeSummary(int(r[0]), r[1], blob_to_array(r[2]), json.loads(r[3]), r[4])
+            for r in rows
+        ]
+
+    def matching_ids(self, where: KeyframeFilter) -> list[int]:
+        cond, args = _where(where)
+        with self._tx() as cur:
+            cur.execute(
+                f"SELECT id FROM sgvloc_keyframes WHERE map_id = %s{cond} ORDER BY id",
+                [self.map_id, *args],
+            )
+            return [int(r[0]) for r in cur.fetchall()]
+
+    def extent(self) -> tuple[list[float], list[float]] | None:
+        with self._tx() as cur:
+            cur.execute(
+                "SELECT min(x), min(y), min(z), max(x), max(y), max(z) FROM sgvloc_keyframes "
+                "WHERE map_id = %s",
+                (self.map_id,),
+            )
+            r = cur.fetchone()
+        if r[0] is None:
+            return None
+        return [float(v) for v in r[:3]], [float(v) for v in r[3:]]
+
+    def last_write(self) -> str | None:
+        with self._tx() as cur:
+            cur.execute("SELECT updated_at FROM sgvloc_maps WHERE map_id = %s", (self.map_id,))
+            row = cur.fetchone()
+        return None if row is None else row[0]
+
+    def disk_bytes(self) -> int:
+        """The stored size of the map's rows (values as PostgreSQL keeps them)."""
+        with self._tx() as cur:
+            cur.execute(
+                "SELECT coalesce(sum(pg_column_size(k.*)), 0) FROM sgvloc_keyframes k "
+                "WHERE map_id = %s",
+                (self.map_id,),
+            )
+            return int(cur.fetchone()[0])
+
+    @contextmanager
+    def snapshot(self) -> Iterator[tuple[int, int, Iterator[KeyframeRow]]]:
+        """One REPEATABLE READ transaction: the version and every row of one state."""
+        if self.closed:
+            raise StoreClosedError(f"map {self.name!r}: the store is closed")
+        try:
+            with self.backend.pool.connection() as conn:
+                conn.isolation_level = psycopg.IsolationLevel.REPEATABLE_READ
+                conn.read_only = True
+                try:
+                    with conn.transaction(), conn.cursor() as cur:
+                        _, _, version = self._meta(cur)
+                        cur.execute(
+                            "SELECT count(*) FROM sgvloc_keyframes WHERE map_id = %s",
+                            (self.map_id,),
+                        )
+                        count = int(cur.fetchone()[0])
+
+                        def rows() -> Iterator[KeyframeRow]:
+                            last = 0
+                            while page := self._page(cur, last, 256):
+                                yield from (_row(r) for r in page)
+                                last = int(page[-1][0])
+
+                        yield version, count, rows()
+                finally:
+                    conn.isolation_level = None
+                    conn.read_only = None
+        except PoolTimeout:
+            raise StoreUnavailableError("the map store (PostgreSQL) cannot be reached") from None
+        except psycopg.OperationalError as exc:
+            raise StoreUnavailableError(f"the map store (PostgreSQL) failed: {exc}") from None
+
+    def changes_since(self, version: int) -> list[Change] | None:
+        with self._tx() as cur:
+            _, _, current = self._meta(cur)
+            if current <= version:
+                return []
+            cur.execute(
+                "SELECT version, kind, ids FROM sgvloc_changes WHERE map_id = %s "
+                "AND version > %s ORDER BY version",
+                (self.map_id, int(version)),
+            )
+            rows = cur.fetchall()
+        changes = [Change(int(v), k, [int(i) for i in ids]) for v, k, ids in rows]
+        expected = list(range(int(version) + 1, current + 1))
+        if [c.version for c in changes][: len(expected)] != expected:
+            return None  # pruned (or an archive import set the version): reload the map
+        return changes[: len(expected)]
+
+    # -- writing ------------------------------------------------------------------------
+
+    def _record_change(self, cur: psycopg.Cursor, version: int, kind: str, ids: list[int]) -> None:
+        cur.execute(
+            "INSERT INTO sgvloc_changes (map_id, version, kind, ids) VALUES (%s, %s, %s, %s)",
+            (self.map_id, version, kind, ids),
+        )
+        if version > CHANGES_KEPT and version % 100 == 0:
+            cur.execute(
+                "DELETE FROM sgvloc_changes WHERE map_id = %s AND version <= %s",
+                (self.map_id, version - CHANGES_KEPT),
+            )
+        self._announce(cur)
+
+    def insert(self, rows: list[KeyframeRow]) -> tuple[list[int], int]:
+        now = utc_now()
+        try:
+            with self._tx() as cur:
+                version, next_id = self._lock_map(cur)
+                ids = list(range(next_id, next_id + len(rows)))
+                cur.executemany(
+                    _INSERT,
+                    [_values(self.map_id, row, i, now) for row, i in zip(rows, ids, strict=True)],
+                )
+                version += 1
+                cur.execute(
+                    "UPDATE sgvloc_maps SET version = %s, next_id = %s, updated_at = %s "
+                    "WHERE map_id = %s",
+                    (version, next_id + len(rows), now, self.map_id),
+                )
+                self._record_change(cur, version, "insert", ids)
+        except pg_errors.UniqueViolation as exc:
+            detail = exc.diag.message_detail
+            raise DuplicateKeyError(
+                f"map {self.name!r}: a keyframe key was stored meanwhile ({detail})"
+            ) from None
+        for row, i in zip(rows, ids, strict=True):
+            row.id, row.created_at = i, now
+        return ids, version
+
+    def delete(self, ids: list[int], *, set_version: int | None = None) -> int:
+        """Delete keyframes (one transaction). ``set_version`` is not honoured: other
+        replicas may have applied the version it would restore, so the undo of an insert
+        is a delete of its own, one version later."""
+        want = sorted({int(i) for i in ids})
+        with self._tx() as cur:
+            version, _ = self._lock_map(cur)
+            cur.execute(
+                "DELETE FROM sgvloc_keyframes WHERE map_id = %s AND id = ANY(%s) RETURNING id",
+                (self.map_id, want),
+            )
+            gone = {int(r[0]) for r in cur.fetchall()}
+            missing = [i for i in want if i not in gone]
+            if missing:
+                raise NotFoundError(f"keyframe {missing[0]} does not exist")
+            version += 1
+            cur.execute(
+                "UPDATE sgvloc_maps SET version = %s, updated_at = %s WHERE map_id = %s",
+                (version, utc_now(), self.map_id),
+            )
+            self._record_change(cur, version, "delete", want)
+        return version
+
+    def insert_exact(self, rows: list[KeyframeRow], version: int) -> None:
+        """Fill a staged map from an archive: ids and creation times kept, the version
+        set (no change is recorded: replicas load a published map whole)."""
+        with self._tx() as cur:
+            _, next_id = self._lock_map(cur)
+            cur.executemany(
+                _INSERT, [_values(self.map_id, row, int(row.id), row.created_at) for row in rows]
+            )
+            top = max([next_id - 1, *(int(r.id) for r in rows)])
+            cur.execute(
+                "UPDATE sgvloc_maps SET version = %s, next_id = %s, updated_at = %s "
+                "WHERE map_id = %s",
+                (int(version), top + 1, utc_now(), self.map_id),
+            )
