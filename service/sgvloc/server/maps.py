@@ -560,6 +560,24 @@ class MapManager:
             return False
         return handle.localizer.version == version - 1
 
+    def _snapshot_loop(self) -> None:
+        tick = min(1.0, self.snapshot_delay_s / 4)
+        while not self._stop.wait(tick):
+            now = time.monotonic()
+            for handle in self.list():
+                since = handle.unsaved_since
+                due = since is not None and now - since >= self.snapshot_delay_s
+                if due and now >= handle.snapshot_retry_at:
+                    self.snapshot(handle.name)
+
+    def _scrubbed(self, why: str, folder: Path) -> str:
+        """``why`` as callers may see it: the map's name, never the server's paths."""
+        return (
+            why.replace(str(folder), f"map {folder.name}")
+            .replace(str(self.maps_dir.resolve()), "<maps>")
+            .replace(str(self.maps_dir), "<maps>")
+        )
+
     def reload(self, name: str) -> MapHandle:
         """Load a map whose folder failed to load (at start-up or by an earlier reload),
         once its cause is fixed, without a restart. Raises :class:`ConflictError` if the

@@ -1,0 +1,317 @@
+"""Replicas over one PostgreSQL store: real ``sgvloc serve`` processes on loopback and a
+real PostgreSQL server (see the ``postgres`` fixture).
+
+What an operator scaling out relies on: a write on one replica is served by every other,
+maps made or deleted anywhere appear or vanish everywhere, a killed replica loses
+nothing and a new one catches up, the store going away makes writes fail fast (503) while
+localizations go on from memory, and concurrent writers never lose or double keyframes.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+from conftest import Server
+from svc_helpers import decode, error_of, post_msgpack
+
+from sgvloc.core.sequence import KittiSequence
+
+POLL_S = "0.5"
+
+
+@pytest.fixture(scope="module")
+def replicas(postgres, tmp_path_factory: pytest.TempPathFactory) -> Iterator[list[Server]]:
+    """Three replicas sharing one fresh database, for the whole module (each test uses
+    maps of its own; the test that kills a replica runs last)."""
+    root = tmp_path_factory.mktemp("replicas")
+    url = postgres.new_database()
+    servers = [_replica(root, name, url) for name in "abc"]
+    try:
+        _start_all(servers)
+        yield servers
+    finally:
+        for s in servers:
+            s.stop()
+
+
+def _start_all(servers: list[Server]) -> None:
+    """Start replicas side by side (each start waits for its /readyz)."""
+    errors: list[BaseException] = []
+
+    def start(s: Server) -> None:
+        try:
+            s.start()
+        except BaseException as exc:  # re-raised below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=start, args=(s,)) for s in servers]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    if errors:
+        raise errors[0]
+
+
+def _replica(root: Path, name: str, url: str) -> Server:
+    return Server(
+        data_dir=root / name,
+        log_path=root / f"{name}.log",
+        env={"SGVLOC_STORE_URL": url, "SGVLOC_FOLLOW_POLL_S": POLL_S},
+        workers=1,
+    )
+
+
+def _until(check, timeout: float = 10.0, what: str = "") -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if check():
+            return
+        time.sleep(0.05)
+    raise AssertionError(f"not within {timeout} s: {what}")
+
+
+def _scans(balm_mini_dir: Path, roles: list) -> tuple[KittiSequence, list[int], list[int]]:
+    seq = KittiSequence(balm_mini_dir)
+    db = [i for i, (_, role) in enumerate(roles) if role == "database"]
+    queries = [i for i, (_, role) in enumerate(roles) if role == "query"]
+    return seq, db, queries
+
+
+def _keyframes(seq: KittiSequence, idx: list[int], prefix: str = "kf") -> list[dict]:
+    return [
+        {
+            "key": f"{prefix}/{i}",
+            "T_map_sensor": seq[i].T_world_sensor,
+            "points": seq[i].scan().xyzi(),
+            "metadata": {"timestamp": seq[i].time},
+        }
+        for i in idx
+    ]
+
+
+def _localize(c: httpx.Client, name: str, points: np.ndarray, **params) -> httpx.Response:
+    return post_msgpack(
+        c,
+        f"/v1/maps/{name}/localize?" + "&".join(f"{k}={v}" for k, v in params.items()),
+        {"points": points},
+    )
+
+
+def _answer(r: httpx.Response) -> tuple[bool, int | None, int, np.ndarray | None]:
+    assert r.status_code == 200, r.text
+    body = decode(r)
+    T = body["T_map_sensor"]
+    return (
+        body["localized"],
+        body["keyframe_id"],
+        body["map_version"],
+        (None if T is None else np.asarray(T)),
+    )
+
+
+def test_writes_on_one_replica_are_served_by_all(
+    replicas: list[Server], balm_mini_dir: Path, balm_mini_roles: list
+) -> None:
+    a, b, c = (httpx.Client(base_url=s.url, timeout=120.0) for s in replicas)
+    seq, db, queries = _scans(balm_mini_dir, balm_mini_roles)
+    # a map created on B appears on A and C
+    assert b.post("/v1/maps", json={"name": "shared"}).status_code == 201
+    for other in (a, c):
+        _until(lambda o=other: o.get("/v1/maps/shared").status_code == 200, what="map on peer")
+    # keyframes inserted on A are localizable on B and C (read-your-writes by version)
+    r = post_msgpack(a, "/v1/maps/shared/keyframes", {"keyframes": _keyframes(seq, db)})
+    assert r.status_code == 201, r.text
+    version, ids = r.json()["map_version"], r.json()["ids"]
+    points = seq[queries[0]].scan().xyzi()
+    answers = []
+    for peer in (b, c, a):
+        localized, kf, v, T = _answer(_localize(peer, "shared", points, min_map_version=version))
+        assert v >= version and localized and kf in ids
+        answers.append((kf, T))
+    assert answers[0][0] == answers[1][0] == answers[2][0]
+    np.testing.assert_allclose(answers[0][1], answers[2][1], atol=1e-6)
+    # the same key sent to C is known there: same id, not created again
+    r = post_msgpack(c, "/v1/maps/shared/keyframes", {"keyframes": _keyframes(seq, db[:1])})
+    assert r.status_code == 201 and r.json()["ids"] == ids[:1] and r.json()["created"] == [False]
+    # a keyframe deleted on C is gone on A; the map deleted on C is gone everywhere
+    assert c.delete(f"/v1/maps/shared/keyframes/{ids[0]}").status_code == 200
+    _until(lambda: a.get("/v1/maps/shared").json()["keyframes"] == len(ids) - 1, what="delete")
+    assert c.delete("/v1/maps/shared").status_code == 204
+    for peer in (a, b):
+        _until(lambda p=peer: p.get("/v1/maps/shared").status_code == 404, what="map gone")
+    # a version nobody has reached: 503 stale with Retry-After, after the bounded wait
+    assert b.post("/v1/maps", json={"name": "other"}).status_code == 201
+    t0 = time.monotonic()
+    r = _localize(b, "other", points, min_map_version=99)
+    assert r.status_code == 503 and error_of(r)["code"] == "stale"
+    assert r.headers["Retry-After"] and time.monotonic() - t0 < 10
+
+
+def test_store_outage_fails_writes_fast_and_localizations_go_on(
+    postgres, replicas: list[Server], balm_mini_dir: Path, balm_mini_roles: list
+) -> None:
+    if postgres.cluster is None:
+        pytest.skip("needs the throwaway cluster (SGVLOC_TEST_PG_URL names an outside server)")
+    a, b, _ = replicas
+    seq, db, queries = _scans(balm_mini_dir, balm_mini_roles)
+    ca, cb = (httpx.Client(base_url=s.url, timeout=120.0) for s in (a, b))
+    assert ca.post("/v1/maps", json={"name": "outage"}).status_code == 201
+    acked: list[str] = []
+    r = post_msgpack(ca, "/v1/maps/outage/keyframes", {"keyframes": _keyframes(seq, db[:3])})
+    assert r.status_code == 201
+    acked += [f"kf/{i}" for i in db[:3]]
+    _until(lambda: cb.get("/v1/maps/outage").status_code == 200, what="map on b")
+    points = seq[queries[0]].scan().xyzi()
+
+    postgres.cluster.stop()
+    try:
+        t0 = time.monotonic()
+        r = post_msgpack(ca, "/v1/maps/outage/keyframes", {"keyframes": _keyframes(seq, db[3:5])})
+        took = time.monotonic() - t0
+        assert r.status_code == 503, r.text
+        assert error_of(r)["code"] == "store_unavailable" and r.headers["Retry-After"]
+        assert took < 15, took
+        assert cb.post("/v1/maps", json={"name": "n"}).status_code == 503
+        for c in (ca, cb):  # served from memory, naming the version used
+            localized, _, version, _ = _answer(_localize(c, "outage", points))
+            assert version == 1
+        assert cb.get("/v1/maps/outage").status_code == 200
+    finally:
+        postgres.cluster.start()
+
+    # the replicas reconnect by themselves: writes succeed again
+    def write_ok() -> bool:
+        r = post_msgpack(ca, "/v1/maps/outage/keyframes", {"keyframes": _keyframes(seq, db[3:5])})
+        return r.status_code == 201
+
+    _until(write_ok, timeout=30, what="writes after the store came back")
+    acked += [f"kf/{i}" for i in db[3:5]]
+    _until(lambda: cb.get("/v1/maps/outage").json()["keyframes"] == len(acked), what="b caught up")
+    keys = {k["key"] for k in cb.get("/v1/maps/outage/keyframes").json()["keyframes"]}
+    assert keys == set(acked)
+
+
+def test_concurrent_writers_on_two_replicas(replicas: list[Server]) -> None:
+    """Two replicas inserting into one map at once, with overlapping keys: every key
+    stored exactly once, ids distinct, both replicas end with the same content."""
+    servers = replicas[:2]
+    clients = [httpx.Client(base_url=s.url, timeout=120.0) for s in servers]
+    spec = {"kind": "precomputed", "name": "egonn", "global_dim": 16, "local_dim": 8}
+    assert (
+        clients[0].post("/v1/maps", json={"name": "concurrent", "encoder": spec}).status_code == 201
+    )
+    _until(lambda: clients[1].get("/v1/maps/concurrent").status_code == 200, what="map on b")
+    rng = np.random.default_rng(0)
+
+    def batch(keys: list[str]) -> dict:
+        kfs = []
+        for k in keys:
+            kfs.append(
+                {
+                    "key": k,
+                    "T_map_sensor": np.eye(4),
+                    "features": {
+                        "global_descriptor": rng.normal(size=16).astype(np.float32),
+                        "keypoints": rng.uniform(-20, 20, (32, 3)).astype(np.float32),
+                        "local_features": rng.normal(size=(32, 8)).astype(np.float32),
+                    },
+                }
+            )
+        return {"keyframes": kfs}
+
+    bodies = [[batch([f"k{j}-{i}" for i in range(5)]) for j in range(12)] for _ in range(2)]
+    results: list[list[int]] = [[], []]
+    errors: list[str] = []
+
+    def writer(n: int) -> None:
+        for body in bodies[n]:  # both replicas send the same 12 batches of keys
+            r = post_msgpack(clients[n], "/v1/maps/concurrent/keyframes", body)
+            if r.status_code != 201:
+                errors.append(r.text)
+            else:
+                results[n] += r.json()["ids"]
+
+    threads = [threading.Thread(target=writer, args=(n,)) for n in (0, 1)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=300)
+    assert not errors
+    assert results[0] == results[1]  # the same key got the same id on both
+    assert len(set(results[0])) == 60
+    _until(
+        lambda: (
+            [c.get("/v1/maps/concurrent").json()["version"] for c in clients][0]
+            == clients[1].get("/v1/maps/concurrent").json()["version"]
+        ),
+        what="same version",
+    )
+    infos = [c.get("/v1/maps/concurrent").json() for c in clients]
+    assert infos[0]["keyframes"] == infos[1]["keyframes"] == 60
+    listed = clients[1].get("/v1/maps/concurrent/keyframes?limit=1000").json()["keyframes"]
+    assert sorted(k["id"] for k in listed) == sorted(set(results[0]))
+
+
+def test_killed_replica_loses_nothing_and_a_new_one_catches_up(
+    replicas: list[Server], balm_mini_dir: Path, balm_mini_roles: list, tmp_path: Path
+) -> None:
+    a, b, c = replicas
+    seq, db, queries = _scans(balm_mini_dir, balm_mini_roles)
+    ca, cb, cc = (httpx.Client(base_url=s.url, timeout=120.0) for s in replicas)
+    assert ca.post("/v1/maps", json={"name": "killed"}).status_code == 201
+    r = post_msgpack(ca, "/v1/maps/killed/keyframes", {"keyframes": _keyframes(seq, db[:4])})
+    assert r.status_code == 201
+    _until(lambda: cb.get("/v1/maps/killed").status_code == 200, what="map on b")
+    points = seq[queries[0]].scan().xyzi()
+
+    failures: list[str] = []
+    served = [0]
+    stop = threading.Event()
+
+    def load() -> None:  # localizations against B and C the whole time
+        with httpx.Client(timeout=60.0) as h:
+            while not stop.is_set():
+                for s in (b, c):
+                    r = post_msgpack(h, f"{s.url}/v1/maps/killed/localize", {"points": points})
+                    if r.status_code != 200:
+                        failures.append(f"{s.url}: {r.status_code} {r.text[:200]}")
+                    served[0] += 1
+
+    t = threading.Thread(target=load)
+    t.start()
+    try:
+        # A acknowledges a batch, then dies without any shutdown code
+        r = post_msgpack(ca, "/v1/maps/killed/keyframes", {"keyframes": _keyframes(seq, db[4:])})
+        assert r.status_code == 201
+        acked = r.json()["map_version"]
+        a.kill()
+        time.sleep(1.0)
+    finally:
+        stop.set()
+        t.join(timeout=120)
+    assert not failures and served[0] > 0
+    # a new replica catches up to the same version and gives the same answers
+    d = _replica(tmp_path, "d", b.env["SGVLOC_STORE_URL"])
+    d.start()
+    try:
+        cd = httpx.Client(base_url=d.url, timeout=120.0)
+        _until(lambda: cb.get("/v1/maps/killed").json()["version"] == acked, what="b caught up")
+        info_b, info_d = cb.get("/v1/maps/killed").json(), cd.get("/v1/maps/killed").json()
+        assert info_d["version"] == info_b["version"] == acked
+        assert info_d["keyframes"] == info_b["keyframes"] == len(db)
+        for q in queries:
+            qp = seq[q].scan().xyzi()
+            want = _answer(post_msgpack(cb, "/v1/maps/killed/localize", {"points": qp}))
+            got = _answer(post_msgpack(cd, "/v1/maps/killed/localize", {"points": qp}))
+            assert got[:3] == want[:3]
+            if want[3] is not None:
+                np.testing.assert_allclose(got[3], want[3], atol=1e-6)
+    finally:
+        d.stop()

@@ -1,0 +1,169 @@
+"""The store contract, run against both backends: SQLite (one database per map folder)
+and PostgreSQL (one shared database, a real server). Every test here must hold for both;
+tests of one backend's own behaviour live in test_store.py and test_replicas.py."""
+
+from __future__ import annotations
+
+import io
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+from svc_helpers import random_features
+
+from sgvloc.core.encoders import EncoderSpec
+from sgvloc.core.errors import ConflictError, NotFoundError
+from sgvloc.server.maps import FeaturesIn, KeyframeIn, MapManager
+from sgvloc.server.store import KeyframeFilter, open_backend
+
+SPEC = EncoderSpec(kind="precomputed", name="egonn", global_dim=16, local_dim=8)
+
+Factory = Callable[[], MapManager]
+
+
+@pytest.fixture(params=["sqlite", "postgresql"])
+def managers(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Factory]:
+    """``managers()`` opens a map manager on one store (each call: a new process's view
+    of the same store, as after a restart); all are closed at the end."""
+    url = None
+    if request.param == "postgresql":
+        url = request.getfixturevalue("postgres").new_database()
+    opened: list[MapManager] = []
+
+    def make() -> MapManager:
+        m = MapManager(tmp_path / "maps", backend=open_backend(url))
+        m.load_all()
+        opened.append(m)
+        return m
+
+    yield make
+    for m in opened:
+        m.close()
+
+
+def _items(rng: np.random.Generator, n: int, key_prefix: str | None = None, x0: float = 0.0):
+    out = []
+    for i in range(n):
+        f = random_features(rng)
+        T = np.eye(4)
+        T[:3, 3] = [x0 + i, 2.0 * i, 0.5]
+        out.append(
+            KeyframeIn(
+                T_map_sensor=T,
+                features=FeaturesIn(f["global_descriptor"], f["keypoints"], f["local_features"]),
+                key=None if key_prefix is None else f"{key_prefix}{i}",
+                metadata={"timestamp": 100.0 + i, "sequence": "a" if i % 2 else "b"},
+            )
+        )
+    return out
+
+
+def test_create_insert_read_back(managers: Factory, rng: np.random.Generator) -> None:
+    m = managers()
+    m.create("a", SPEC)
+    with pytest.raises(ConflictError):
+        m.create("a", SPEC)
+    items = _items(rng, 5, "k")
+    r = m.insert("a", items)
+    assert r.ids == [1, 2, 3, 4, 5] and r.created == [True] * 5 and r.map_version == 1
+    row = m.get_keyframe("a", r.ids[3])
+    assert row.key == "k3" and row.metadata == {"timestamp": 103.0, "sequence": "a"}
+    np.testing.assert_array_equal(row.T_map_sensor, items[3].T_map_sensor)
+    np.testing.assert_array_equal(row.local_features, items[3].features.local_features)
+    assert row.created_at.endswith("Z")
+    with pytest.raises(NotFoundError):
+        m.get_keyframe("a", 99)
+    stats = m.stats("a")
+    assert stats["keyframes"] == 5 and stats["version"] == 1 and stats["disk_bytes"] > 0
+    assert stats["extent"] == {"min": [0.0, 0.0, 0.5], "max": [4.0, 8.0, 0.5]}
+
+
+def test_keys_are_idempotent_and_ids_never_reused(
+    managers: Factory, rng: np.random.Generator
+) -> None:
+    m = managers()
+    m.create("a", SPEC)
+    first = m.insert("a", _items(rng, 3, "k"))
+    again = m.insert("a", _items(rng, 4, "k"))  # k0..k2 known, k3 new
+    assert again.ids[:3] == first.ids and again.created == [False, False, False, True]
+    assert again.map_version == first.map_version + 1
+    assert m.insert("a", _items(rng, 2, "k")).map_version == again.map_version  # nothing new
+    m.delete_keyframe("a", again.ids[3])
+    later = m.insert("a", _items(rng, 1))
+    assert later.ids[0] > again.ids[3]  # a deleted id is never handed out again
+
+
+def test_filters_listing_and_bulk_delete(managers: Factory, rng: np.random.Generator) -> None:
+    m = managers()
+    m.create("a", SPEC)
+    ids = m.insert("a", _items(rng, 6, "k")).ids
+    page = m.list_keyframes("a", KeyframeFilter(), limit=4)
+    assert [s.id for s in page] == ids[:4]
+    assert [s.id for s in m.list_keyframes("a", KeyframeFilter(), after_id=ids[3])] == ids[4:]
+    assert [s.id for s in m.list_keyframes("a", KeyframeFilter(bbox=(0.5, 1.0, 2.5, 4.0)))] == [
+        ids[1],
+        ids[2],
+    ]
+    assert [s.id for s in m.list_keyframes("a", KeyframeFilter(time_min=103.0))] == ids[3:]
+    assert [s.id for s in m.list_keyframes("a", KeyframeFilter(time_max=100.5))] == ids[:1]
+    assert [s.id for s in m.list_keyframes("a", KeyframeFilter(sequence="a"))] == ids[1::2]
+    assert [s.id for s in m.list_keyframes("a", KeyframeFilter(key_prefix="k5"))] == ids[5:]
+    deleted, version = m.delete_keyframes("a", KeyframeFilter(sequence="b", time_min=101.0))
+    assert deleted == 2 and version == 2  # k2, k4: one transaction, one version
+    assert m.delete_keyframes("a", KeyframeFilter(key_prefix="zz")) == (0, 2)
+    assert m.get("a").num_keyframes == 4
+    top = m.localize("a", features=_items(np.random.default_rng(0), 1)[0].features, top_k=10)
+    assert {c.keyframe_id for c in top.retrieved} == {ids[0], ids[1], ids[3], ids[5]}
+
+
+def test_everything_survives_a_restart(managers: Factory, rng: np.random.Generator) -> None:
+    m = managers()
+    m.create("a", SPEC)
+    items = _items(rng, 5, "k")
+    ids = m.insert("a", items).ids
+    m.delete_keyframe("a", ids[0])
+    m.update_settings("a", {"top_k": 3})
+    answer = m.localize("a", features=items[2].features, rerank="none")
+    m.close()
+    m2 = managers()
+    h = m2.get("a")
+    assert h.version == 2 and h.num_keyframes == 4
+    assert h.record.localizer_config.top_k == 3 and h.record.settings_version == 1
+    again = m2.localize("a", features=items[2].features, rerank="none")
+    assert [c.keyframe_id for c in again.retrieved] == [c.keyframe_id for c in answer.retrieved]
+    assert m2.insert("a", _items(rng, 1)).ids == [6]
+
+
+def test_delete_map_and_use_the_name_again(managers: Factory, rng: np.random.Generator) -> None:
+    m = managers()
+    m.create("a", SPEC)
+    m.insert("a", _items(rng, 2))
+    m.delete("a")
+    with pytest.raises(NotFoundError):
+        m.get("a")
+    with pytest.raises(NotFoundError):
+        m.delete("a")
+    m.create("a", SPEC)
+    assert m.get("a").num_keyframes == 0 and m.get("a").version == 0
+    m.close()
+    assert managers().get("a").num_keyframes == 0
+
+
+def test_archive_round_trip(managers: Factory, rng: np.random.Generator) -> None:
+    m = managers()
+    m.create("a", SPEC)
+    items = _items(rng, 4, "k")
+    ids = m.insert("a", items).ids
+    m.delete_keyframe("a", ids[1])
+    with m.export_archive("a") as blocks:
+        data = b"".join(blocks)
+    h = m.import_archive(io.BytesIO(data), "b")
+    assert h.version == 2 and m.get("b").num_keyframes == 3
+    with pytest.raises(ConflictError):
+        m.import_archive(io.BytesIO(data), "b")
+    assert [s.id for s in m.list_keyframes("b", KeyframeFilter())] == [ids[0], *ids[2:]]
+    assert m.get_keyframe("b", ids[2]).key == "k2"
+    assert m.insert("b", _items(rng, 1)).ids[0] > ids[-1]
+    m.close()
+    assert {h.name for h in managers().list()} == {"a", "b"}
