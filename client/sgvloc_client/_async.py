@@ -46,7 +46,11 @@ class AsyncClient(BaseClient):
     """An asyncio connection to an sgvloc service; mirrors :class:`Client`.
 
     Args:
-        base_url: where the service listens.
+        base_url: where the service listens, or a list of replicas' base URLs (one
+            store, see docs/SCALING.md): calls take turns over them, and a call safe to
+            resend (see ``retries``) moves to the next replica at once after a
+            connection error or a 503 answer; any call moves when its connection was
+            refused (nothing was sent). A replica that failed is skipped for 5 s.
         timeout: seconds (or an ``httpx.Timeout``) for connecting, sending and reading;
             None waits forever.
         retries: how many times a call is resent after a connection error or timeout,
@@ -113,15 +117,30 @@ class AsyncClient(BaseClient):
 
     async def _send(self, call: Call[T]) -> T:
         attempt = 0
+        i = self._pick()
+        tried = {i}
         while True:
             try:
                 response = await self._http.request(
-                    call.method, call.path, content=call.content, headers=call.headers
+                    call.method, self._url(i, call.path), content=call.content, headers=call.headers
                 )
             except httpx.TransportError as exc:
-                await asyncio.sleep(self._retry_delay(call, attempt, exc))
+                sent = not isinstance(exc, httpx.ConnectError)
+                j = self._failover(call, attempt, i, tried, sent=sent)
+                if j is None:
+                    await asyncio.sleep(self._retry_delay(call, attempt, exc, i))
+                else:
+                    i = j
+                    tried.add(j)
                 attempt += 1
                 continue
+            if response.status_code == 503 and 503 not in call.passthrough:
+                j = self._failover(call, attempt, i, tried, sent=True)
+                if j is not None:  # another replica may be ready, caught up or connected
+                    i = j
+                    tried.add(j)
+                    attempt += 1
+                    continue
             delay = self._overload_delay(call, attempt, response)
             if delay >= 0:
                 await asyncio.sleep(delay)
@@ -314,7 +333,9 @@ class AsyncClient(BaseClient):
         """See :meth:`Client.export_map`."""
         path = f"{_map_path(map)}/export"
         with _open_dest(dest) as out:
-            async with self._http.stream("GET", path, timeout=timeout) as r:
+            async with self._http.stream(
+                "GET", self._url(self._pick(), path), timeout=timeout
+            ) as r:
                 if r.status_code >= 400:
                     await r.aread()
                     raise self._error(r.status_code, self._decode(r))
@@ -340,7 +361,7 @@ class AsyncClient(BaseClient):
                     yield block
 
             r = await self._http.post(
-                self._import_path(name),
+                self._url(self._pick(), self._import_path(name)),
                 content=chunks(),
                 headers={"Content-Type": ARCHIVE_TYPE},
                 timeout=timeout,
@@ -361,6 +382,7 @@ class AsyncClient(BaseClient):
         prior: Prior | Mapping[str, Any] | None = None,
         min_confidence: float | None = None,
         seed: Seed | Mapping[str, Any] | None = None,
+        min_map_version: int | None = None,
     ) -> Localization:
         """Localize a scan (``points`` ``[P, 3|4]`` in the sensor frame) or precomputed
         ``features`` in a map.
@@ -371,9 +393,19 @@ class AsyncClient(BaseClient):
         ``prior`` (:class:`Prior` or a dict with its fields) restricts the search to the
         keyframes near a believed position. A scan that cannot be localized returns
         ``localized=False`` with the reason and its best ``estimate``; it is not an error.
+        ``min_map_version``: see :meth:`Client.localize`.
         """
         return await self._send(
             self._localize(
-                map, points, features, top_k, rerank, refine, prior, min_confidence, seed
+                map,
+                points,
+                features,
+                top_k,
+                rerank,
+                refine,
+                prior,
+                min_confidence,
+                seed,
+                min_map_version,
             )
         )

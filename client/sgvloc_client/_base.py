@@ -8,8 +8,11 @@ response logic lives in this module.
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
+import threading
+import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -51,6 +54,8 @@ except metadata.PackageNotFoundError:  # running from a source tree
 # Failures after which resending is worthwhile; others (bad URL scheme, proxy set-up)
 # would fail the same way again.
 _RETRYABLE = (httpx.TimeoutException, httpx.NetworkError, httpx.RemoteProtocolError)
+#: a base URL that failed is skipped by new calls for this long (seconds), unless all failed
+DOWN_FOR_S = 5.0
 
 
 @dataclass(frozen=True)
@@ -140,7 +145,7 @@ class BaseClient:
 
     def __init__(
         self,
-        base_url: str = DEFAULT_BASE_URL,
+        base_url: str | Sequence[str] = DEFAULT_BASE_URL,
         timeout: float | httpx.Timeout | None = 30.0,
         retries: int = 3,
         api_key: str | None = None,
@@ -157,7 +162,15 @@ class BaseClient:
             raise ValueError(f"max_retry_after must be >= 0, got {max_retry_after}")
         if wire_format not in ("msgpack", "json"):
             raise ValueError(f"wire_format must be 'msgpack' or 'json', got {wire_format!r}")
-        self.base_url = str(base_url).rstrip("/")
+        urls = [base_url] if isinstance(base_url, str) else list(base_url)
+        if not urls:
+            raise ValueError("give at least one base URL")
+        #: every replica's base URL; calls go round-robin over them and fail over
+        self.base_urls = [str(u).rstrip("/") for u in urls]
+        self.base_url = self.base_urls[0]
+        self._turn = itertools.count()
+        self._down_until = [0.0] * len(self.base_urls)
+        self._turn_lock = threading.Lock()
         self.timeout = timeout if isinstance(timeout, httpx.Timeout) else httpx.Timeout(timeout)
         self.retries = retries
         self.backoff = backoff
@@ -168,7 +181,49 @@ class BaseClient:
         self._api_key = api_key
 
     def __repr__(self) -> str:
-        return f"{type(self).__name__}({self.base_url!r})"
+        urls = self.base_url if len(self.base_urls) == 1 else self.base_urls
+        return f"{type(self).__name__}({urls!r})"
+
+    # ----------------------------------------------------------------------------------
+    # Several base URLs: spreading and failover
+
+    def _pick(self) -> int:
+        """The base URL a new call starts with: the next in turn that has not failed in
+        the last ``DOWN_FOR_S`` seconds (the next in turn if all have)."""
+        n = len(self.base_urls)
+        with self._turn_lock:
+            start = next(self._turn) % n
+        now = time.monotonic()
+        for k in range(n):
+            i = (start + k) % n
+            if self._down_until[i] <= now:
+                return i
+        return start
+
+    def _mark_down(self, i: int) -> None:
+        self._down_until[i] = time.monotonic() + DOWN_FOR_S
+
+    def _url(self, i: int, path: str) -> str:
+        return f"{self.base_urls[i]}{path}"
+
+    def _failover(
+        self, call: Call[Any], attempt: int, i: int, tried: set[int], *, sent: bool
+    ) -> int | None:
+        """The base URL to resend ``call`` to at once after try ``attempt`` failed on
+        URL ``i`` (a connection error, or a 503), or None: only with several URLs, only
+        an untried one, within ``retries``, and only for calls safe to resend, unless the
+        request was never ``sent`` (the connection was refused)."""
+        if len(self.base_urls) == 1 or attempt >= self.retries:
+            return None
+        if sent and not call.idempotent:
+            return None
+        self._mark_down(i)
+        n = len(self.base_urls)
+        for k in range(1, n):
+            j = (i + k) % n
+            if j not in tried:
+                return j
+        return None
 
     # ----------------------------------------------------------------------------------
     # Transport settings
@@ -204,16 +259,19 @@ class BaseClient:
     # ----------------------------------------------------------------------------------
     # Retries
 
-    def _retry_delay(self, call: Call[Any], attempt: int, exc: httpx.TransportError) -> float:
+    def _retry_delay(
+        self, call: Call[Any], attempt: int, exc: httpx.TransportError, i: int = 0
+    ) -> float:
         """Seconds to wait before resending ``call`` after failed try number ``attempt``
-        (0-based); raises :class:`TransportError` when the call must not be resent."""
+        (0-based) on base URL ``i``; raises :class:`TransportError` when the call must
+        not be resent."""
         tries = attempt + 1
         if call.idempotent and isinstance(exc, _RETRYABLE) and attempt < self.retries:
             return min(self.max_backoff, self.backoff * 2**attempt)
         kind = type(exc).__name__
         detail = str(exc) or kind
         raise TransportError(
-            f"{call.method} {self.base_url}{call.path} failed after {tries} "
+            f"{call.method} {self.base_urls[i]}{call.path} failed after {tries} "
             f"attempt{'s' if tries > 1 else ''}: {kind}: {detail}",
             attempts=tries,
         ) from exc
@@ -451,6 +509,7 @@ class BaseClient:
         prior: Prior | Mapping[str, Any] | None = None,
         min_confidence: float | None = None,
         seed: Seed | Mapping[str, Any] | None = None,
+        min_map_version: int | None = None,
     ) -> Call[Localization]:
         if (points is None) == (features is None):
             raise ValueError("give exactly one of points or features")
@@ -469,10 +528,15 @@ class BaseClient:
         ):
             if value is not None:
                 body[key] = value
+        query = ""
+        if min_map_version is not None:
+            if int(min_map_version) < 0:
+                raise ValueError(f"min_map_version must be >= 0, got {min_map_version}")
+            query = f"?min_map_version={int(min_map_version)}"
         # Localizing reads the map and changes nothing: safe to resend.
         return self._call(
             "POST",
-            f"{_map_path(map)}/localize",
+            f"{_map_path(map)}/localize{query}",
             _body_only(Localization.from_body),
             body,
             idempotent=True,

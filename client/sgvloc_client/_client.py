@@ -45,7 +45,11 @@ class Client(BaseClient):
     """A connection to an sgvloc service.
 
     Args:
-        base_url: where the service listens.
+        base_url: where the service listens, or a list of replicas' base URLs (one
+            store, see docs/SCALING.md): calls take turns over them, and a call safe to
+            resend (see ``retries``) moves to the next replica at once after a
+            connection error or a 503 answer; any call moves when its connection was
+            refused (nothing was sent). A replica that failed is skipped for 5 s.
         timeout: seconds (or an ``httpx.Timeout``) for connecting, sending and reading;
             None waits forever.
         retries: how many times a call is resent after a connection error or timeout,
@@ -112,15 +116,30 @@ class Client(BaseClient):
 
     def _send(self, call: Call[T]) -> T:
         attempt = 0
+        i = self._pick()
+        tried = {i}
         while True:
             try:
                 response = self._http.request(
-                    call.method, call.path, content=call.content, headers=call.headers
+                    call.method, self._url(i, call.path), content=call.content, headers=call.headers
                 )
             except httpx.TransportError as exc:
-                time.sleep(self._retry_delay(call, attempt, exc))
+                sent = not isinstance(exc, httpx.ConnectError)
+                j = self._failover(call, attempt, i, tried, sent=sent)
+                if j is None:
+                    time.sleep(self._retry_delay(call, attempt, exc, i))
+                else:
+                    i = j
+                    tried.add(j)
                 attempt += 1
                 continue
+            if response.status_code == 503 and 503 not in call.passthrough:
+                j = self._failover(call, attempt, i, tried, sent=True)
+                if j is not None:  # another replica may be ready, caught up or connected
+                    i = j
+                    tried.add(j)
+                    attempt += 1
+                    continue
             delay = self._overload_delay(call, attempt, response)
             if delay >= 0:
                 time.sleep(delay)
@@ -315,7 +334,10 @@ class Client(BaseClient):
         """Download map ``map`` as an archive into ``dest`` (a path or a binary file),
         streamed; returns the bytes written. ``timeout``: seconds without data."""
         path = f"{_map_path(map)}/export"
-        with _open_dest(dest) as out, self._http.stream("GET", path, timeout=timeout) as r:
+        with (
+            _open_dest(dest) as out,
+            self._http.stream("GET", self._url(self._pick(), path), timeout=timeout) as r,
+        ):
             if r.status_code >= 400:
                 r.read()
                 raise self._error(r.status_code, self._decode(r))
@@ -336,7 +358,7 @@ class Client(BaseClient):
         a path or a binary file), under ``name`` or its archived name."""
         with _open_src(src) as f:
             r = self._http.post(
-                self._import_path(name),
+                self._url(self._pick(), self._import_path(name)),
                 content=_chunks(f),
                 headers={"Content-Type": ARCHIVE_TYPE},
                 timeout=timeout,
@@ -357,6 +379,7 @@ class Client(BaseClient):
         prior: Prior | Mapping[str, Any] | None = None,
         min_confidence: float | None = None,
         seed: Seed | Mapping[str, Any] | None = None,
+        min_map_version: int | None = None,
     ) -> Localization:
         """Localize a scan (``points`` ``[P, 3|4]`` in the sensor frame) or precomputed
         ``features`` in a map.
@@ -369,10 +392,22 @@ class Client(BaseClient):
         the scan is registered against the map around a predicted pose, much faster than
         a global search; :class:`Tracker` keeps the seeds for a moving vehicle. A scan
         that cannot be localized returns ``localized=False`` with the reason and its best
-        ``estimate``; it is not an error.
+        ``estimate``; it is not an error. ``min_map_version``: answer from that map
+        version or later (the ``map_version`` of an insert made through another replica);
+        a replica still behind after a short wait answers 503 ``stale``, and a client with
+        several base URLs then asks the next.
         """
         return self._send(
             self._localize(
-                map, points, features, top_k, rerank, refine, prior, min_confidence, seed
+                map,
+                points,
+                features,
+                top_k,
+                rerank,
+                refine,
+                prior,
+                min_confidence,
+                seed,
+                min_map_version,
             )
         )

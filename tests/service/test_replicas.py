@@ -21,6 +21,7 @@ from conftest import Server
 from svc_helpers import decode, error_of, post_msgpack
 
 from sgvloc.core.sequence import KittiSequence
+from sgvloc_client import Client
 
 POLL_S = "0.5"
 
@@ -259,6 +260,31 @@ def test_concurrent_writers_on_two_replicas(replicas: list[Server]) -> None:
     assert sorted(k["id"] for k in listed) == sorted(set(results[0]))
 
 
+def test_sdk_spreads_calls_over_replicas(replicas: list[Server]) -> None:
+    """Client([a, b, c]) takes turns: each replica answers a share of the calls."""
+
+    def served(s: Server) -> float:
+        text = httpx.get(f"{s.url}/metrics").text
+        return sum(
+            float(line.rsplit(" ", 1)[1])
+            for line in text.splitlines()
+            if line.startswith("sgvloc_http_requests_total{")
+            and 'route="/v1/maps/{map}"' in line
+            and 'method="GET"' in line
+        )
+
+    with Client([s.url for s in replicas]) as sdk:
+        sdk.create_map("spread", encoder={"kind": "handcrafted"})
+        for s in replicas:
+            _until(lambda s=s: httpx.get(f"{s.url}/v1/maps/spread").status_code == 200)
+        before = [served(s) for s in replicas]
+        for _ in range(9):
+            assert sdk.get_map("spread").name == "spread"
+    after = [served(s) for s in replicas]
+    # 9 GETs through the SDK: three on each replica
+    assert [x - y for x, y in zip(after, before, strict=True)] == [3, 3, 3], (before, after)
+
+
 def test_killed_replica_loses_nothing_and_a_new_one_catches_up(
     replicas: list[Server], balm_mini_dir: Path, balm_mini_roles: list, tmp_path: Path
 ) -> None:
@@ -272,7 +298,7 @@ def test_killed_replica_loses_nothing_and_a_new_one_catches_up(
     points = seq[queries[0]].scan().xyzi()
 
     failures: list[str] = []
-    served = [0]
+    served = [0, 0]
     stop = threading.Event()
 
     def load() -> None:  # localizations against B and C the whole time
@@ -284,19 +310,30 @@ def test_killed_replica_loses_nothing_and_a_new_one_catches_up(
                         failures.append(f"{s.url}: {r.status_code} {r.text[:200]}")
                     served[0] += 1
 
-    t = threading.Thread(target=load)
-    t.start()
+    def sdk_load() -> None:  # the SDK over all three, A among them: it fails over
+        with Client([a.url, b.url, c.url], timeout=60.0) as sdk:
+            while not stop.is_set():
+                try:
+                    sdk.localize("killed", points)
+                    served[1] += 1
+                except Exception as exc:  # noqa: BLE001 - every failure is the finding
+                    failures.append(f"sdk: {exc!r}")
+
+    threads = [threading.Thread(target=load), threading.Thread(target=sdk_load)]
+    for t in threads:
+        t.start()
     try:
         # A acknowledges a batch, then dies without any shutdown code
         r = post_msgpack(ca, "/v1/maps/killed/keyframes", {"keyframes": _keyframes(seq, db[4:])})
         assert r.status_code == 201
         acked = r.json()["map_version"]
         a.kill()
-        time.sleep(1.0)
+        time.sleep(2.0)
     finally:
         stop.set()
-        t.join(timeout=120)
-    assert not failures and served[0] > 0
+        for t in threads:
+            t.join(timeout=120)
+    assert not failures and served[0] > 0 and served[1] > 0
     # a new replica catches up to the same version and gives the same answers
     d = _replica(tmp_path, "d", b.env["SGVLOC_STORE_URL"])
     d.start()

@@ -1,0 +1,90 @@
+"""The SDK over several base URLs: failover on refused connections and 503 answers, with
+the idempotency rules of single-URL retries. The good replica is a real service; the
+"busy" one is a real HTTP server on loopback that answers every request with 503."""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import threading
+from collections.abc import Iterator
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+import pytest
+
+from sgvloc_client import AsyncClient, Client, TransportError
+from sgvloc_client._errors import APIError
+
+
+class _Busy(BaseHTTPRequestHandler):
+    hits = 0
+
+    def _answer(self) -> None:
+        type(self).hits += 1
+        length = int(self.headers.get("Content-Length") or 0)
+        self.rfile.read(length)
+        body = b'{"error": {"code": "stale", "message": "behind", "field": null}}'
+        self.send_response(503)
+        self.send_header("Content-Type", "application/json")
+        self.send_header("Retry-After", "1")
+        self.send_header("Content-Length", str(len(body)))
+        self.end_headers()
+        self.wfile.write(body)
+
+    do_GET = do_POST = do_DELETE = _answer
+
+    def log_message(self, *args: object) -> None:
+        pass
+
+
+@pytest.fixture
+def busy_url() -> Iterator[str]:
+    _Busy.hits = 0
+    server = ThreadingHTTPServer(("127.0.0.1", 0), _Busy)
+    t = threading.Thread(target=server.serve_forever, daemon=True)
+    t.start()
+    try:
+        yield f"http://127.0.0.1:{server.server_address[1]}"
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+def test_a_503_moves_a_safe_call_to_the_next_replica(service_url: str, busy_url: str) -> None:
+    with Client([busy_url, service_url], retries=2) as c:
+        for _ in range(4):  # whichever replica a call starts on, it ends on the good one
+            assert c.health() == {"status": "ok"}
+    assert 1 <= _Busy.hits <= 4
+
+
+def test_a_503_is_not_resent_for_an_unsafe_call(service_url: str, busy_url: str) -> None:
+    with Client([busy_url, service_url], retries=2) as c:
+        c._turn = iter([0])  # start on the busy replica  # type: ignore[assignment]
+        with pytest.raises(APIError) as err:
+            c.create_map("never")  # not safe to resend: the 503 is the answer
+    assert err.value.status == 503 and _Busy.hits == 1
+
+
+def test_a_refused_connection_moves_any_call(service_url: str, closed_url: str) -> None:
+    with Client([closed_url, service_url], retries=1) as c:
+        c._turn = itertools.count(0)  # start on the closed one
+        info = c.create_map("failover-created")  # nothing was sent to the closed one
+        assert info.name == "failover-created"
+        # the failed URL is skipped by the next calls for a while, even on its turn
+        c._turn = itertools.count(0)
+        assert c._pick() == 1
+        c.delete_map("failover-created")
+
+
+def test_no_retries_left_raises(closed_url: str) -> None:
+    with Client([closed_url, closed_url], retries=0) as c, pytest.raises(TransportError):
+        c.health()
+
+
+def test_async_client_fails_over(service_url: str, busy_url: str, closed_url: str) -> None:
+    async def run() -> None:
+        async with AsyncClient([closed_url, busy_url, service_url], retries=3) as c:
+            for _ in range(3):
+                assert await c.health() == {"status": "ok"}
+
+    asyncio.run(run())
