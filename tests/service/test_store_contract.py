@@ -19,7 +19,7 @@ from sgvloc.server.store import KeyframeFilter, open_backend
 
 SPEC = EncoderSpec(kind="precomputed", name="egonn", global_dim=16, local_dim=8)
 
-Factory = Callable[[], MapManager]
+Factory = Callable[..., MapManager]
 
 
 @pytest.fixture(params=["sqlite", "postgresql"])
@@ -31,8 +31,8 @@ def managers(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Factory
         url = request.getfixturevalue("postgres").new_database()
     opened: list[MapManager] = []
 
-    def make() -> MapManager:
-        m = MapManager(tmp_path / "maps", backend=open_backend(url))
+    def make(**kwargs) -> MapManager:
+        m = MapManager(tmp_path / "maps", backend=open_backend(url), **kwargs)
         m.load_all()
         opened.append(m)
         return m
@@ -167,3 +167,29 @@ def test_archive_round_trip(managers: Factory, rng: np.random.Generator) -> None
     assert m.insert("b", _items(rng, 1)).ids[0] > ids[-1]
     m.close()
     assert {h.name for h in managers().list()} == {"a", "b"}
+
+
+def test_features_fetched_from_the_store_give_the_same_answers(
+    managers: Factory, rng: np.random.Generator
+) -> None:
+    """A manager that keeps only poses and global descriptors in memory (local features
+    and clouds fetched per query through its cache) answers exactly as one that holds
+    everything, also for keyframes written after it loaded."""
+    m = managers()
+    m.create("a", SPEC)
+    items = _items(rng, 12)
+    m.insert("a", items[:8])
+    slim = managers(features_in_memory=False, feature_cache=4)
+    assert slim.get("a").localizer.memory_bytes() < m.get("a").localizer.memory_bytes() / 4
+    slim.insert("a", items[8:])  # written through the slim manager
+    m.close()
+    full = managers()
+    for item in items[::3]:
+        want = full.localize("a", features=item.features, top_k=6, rerank="sgv")
+        got = slim.localize("a", features=item.features, top_k=6, rerank="sgv")
+        assert got.keyframe_id == want.keyframe_id
+        assert [c.keyframe_id for c in got.reranked] == [c.keyframe_id for c in want.reranked]
+        assert got.confidence == pytest.approx(want.confidence, abs=1e-12)
+        assert "fetch" in got.timings_ms and "fetch" not in want.timings_ms
+    source = slim.get("a").localizer.keyframe_source
+    assert source is not None and len(source) <= 4 and source.misses > 0

@@ -43,3 +43,42 @@ class BuildCache(Generic[T]):
         finally:
             with self._lock:
                 self._building.pop(key).set()
+
+
+class FetchCache(Generic[T]):
+    """Items by integer id fetched from elsewhere in batches: :meth:`get_many` answers
+    the ids it holds and fetches all the others with one call of ``fetch`` (a round trip
+    to a store), keeping at most ``capacity`` items, least recently used first out.
+    Thread-safe; the fetch runs outside the lock."""
+
+    def __init__(self, fetch: Callable[[list[int]], dict[int, T]], capacity: int) -> None:
+        self.fetch = fetch
+        self.capacity = capacity
+        self._items: OrderedDict[int, T] = OrderedDict()
+        self._lock = threading.Lock()
+        self.hits = 0
+        self.misses = 0
+
+    def get_many(self, ids: list[int]) -> dict[int, T]:
+        """``{id: item}`` for every id that exists (a missing one is left out)."""
+        out: dict[int, T] = {}
+        with self._lock:
+            for i in ids:
+                item = self._items.get(i)
+                if item is not None:
+                    self._items.move_to_end(i)
+                    out[i] = item
+            missing = [i for i in ids if i not in out]
+            self.hits += len(out)
+            self.misses += len(missing)
+        if missing:
+            fetched = self.fetch(missing)
+            out.update(fetched)
+            with self._lock:
+                self._items.update(fetched)
+                while len(self._items) > self.capacity:
+                    self._items.popitem(last=False)
+        return out
+
+    def __len__(self) -> int:
+        return len(self._items)

@@ -22,7 +22,7 @@ import numpy as np
 
 from . import batching
 from ._rwlock import RWLock
-from .cache import BuildCache
+from .cache import BuildCache, FetchCache
 from .confidence import (
     AGREEMENT_CANDIDATES,
     Calibration,
@@ -149,8 +149,12 @@ class Localizer:
         *,
         keep_clouds: bool = True,
         calibration: Calibration | None = None,
+        keyframe_source: FetchCache[Keyframe] | None = None,
     ) -> None:
         self.encoder = encoder
+        #: where whole keyframes (keypoints, local features, cloud) come from when the
+        #: map holds only their poses and global descriptors in memory; None: in memory
+        self.keyframe_source = keyframe_source
         self.config = config or LocalizerConfig()
         self.keep_clouds = keep_clouds
         #: the confidence model (default: the one shipped for the encoder's kind)
@@ -466,13 +470,16 @@ class Localizer:
             # 3. re-rank the candidates
             check_deadline("re-ranking")
             t = time.perf_counter()
-            out = rerank(method, query, retrieved, self._features_of, self.index, cfg)
+            whole = self._whole([c.keyframe_id for c in retrieved])
+            if self.keyframe_source is not None:
+                timings["fetch"] = _ms(t)
+            out = rerank(method, query, retrieved, lambda i: whole[i].features, self.index, cfg)
             timings["rerank"] = _ms(t)
 
             # 4. estimate the pose against the re-ranked top-1
             check_deadline("the pose")
             t = time.perf_counter()
-            best = self._keyframes[out.candidates[0].keyframe_id]
+            best = whole[out.candidates[0].keyframe_id]
             pose = out.poses.get(best.id) or ransac_pose(
                 query.keypoints,
                 query.local_features,
@@ -495,7 +502,7 @@ class Localizer:
             judged = assess(
                 self.calibration,
                 ranked,
-                self._spectral(query, retrieved, out, ranked),
+                self._spectral(query, retrieved, out, ranked, whole),
                 lambda i: self._keyframes[i].T_map_sensor,
                 query_keypoints=query.keypoints,
                 similarity=float(query.global_descriptor @ best.features.global_descriptor),
@@ -537,10 +544,11 @@ class Localizer:
                 centre = ((cell[0] + 0.5) * cfg.submap_cell_m, (cell[1] + 0.5) * cfg.submap_cell_m)
                 reach = cfg.submap_radius_m + cfg.submap_cell_m * 0.7072  # + half a diagonal
                 ids = self._grid.within(Prior(centre, reach))
+                whole = self._whole([int(i) for i in ids])
                 clouds = [
                     (int(i), kf.T_map_sensor, kf.cloud)
                     for i in ids
-                    if (kf := self._keyframes[int(i)]).cloud is not None
+                    if (kf := whole[int(i)]).cloud is not None
                 ]
                 return build_submap(clouds, cfg)
 
@@ -595,7 +603,12 @@ class Localizer:
         )
 
     def _spectral(
-        self, query: Features, retrieved: list[Candidate], out: RerankOutput, ranked: list[int]
+        self,
+        query: Features,
+        retrieved: list[Candidate],
+        out: RerankOutput,
+        ranked: list[int],
+        whole: dict[int, Keyframe],
     ) -> dict[int, SpectralCandidate]:
         """SpectralGV's view of the re-ranked candidates: from the re-ranking when it was
         SGV (its scores are in retrieval order), else scored now in one batch."""
@@ -604,7 +617,7 @@ class Localizer:
         else:
             from .sgv import sgv_rerank_scores
 
-            feats = [self._keyframes[i].features for i in ranked]
+            feats = [whole[i].features for i in ranked]
             res = sgv_rerank_scores(
                 query.keypoints,
                 query.local_features,
@@ -613,12 +626,23 @@ class Localizer:
                 self.config.sgv,
             )
             scored = ranked
-        kps = [self._keyframes[i].features.keypoints for i in scored]
+        kps = [whole[i].features.keypoints for i in scored]
         wanted = set(ranked[: 1 + AGREEMENT_CANDIDATES])
         return spectral_candidates(scored, query.keypoints, kps, res, poses_for=wanted)
 
-    def _features_of(self, keyframe_id: int) -> Features:
-        return self._keyframes[keyframe_id].features
+    def _whole(self, ids: list[int]) -> dict[int, Keyframe]:
+        """The keyframes ``ids`` with their features and clouds: from memory, or from
+        the keyframe source (its cache, then one fetch for the rest). Call under the
+        read lock."""
+        if self.keyframe_source is None:
+            return {int(i): self._keyframes[int(i)] for i in ids}
+        got = self.keyframe_source.get_many([int(i) for i in ids])
+        missing = [int(i) for i in ids if int(i) not in got]
+        if missing:  # deleted in the store, not yet here: the map is being caught up
+            raise ConflictError(
+                f"keyframes {missing[:5]} are gone from the store; the map is catching up, retry"
+            )
+        return got
 
     def _refine(
         self, pose: PoseResult, query_cloud: np.ndarray | None, best: Keyframe

@@ -37,6 +37,7 @@ from typing import IO, Any
 import numpy as np
 from pydantic import ValidationError
 
+from sgvloc.core.cache import FetchCache
 from sgvloc.core.confidence import Calibration, shipped_calibration
 from sgvloc.core.config import LocalizerConfig
 from sgvloc.core.encoders import Encoder, EncoderSpec, make_encoder
@@ -191,6 +192,19 @@ def _keyframe(encoder: Encoder, row: KeyframeRow) -> Keyframe:
     return Keyframe(row.id, row.T_map_sensor, feats, row.cloud, row.metadata)
 
 
+def _slim(kf: Keyframe) -> Keyframe:
+    """A keyframe without keypoints, local features and cloud (what a replica that
+    fetches them per query keeps in memory)."""
+    f = kf.features
+    feats = Features(
+        f.global_descriptor,
+        np.zeros((0, 3), np.float32),
+        np.zeros((0, f.local_features.shape[1]), np.float32),
+        f.encoder,
+    )
+    return Keyframe(kf.id, kf.T_map_sensor, feats, None, kf.metadata)
+
+
 class MapUnavailableError(SgvlocError):
     """The map's folder exists but could not be loaded (503 until it is reloaded)."""
 
@@ -253,12 +267,19 @@ class MapManager:
         on_change: Callable[[str, int | None], None] | None = None,
         backend: StoreBackend | SharedBackend | None = None,
         follow_poll_s: float = 1.0,
+        features_in_memory: bool = True,
+        feature_cache: int = 4096,
     ) -> None:
         self.maps_dir = Path(maps_dir)
         self.backend = backend or SqliteBackend()
         #: a store other replicas write too: maps are followed, not kept in folders
         self.shared = isinstance(self.backend, SharedBackend)
         self.follow_poll_s = follow_poll_s
+        #: False: keep only poses and global descriptors in memory and fetch the
+        #: candidates' local features and clouds from the store per query, through an
+        #: LRU cache of ``feature_cache`` keyframes per map
+        self.features_in_memory = features_in_memory
+        self.feature_cache = feature_cache
         self.follow_errors = 0  # failed catch-ups in a row (the store is unreachable)
         self.snapshot_every = snapshot_every
         self.snapshot_delay_s = snapshot_delay_s
@@ -388,7 +409,8 @@ class MapManager:
                 keep_clouds=record.keep_clouds,
                 calibration=record.calibration,
             )
-            with store.snapshot() as (version, _, rows):
+            self._attach_source(localizer, store)
+            with store.snapshot(slim=not self.features_in_memory) as (version, _, rows):
                 keyframes = [_keyframe(encoder, row) for row in rows]
             handle = MapHandle(name, folder, record, store, localizer)
             index = self._usable_snapshot(handle, [kf.id for kf in keyframes])
@@ -399,6 +421,18 @@ class MapManager:
         except BaseException:
             store.close()
             raise
+
+    def _attach_source(self, localizer: Localizer, store: MapStore) -> None:
+        """Without features in memory: the localizer fetches whole keyframes from
+        ``store`` (one read per query for the candidates it does not hold)."""
+        if self.features_in_memory:
+            return
+        encoder = localizer.encoder
+
+        def fetch(ids: list[int]) -> dict[int, Keyframe]:
+            return {row.id: _keyframe(encoder, row) for row in store.fetch(ids)}
+
+        localizer.keyframe_source = FetchCache(fetch, self.feature_cache)
 
     def _usable_snapshot(self, handle: MapHandle, ids: list[int]) -> FaissIndex | None:
         """The saved FAISS snapshot if it agrees with the store, else None (logged)."""
@@ -522,7 +556,7 @@ class MapManager:
         changes = handle.store.changes_since(have)
         if changes is None:
             log.warning("map %r: too far behind the change feed, reloading it", handle.name)
-            with handle.store.snapshot() as (version, _, rows):
+            with handle.store.snapshot(slim=not self.features_in_memory) as (version, _, rows):
                 keyframes = [_keyframe(handle.encoder, row) for row in rows]
             if until is None or version <= until:
                 handle.localizer.restore(keyframes, version)
@@ -540,7 +574,7 @@ class MapManager:
             else:
                 add -= set(change.ids)
                 remove |= set(change.ids)
-        rows = handle.store.fetch(sorted(add)) if add else []
+        rows = handle.store.fetch(sorted(add), slim=not self.features_in_memory) if add else []
         handle.localizer.apply_changes(
             [_keyframe(handle.encoder, row) for row in rows], sorted(remove), changes[-1].version
         )
@@ -760,6 +794,7 @@ class MapManager:
             try:
                 record, localizer = build()
                 store = self.backend.create(name, record)
+                self._attach_source(localizer, store)
                 handle = MapHandle(name, None, record, store, localizer)
                 self._publish(handle)
             finally:
@@ -969,7 +1004,9 @@ class MapManager:
                 # fails, undo the rows
                 if self._before_own(handle, version):
                     try:
-                        handle.localizer.add_keyframes(kfs)
+                        handle.localizer.add_keyframes(
+                            kfs if self.features_in_memory else [_slim(kf) for kf in kfs]
+                        )
                     except BaseException:
                         log.exception("map %r: in-memory insert failed, undoing the rows", name)
                         handle.store.delete(new_ids, set_version=version - 1)

@@ -42,6 +42,15 @@ class Settings(BaseSettings):
         description="PostgreSQL store: longest time between two catch-ups with the other "
         "replicas' writes (announced writes are applied at once)",
     )
+    local_features: Literal["memory", "store"] = Field(
+        "memory",
+        description="store: keep only keyframe poses and global descriptors in memory and "
+        "fetch the retrieved candidates' local features and clouds from the store per "
+        "localization (one read), through an LRU cache of feature_cache keyframes per map",
+    )
+    feature_cache: int = Field(
+        4096, ge=1, description="local_features=store: keyframes cached per map"
+    )
     catch_up_wait_s: float = Field(
         2.0,
         ge=0,

@@ -176,6 +176,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         on_change=on_change,
         backend=open_backend(settings.store_url, pool_size=settings.store_pool_size),
         follow_poll_s=settings.follow_poll_s,
+        features_in_memory=settings.local_features == "memory",
+        feature_cache=settings.feature_cache,
     )
     about = dict(
         title="sgvloc",

@@ -165,6 +165,33 @@ class KeyframeRow:
     created_at: str = ""
 
 
+#: the columns of a keyframe row, in the order :func:`keyframe_row` reads them
+ROW_COLUMNS = (
+    "id, key, T_map_sensor, global_descriptor, keypoints, local_features, cloud, "
+    "metadata, created_at"
+)
+#: the same without local features and cloud (for a replica that fetches them per query)
+SLIM_COLUMNS = "id, key, T_map_sensor, global_descriptor, NULL, NULL, NULL, metadata, created_at"
+_NO_KEYPOINTS = np.zeros((0, 3), np.float32)
+_NO_FEATURES = np.zeros((0, 0), np.float32)
+
+
+def keyframe_row(r: tuple) -> KeyframeRow:
+    """A row read as :data:`ROW_COLUMNS` (or :data:`SLIM_COLUMNS`: no keypoints, local
+    features or cloud) as a :class:`KeyframeRow`."""
+    return KeyframeRow(
+        id=int(r[0]),
+        key=r[1],
+        T_map_sensor=blob_to_array(r[2]),
+        global_descriptor=blob_to_array(r[3]),
+        keypoints=_NO_KEYPOINTS if r[4] is None else blob_to_array(r[4]),
+        local_features=_NO_FEATURES if r[5] is None else blob_to_array(r[5]),
+        cloud=None if r[6] is None else blob_to_array(r[6]),
+        metadata=json.loads(r[7]),
+        created_at=r[8],
+    )
+
+
 @dataclass(frozen=True)
 class KeyframeFilter:
     """Which keyframes a listing or a bulk delete means; every given field must hold.
@@ -276,9 +303,12 @@ class MapStore(ABC):
         """Bytes the store takes on disk."""
 
     @abstractmethod
-    def snapshot(self) -> AbstractContextManager[tuple[int, int, Iterator[KeyframeRow]]]:
+    def snapshot(
+        self, slim: bool = False
+    ) -> AbstractContextManager[tuple[int, int, Iterator[KeyframeRow]]]:
         """A consistent read of the whole map without blocking writers: ``(version,
-        count, keyframes in id order)``, valid inside the ``with`` block."""
+        count, keyframes in id order)``, valid inside the ``with`` block; ``slim``: rows
+        without keypoints, local features and cloud."""
 
     @abstractmethod
     def insert_exact(self, rows: list[KeyframeRow], version: int) -> None:
@@ -308,15 +338,10 @@ class MapStore(ABC):
         feed: nothing changes behind the caller's back."""
         return []
 
-    def fetch(self, ids: list[int]) -> list[KeyframeRow]:
-        """Those of ``ids`` that exist, in id order (one read)."""
-        out = []
-        for i in sorted(ids):
-            try:
-                out.append(self.get(i))
-            except KeyError:
-                continue
-        return out
+    @abstractmethod
+    def fetch(self, ids: list[int], slim: bool = False) -> list[KeyframeRow]:
+        """Those of ``ids`` that exist, in id order, in one read (``slim``: see
+        :meth:`snapshot`)."""
 
 
 class SharedBackend(ABC):

@@ -45,6 +45,8 @@ from sgvloc.core.config import LocalizerConfig
 from sgvloc.core.errors import ConflictError, NotFoundError
 
 from .base import (
+    ROW_COLUMNS,
+    SLIM_COLUMNS,
     Change,
     DuplicateKeyError,
     KeyframeFilter,
@@ -58,6 +60,7 @@ from .base import (
     StoreUnavailableError,
     array_to_blob,
     blob_to_array,
+    keyframe_row,
     record_from_meta,
     record_to_meta,
     utc_now,
@@ -156,29 +159,11 @@ def _where(f: KeyframeFilter) -> tuple[str, list[Any]]:
     return "".join(f" AND {c}" for c in sql), args
 
 
-_COLUMNS = (
-    "id, key, T_map_sensor, global_descriptor, keypoints, local_features, cloud, "
-    "metadata, created_at"
-)
 _INSERT = (
     "INSERT INTO sgvloc_keyframes (map_id, id, key, T_map_sensor, global_descriptor, "
     "keypoints, local_features, cloud, metadata, created_at, x, y, z) "
     "VALUES (%s, %s, %s, %s, %s, %s, %s, %s, %s, %s, %s, %s, %s)"
 )
-
-
-def _row(r: tuple) -> KeyframeRow:
-    return KeyframeRow(
-        id=int(r[0]),
-        key=r[1],
-        T_map_sensor=blob_to_array(r[2]),
-        global_descriptor=blob_to_array(r[3]),
-        keypoints=blob_to_array(r[4]),
-        local_features=blob_to_array(r[5]),
-        cloud=None if r[6] is None else blob_to_array(r[6]),
-        metadata=json.loads(r[7]),
-        created_at=r[8],
-    )
 
 
 def _values(map_id: int, row: KeyframeRow, keyframe_id: int, created_at: str) -> tuple:
@@ -481,19 +466,21 @@ class PgMapStore(MapStore):
             raise NotFoundError(f"keyframe {keyframe_id} does not exist")
         return rows[0]
 
-    def fetch(self, ids: list[int]) -> list[KeyframeRow]:
+    def fetch(self, ids: list[int], slim: bool = False) -> list[KeyframeRow]:
         with self._tx() as cur:
             cur.execute(
-                f"SELECT {_COLUMNS} FROM sgvloc_keyframes WHERE map_id = %s AND id = ANY(%s) "
+                f"SELECT {SLIM_COLUMNS if slim else ROW_COLUMNS} FROM sgvloc_keyframes "
+                "WHERE map_id = %s AND id = ANY(%s) "
                 "ORDER BY id",
                 (self.map_id, [int(i) for i in ids]),
                 binary=True,
             )
-            return [_row(r) for r in cur.fetchall()]
+            return [keyframe_row(r) for r in cur.fetchall()]
 
-    def _page(self, cur: psycopg.Cursor, last: int, chunk: int) -> list[tuple]:
+    def _page(self, cur: psycopg.Cursor, last: int, chunk: int, slim: bool = False) -> list[tuple]:
         cur.execute(
-            f"SELECT {_COLUMNS} FROM sgvloc_keyframes WHERE map_id = %s AND id > %s "
+            f"SELECT {SLIM_COLUMNS if slim else ROW_COLUMNS} FROM sgvloc_keyframes "
+            "WHERE map_id = %s AND id > %s "
             "ORDER BY id LIMIT %s",
             (self.map_id, last, chunk),
             binary=True,
@@ -507,7 +494,7 @@ class PgMapStore(MapStore):
                 rows = self._page(cur, last, chunk)
             if not rows:
                 return
-            yield from (_row(r) for r in rows)
+            yield from (keyframe_row(r) for r in rows)
             last = int(rows[-1][0])
 
     def select(
@@ -565,7 +552,7 @@ class PgMapStore(MapStore):
             return int(cur.fetchone()[0])
 
     @contextmanager
-    def snapshot(self) -> Iterator[tuple[int, int, Iterator[KeyframeRow]]]:
+    def snapshot(self, slim: bool = False) -> Iterator[tuple[int, int, Iterator[KeyframeRow]]]:
         """One REPEATABLE READ transaction: the version and every row of one state."""
         if self.closed:
             raise StoreClosedError(f"map {self.name!r}: the store is closed")
@@ -584,8 +571,8 @@ class PgMapStore(MapStore):
 
                         def rows() -> Iterator[KeyframeRow]:
                             last = 0
-                            while page := self._page(cur, last, 256):
-                                yield from (_row(r) for r in page)
+                            while page := self._page(cur, last, 1000, slim):
+                                yield from (keyframe_row(r) for r in page)
                                 last = int(page[-1][0])
 
                         yield version, count, rows()

@@ -37,6 +37,8 @@ from sgvloc.core.config import LocalizerConfig
 from sgvloc.core.errors import NotFoundError
 
 from .base import (
+    ROW_COLUMNS,
+    SLIM_COLUMNS,
     KeyframeFilter,
     KeyframeRow,
     KeyframeSummary,
@@ -47,6 +49,7 @@ from .base import (
     StoreError,
     array_to_blob,
     blob_to_array,
+    keyframe_row,
     raise_if_full,
     record_from_meta,
     record_to_meta,
@@ -262,24 +265,8 @@ class SqliteMapStore(MapStore):
                 )
         return found
 
-    _COLUMNS = (
-        "id, key, T_map_sensor, global_descriptor, keypoints, local_features, cloud, "
-        "metadata, created_at"
-    )
-
-    @staticmethod
-    def _row(r: tuple) -> KeyframeRow:
-        return KeyframeRow(
-            id=int(r[0]),
-            key=r[1],
-            T_map_sensor=blob_to_array(r[2]),
-            global_descriptor=blob_to_array(r[3]),
-            keypoints=blob_to_array(r[4]),
-            local_features=blob_to_array(r[5]),
-            cloud=None if r[6] is None else blob_to_array(r[6]),
-            metadata=json.loads(r[7]),
-            created_at=r[8],
-        )
+    _COLUMNS = ROW_COLUMNS
+    _row = staticmethod(keyframe_row)
 
     def get(self, keyframe_id: int) -> KeyframeRow:
         try:
@@ -294,6 +281,21 @@ class SqliteMapStore(MapStore):
         return self._row(r)
 
     _PAGE = f"SELECT {_COLUMNS} FROM keyframes WHERE id > ? ORDER BY id LIMIT ?"
+    _SLIM_PAGE = f"SELECT {SLIM_COLUMNS} FROM keyframes WHERE id > ? ORDER BY id LIMIT ?"
+
+    def fetch(self, ids: list[int], slim: bool = False) -> list[KeyframeRow]:
+        """Those of ``ids`` that exist, in id order (one query per 500 ids)."""
+        columns = SLIM_COLUMNS if slim else self._COLUMNS
+        want = sorted({int(i) for i in ids})
+        rows: list[tuple] = []
+        with self._lock:
+            for start in range(0, len(want), 500):
+                chunk = want[start : start + 500]
+                marks = ",".join("?" * len(chunk))
+                rows += self._conn.execute(
+                    f"SELECT {columns} FROM keyframes WHERE id IN ({marks}) ORDER BY id", chunk
+                ).fetchall()
+        return [self._row(r) for r in rows]
 
     def _pages(self, fetch: Callable[[int], list[tuple]]) -> Iterator[KeyframeRow]:
         """Every keyframe in id order, ``fetch(last id)`` giving the next page of rows."""
@@ -347,7 +349,7 @@ class SqliteMapStore(MapStore):
         return [float(v) for v in r[:3]], [float(v) for v in r[3:]]
 
     @contextmanager
-    def snapshot(self) -> Iterator[tuple[int, int, Iterator[KeyframeRow]]]:
+    def snapshot(self, slim: bool = False) -> Iterator[tuple[int, int, Iterator[KeyframeRow]]]:
         """A read transaction on a second connection: WAL mode lets it see one state of
         the map while writers go on."""
         conn = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
@@ -358,7 +360,8 @@ class SqliteMapStore(MapStore):
             )
             count = int(conn.execute("SELECT COUNT(*) FROM keyframes").fetchone()[0])
 
-            rows = self._pages(lambda last: conn.execute(self._PAGE, (last, 256)).fetchall())
+            page = self._SLIM_PAGE if slim else self._PAGE
+            rows = self._pages(lambda last: conn.execute(page, (last, 256)).fetchall())
             yield version, count, rows
         finally:
             conn.close()
