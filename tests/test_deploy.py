@@ -9,6 +9,7 @@ import json
 import os
 import re
 import shlex
+import shutil
 import subprocess
 import sys
 import time
@@ -174,9 +175,13 @@ def test_dockerfile_healthcheck_probes_readyz(docker, port) -> None:
     assert f"127.0.0.1:{port}/readyz" in probe[2]
 
 
+REPLICAS = ("sgvloc-1", "sgvloc-2")
+PG_SECRET = "/run/secrets/sgvloc-pg-password"
+
+
 def test_compose_services(compose, port) -> None:
     services = compose["services"]
-    assert set(services) >= {"sgvloc", "prometheus"}
+    assert set(services) >= {"postgres", *REPLICAS, "lb", "prometheus"}
     for name, svc in services.items():
         build = svc.get("build")
         if build is None:
@@ -187,24 +192,53 @@ def test_compose_services(compose, port) -> None:
         assert context.is_dir(), f"{name}: build context {context} missing"
         assert (context / dockerfile).is_file(), f"{name}: {dockerfile} missing"
 
-    sgv = services["sgvloc"]
-    assert sgv["build"] == {"context": ".", "dockerfile": "docker/Dockerfile"}
-    # plain HTTP is published on the host's loopback only
-    assert [str(p) for p in sgv["ports"]] == [f"127.0.0.1:{port}:{port}"]
-    assert all(str(p).startswith("127.0.0.1:") for p in services["prometheus"]["ports"])
-    mounts = [str(v).split(":") for v in sgv["volumes"]]
-    data = [m for m in mounts if m[1] == "/data"]
-    assert data and data[0][0] in (compose.get("volumes") or {}), "named volume for /data"
-    test = sgv["healthcheck"]["test"]
-    probe = " ".join(test if isinstance(test, list) else [test])
-    assert f"127.0.0.1:{port}/readyz" in probe
-    assert test[0] in ("CMD", "CMD-SHELL") and "curl" not in probe
-    # the keys file is a secret at the path SGVLOC_KEYS_FILE names; no development mode
     secrets = compose["secrets"]
-    environment = sgv.get("environment") or {}
-    assert environment["SGVLOC_KEYS_FILE"] == KEYS_SECRET and "SGVLOC_DEV" not in environment
-    (keys,) = [s for s in sgv["secrets"] if s["target"] == KEYS_SECRET]
-    assert keys["source"] in secrets and "file" in secrets[keys["source"]]
+    volumes = compose.get("volumes") or {}
+    data_volumes = set()
+    for name in REPLICAS:
+        sgv = services[name]
+        assert sgv["build"] == {"context": ".", "dockerfile": "docker/Dockerfile"}
+        assert "ports" not in sgv, "replicas are reached through the load balancer only"
+        mounts = [str(v).split(":") for v in sgv["volumes"]]
+        data = [m for m in mounts if m[1] == "/data"]
+        assert data and data[0][0] in volumes, "a named volume for /data"
+        data_volumes.add(data[0][0])
+        test = sgv["healthcheck"]["test"]
+        probe = " ".join(test if isinstance(test, list) else [test])
+        assert f"127.0.0.1:{port}/readyz" in probe
+        assert test[0] in ("CMD", "CMD-SHELL") and "curl" not in probe
+        # keys and the store's password are secrets at the paths the settings name
+        env = sgv.get("environment") or {}
+        assert env["SGVLOC_KEYS_FILE"] == KEYS_SECRET and "SGVLOC_DEV" not in env
+        assert env["SGVLOC_STORE_URL"].startswith("postgresql://sgvloc@postgres:5432/")
+        assert ":" not in env["SGVLOC_STORE_URL"].split("//")[1].split("@")[0], "no password"
+        assert env["SGVLOC_STORE_PASSWORD_FILE"] == PG_SECRET
+        targets = {s["target"]: s["source"] for s in sgv["secrets"]}
+        assert targets[KEYS_SECRET] in secrets and targets[PG_SECRET] in secrets
+        assert sgv["depends_on"]["postgres"]["condition"] == "service_healthy"
+    assert len(data_volumes) == len(REPLICAS), "each replica its own /data"
+
+    pg = services["postgres"]
+    assert pg["image"].startswith("postgres:15")
+    assert pg["environment"]["POSTGRES_PASSWORD_FILE"] == PG_SECRET
+    assert [s["target"] for s in pg["secrets"]] == [PG_SECRET]
+    (pg_data,) = [str(v).split(":") for v in pg["volumes"]]
+    assert pg_data[1] == "/var/lib/postgresql/data" and pg_data[0] in volumes
+    assert "pg_isready" in pg["healthcheck"]["test"]
+
+    lb = services["lb"]
+    assert lb["image"].startswith("nginx:")
+    # plain HTTP is published on the host's loopback only, by the load balancer
+    assert [str(p) for p in lb["ports"]] == [f"127.0.0.1:{port}:{port}"]
+    assert all(str(p).startswith("127.0.0.1:") for p in services["prometheus"]["ports"])
+    assert {n: d["condition"] for n, d in lb["depends_on"].items()} == {
+        n: "service_healthy" for n in REPLICAS
+    }
+    conf = [str(v).split(":") for v in lb["volumes"]]
+    assert conf[0][:2] == ["./docker/nginx/nginx.conf", "/etc/nginx/nginx.conf"]
+    upstream = re.findall(r"^\s*server (\S+?):(\d+)", (ROOT / conf[0][0]).read_text(), re.M)
+    assert upstream == [(n, str(port)) for n in REPLICAS]
+
     ignored = (ROOT / ".dockerignore").read_text().split()
     for secret in secrets.values():  # never baked into the image, never committed
         name = Path(secret["file"]).name
@@ -225,7 +259,7 @@ def test_prometheus_scrapes_the_service(compose, port) -> None:
     job = jobs["sgvloc"]
     assert job.get("metrics_path", "/metrics") == "/metrics"
     targets = [t for sc in job["static_configs"] for t in sc["targets"]]
-    assert targets == [f"sgvloc:{port}"]  # compose service name and container port
+    assert targets == [f"{n}:{port}" for n in REPLICAS]  # every replica, its container port
     # /metrics needs a viewer key: Prometheus reads it from its own secret
     assert job["authorization"] == {"type": "Bearer", "credentials_file": METRICS_SECRET}
     assert [s["target"] for s in prom["secrets"]] == [METRICS_SECRET]
@@ -262,30 +296,37 @@ def test_cli_accepts_the_dockerfile_cmd(cmd) -> None:
 def documented_key_commands() -> list[list[str]]:
     """The commands of docker-compose.yml's header that make its secrets."""
     lines = [ln.lstrip("#").strip() for ln in COMPOSE.read_text().splitlines()]
-    cmds = [shlex.split(ln) for ln in lines if ln.startswith(("sgvloc new-key", "chmod "))]
-    assert [c[0] for c in cmds] == ["sgvloc", "sgvloc", "chmod"], cmds
+    starts = ("sgvloc new-key", "chmod ", "python3 -c")
+    cmds = [shlex.split(ln) for ln in lines if ln.startswith(starts)]
+    assert [c[0] for c in cmds] == ["sgvloc", "sgvloc", "chmod", "python3"], cmds
     return cmds
 
 
 def make_documented_secrets(compose: dict, where: Path) -> dict[str, Path]:
     """Run the documented commands in ``where``; the compose secrets' files by name."""
     for argv in documented_key_commands():
+        out = None
         if argv[0] == "sgvloc":
             argv = [sys.executable, "-c", "from sgvloc.cli import main; main()", *argv[1:]]
+        elif argv[0] == "python3":  # python3 -c "..." > file
+            assert argv[-2] == ">", argv
+            out, argv = where / argv[-1], [sys.executable, *argv[1:-2]]
         run = subprocess.run(argv, cwd=where, capture_output=True, text=True, timeout=60)
         assert run.returncode == 0, (argv, run.stderr)
+        if out is not None:
+            out.write_text(run.stdout)
     files = {name: where / s["file"] for name, s in compose["secrets"].items()}
     for path in files.values():  # the containers' users (not the host's) read them
         assert path.is_file() and path.stat().st_mode & 0o004, path
     return files
 
 
-def serve_container_cmd(cmd, argv_env, tmp_path, port):
+def serve_container_cmd(cmd, argv_env, tmp_path, port, name: str = "serve"):
     """Start the Dockerfile's CMD natively on ``port`` with the given environment."""
     argv = list(cmd[2:])
     argv[argv.index("--port") + 1] = str(port)
-    argv[argv.index("--data-dir") + 1] = str(tmp_path / "data")
-    log = tmp_path / "serve.log"
+    argv[argv.index("--data-dir") + 1] = str(tmp_path / f"{name}-data")
+    log = tmp_path / f"{name}.log"
     env = {k: v for k, v in os.environ.items() if not k.startswith("SGVLOC_")}
     with open(log, "wb") as out:
         server = subprocess.Popen(
@@ -313,41 +354,113 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def test_container_commands_run_natively(compose, docker, cmd, port, tmp_path: Path) -> None:
-    """The documented key commands make the secrets; the CMD with compose's environment
-    (on a free port and a temporary data dir) serves with them; the HEALTHCHECK passes
-    against it and fails once it is gone; Prometheus's key reads /metrics and the admin
-    key may create a map."""
+def nginx() -> str:
+    found = shutil.which("nginx") or next(
+        (p for p in ("/usr/sbin/nginx",) if Path(p).exists()), None
+    )
+    if found is None:
+        pytest.fail("Debian's nginx is not installed (README, Install)")
+    return found
+
+
+def test_container_commands_run_natively(
+    compose, docker, cmd, port, postgres, tmp_path: Path
+) -> None:
+    """The cluster of docker-compose.yml, run natively: the documented commands make the
+    secrets; PostgreSQL gets the sgvloc user with that password; both replicas run the
+    CMD with compose's environment (the store's host and port pointed at the test
+    server) and pass the HEALTHCHECK; nginx runs docker/nginx/nginx.conf in front of
+    them (upstreams pointed at them). Through the load balancer the admin key creates a
+    map, both replicas serve it, Prometheus's key reads each replica's /metrics, and with
+    one replica gone the load balancer still answers from the other."""
     import httpx
+    import psycopg
 
     secrets = make_documented_secrets(compose, tmp_path)
-    env = dict(compose["services"]["sgvloc"]["environment"])
-    env["SGVLOC_KEYS_FILE"] = str(secrets["sgvloc-keys"])
-    free = free_port()
-    probe = [a.replace(f":{port}/", f":{free}/") for a in exec_form(docker["HEALTHCHECK"][0])]
-    probe[0] = sys.executable  # "python" in the image
-    server, log = serve_container_cmd(cmd, env, tmp_path, free)
-    try:
-        wait_healthy(probe, server, log)
-        base = f"http://127.0.0.1:{free}"
-        assert httpx.get(f"{base}/metrics", timeout=10).status_code == 401
-        viewer = secrets["sgvloc-metrics-key"].read_text()
-        metrics = httpx.get(
-            f"{base}/metrics", headers={"Authorization": f"Bearer {viewer}"}, timeout=10
+    password = secrets["sgvloc-pg-password"].read_text().strip()
+    assert len(password) >= 24
+    admin_url = postgres.new_database()
+    with psycopg.connect(admin_url, autocommit=True) as conn:
+        conn.execute(f"CREATE ROLE sgvloc LOGIN PASSWORD '{password}'")
+        conn.execute("CREATE DATABASE sgvloc_deploy OWNER sgvloc")
+    host_port = admin_url.split("@")[1].split("/")[0]
+    servers, probes, ports = [], [], []
+    for name in REPLICAS:
+        env = dict(compose["services"][name]["environment"])
+        env["SGVLOC_KEYS_FILE"] = str(secrets["sgvloc-keys"])
+        env["SGVLOC_STORE_PASSWORD_FILE"] = str(secrets["sgvloc-pg-password"])
+        env["SGVLOC_STORE_URL"] = (
+            env["SGVLOC_STORE_URL"].replace("postgres:5432", host_port).rsplit("/", 1)[0]
+            + "/sgvloc_deploy"
         )
-        assert metrics.status_code == 200 and "sgvloc_http_requests_total" in metrics.text
-        admin = (tmp_path / "sgvloc-admin.key").read_text()
+        free = free_port()
+        probe = [a.replace(f":{port}/", f":{free}/") for a in exec_form(docker["HEALTHCHECK"][0])]
+        probe[0] = sys.executable  # "python" in the image
+        servers.append(serve_container_cmd(cmd, env, tmp_path, free, name))
+        probes.append(probe)
+        ports.append(free)
+    lb_port = free_port()
+    conf_text = (ROOT / "docker" / "nginx" / "nginx.conf").read_text()
+    for name, free in zip(REPLICAS, ports, strict=True):
+        conf_text = conf_text.replace(f"server {name}:{port}", f"server 127.0.0.1:{free}")
+    conf_text = conf_text.replace(f"listen {port};", f"listen 127.0.0.1:{lb_port};")
+    conf_text = conf_text.replace("/tmp/", f"{tmp_path}/nginx-")
+    conf = tmp_path / "nginx.conf"
+    conf.write_text(conf_text)
+    lb = None
+    try:
+        for (server, log), probe in zip(servers, probes, strict=True):
+            wait_healthy(probe, server, log)
+        lb = subprocess.Popen(
+            [nginx(), "-c", str(conf), "-p", str(tmp_path), "-g", "daemon off;"],
+            stdout=subprocess.DEVNULL,
+            stderr=open(tmp_path / "nginx.log", "wb"),  # noqa: SIM115 - closed with the process
+        )
+        base = f"http://127.0.0.1:{lb_port}"
+        deadline = time.monotonic() + 30
+        while True:
+            try:
+                if httpx.get(f"{base}/lb-healthz", timeout=2).status_code == 200:
+                    break
+            except httpx.TransportError:
+                pass
+            assert time.monotonic() < deadline, (tmp_path / "nginx.log").read_text()
+            time.sleep(0.2)
+        admin = {"Authorization": f"Bearer {(tmp_path / 'sgvloc-admin.key').read_text()}"}
         made = httpx.post(
             f"{base}/v1/maps",
             json={"name": "m", "encoder": {"kind": "handcrafted"}},
-            headers={"Authorization": f"Bearer {admin}"},
+            headers=admin,
             timeout=60,
         )
         assert made.status_code == 201, made.text
+        viewer = secrets["sgvloc-metrics-key"].read_text()
+        for free in ports:
+            replica = f"http://127.0.0.1:{free}"
+            deadline = time.monotonic() + 10
+            while httpx.get(f"{replica}/v1/maps/m", headers=admin).status_code != 200:
+                assert time.monotonic() < deadline, "the map did not reach every replica"
+                time.sleep(0.1)
+            assert httpx.get(f"{replica}/metrics", timeout=10).status_code == 401
+            metrics = httpx.get(
+                f"{replica}/metrics", headers={"Authorization": f"Bearer {viewer}"}, timeout=10
+            )
+            assert metrics.status_code == 200 and "sgvloc_http_requests_total" in metrics.text
+        servers[0][0].kill()
+        servers[0][0].wait(timeout=30)
+        for _ in range(6):  # every answer from the replica that is left
+            r = httpx.get(f"{base}/v1/maps/m", headers=admin, timeout=30)
+            assert r.status_code == 200, r.text
     finally:
-        server.terminate()
-        server.wait(timeout=30)
-    assert subprocess.run(probe, capture_output=True, timeout=30).returncode != 0
+        if lb is not None:
+            lb.terminate()
+            lb.wait(timeout=30)
+        for server, _ in servers:
+            if server.poll() is None:
+                server.terminate()
+                server.wait(timeout=30)
+    for probe in probes:
+        assert subprocess.run(probe, capture_output=True, timeout=30).returncode != 0
 
 
 def test_container_cmd_in_development_mode(cmd, docker, port, tmp_path: Path) -> None:

@@ -32,6 +32,11 @@ class Settings(BaseSettings):
         "shared by any number of replicas (each follows the others' writes); unset: one "
         "SQLite database per map under data_dir",
     )
+    store_password_file: Path | None = Field(
+        None,
+        description="a file holding the PostgreSQL password (a container secret), so "
+        "that store_url need not carry it",
+    )
     store_pool_size: int = Field(
         8, ge=2, le=200, description="connections each replica keeps to a PostgreSQL store"
     )

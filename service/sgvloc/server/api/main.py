@@ -174,7 +174,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         snapshot_every=settings.snapshot_every,
         snapshot_delay_s=settings.snapshot_delay_s,
         on_change=on_change,
-        backend=open_backend(settings.store_url, pool_size=settings.store_pool_size),
+        backend=open_backend(
+            settings.store_url,
+            pool_size=settings.store_pool_size,
+            password_file=settings.store_password_file,
+        ),
         follow_poll_s=settings.follow_poll_s,
         features_in_memory=settings.local_features == "memory",
         feature_cache=settings.feature_cache,

@@ -669,6 +669,23 @@ class BatchingOut(BaseModel):
     max_size: int
 
 
+class StoreOut(BaseModel):
+    """Where the maps are kept."""
+
+    kind: Literal["sqlite", "postgresql"] = Field(
+        description="sqlite: one database per map on this replica's disk; postgresql: "
+        "one store shared by every replica"
+    )
+    location: str = Field(description="the data directory, or the store URL without password")
+    local_features: Literal["memory", "store"]
+    feature_cache: int
+    follow_poll_s: float
+    catch_up_wait_s: float
+    caught_up_failures: int = Field(
+        description="failed catch-ups with the shared store in a row (0: following it)"
+    )
+
+
 class ConfigOut(BaseModel):
     """``GET /v1/config``: the service's limits and access settings."""
 
@@ -676,6 +693,7 @@ class ConfigOut(BaseModel):
     limits: LimitsOut
     auth: AuthOut
     batching: BatchingOut
+    store: StoreOut
     snapshot_every: int
     snapshot_delay_s: float
 

@@ -188,7 +188,14 @@ class PgBackend(SharedBackend):
 
     errors = (psycopg.Error,)
 
-    def __init__(self, url: str, *, pool_size: int = 8, timeout_s: float = 3.0) -> None:
+    def __init__(
+        self,
+        url: str,
+        *,
+        pool_size: int = 8,
+        timeout_s: float = 3.0,
+        password: str | None = None,
+    ) -> None:
         self.url = url
         self.timeout_s = timeout_s
         connect = {
@@ -198,6 +205,8 @@ class PgBackend(SharedBackend):
             "keepalives_idle": 10,
             "application_name": "sgvloc",
         }
+        if password is not None:
+            connect["password"] = password
         self.pool = ConnectionPool(
             url,
             min_size=1,

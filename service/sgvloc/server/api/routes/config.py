@@ -6,12 +6,15 @@ from fastapi import APIRouter, Depends, Request, Response
 
 from sgvloc.about import __version__
 
+from ...maps import MapManager
+from ...settings import Settings
+from ...store import SharedBackend
 from ..auth import KeyRing, KeysError, authorize, reload_keys
 from ..body import encode
 from ..deps import SettingsDep
 from ..errors import ApiError
 from ..openapi import error_responses
-from ..schemas import AuthOut, BatchingOut, ConfigOut, KeysReloaded, LimitsOut
+from ..schemas import AuthOut, BatchingOut, ConfigOut, KeysReloaded, LimitsOut, StoreOut
 
 router = APIRouter(prefix="/v1", tags=["service"], dependencies=[Depends(authorize)])
 
@@ -51,9 +54,24 @@ async def get_config(request: Request, settings: SettingsDep) -> Response:
                 readyz=s.readyz_auth,
             ),
             batching=_batching(),
+            store=_store(request, s),
             snapshot_every=s.snapshot_every,
             snapshot_delay_s=s.snapshot_delay_s,
         ),
+    )
+
+
+def _store(request: Request, s: Settings) -> StoreOut:
+    manager: MapManager = request.app.state.manager
+    shared = isinstance(manager.backend, SharedBackend)
+    return StoreOut(
+        kind="postgresql" if shared else "sqlite",
+        location=manager.backend.describe() if shared else "<data_dir>/maps",  # type: ignore[union-attr]
+        local_features=s.local_features,
+        feature_cache=s.feature_cache,
+        follow_poll_s=s.follow_poll_s,
+        catch_up_wait_s=s.catch_up_wait_s,
+        caught_up_failures=manager.follow_errors,
     )
 
 
