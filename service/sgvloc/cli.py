@@ -890,7 +890,7 @@ def bench_command(
         str,
         typer.Option(
             help="comma-separated sections: rerank, retrieval, encoding, pipeline, http, "
-            "scaling, prior, tracking"
+            "scaling, prior, tracking, cluster (PostgreSQL: not in the default list)"
         ),
     ] = "rerank,retrieval,encoding,pipeline,http,scaling,prior,tracking",
     compare: Annotated[
@@ -980,11 +980,35 @@ def bench_command(
     track_map_every: Annotated[
         int, typer.Option(min=1, help="tracking: the map is every Nth scan")
     ] = 2,
+    cluster_store: Annotated[
+        str | None,
+        typer.Option(
+            help="cluster: postgresql:// URL of a database to fill (default: a throwaway "
+            "cluster from the system's postgresql package)"
+        ),
+    ] = None,
+    cluster_sizes: Annotated[
+        str, typer.Option(help="cluster: catch-up map sizes (keyframes)")
+    ] = "10000,100000",
+    cluster_visible: Annotated[
+        int, typer.Option(min=1, help="cluster: inserts timed until the other replica has them")
+    ] = 50,
+    cluster_keypoints: Annotated[
+        int, typer.Option(min=1, help="cluster: keypoints per synthetic keyframe")
+    ] = 64,
+    cluster_clients: Annotated[
+        int, typer.Option(min=1, help="cluster: SDK clients for one vs two replicas")
+    ] = 4,
+    cluster_duration: Annotated[
+        float, typer.Option(min=0.1, help="cluster: seconds of localize per replica count")
+    ] = 8.0,
     threads: ThreadsOpt = None,
 ) -> None:
     """Measure re-ranking, retrieval, encoding, one localization by stage (pipeline), the
-    service end to end (http, scaling), localize with a prior (prior) and tracked against
-    global localize (tracking); print tables and write --out (JSON).
+    service end to end (http, scaling), localize with a prior (prior), tracked against
+    global localize (tracking) and replicas over PostgreSQL (cluster: insert-to-visible,
+    catch-up, features fetched per query, one vs two replicas); print tables and write
+    --out (JSON).
 
     Medians after warm-up, every comparison in one process on the same inputs. The
     defaults take a few minutes on 2 cores; CUDA timings of SGV are added when a GPU is
@@ -997,7 +1021,7 @@ def bench_command(
     _configure_logging("warning")
     options = {k: v for k, v in ctx.params.items() if k not in ("only", "out", "threads")}
     for key in ("ks", "ns", "large_ns", "sizes", "scan_sizes", "http_clients",
-                "scale_sizes", "scale_clients", "prior_sizes"):  # fmt: skip
+                "scale_sizes", "scale_clients", "prior_sizes", "cluster_sizes"):  # fmt: skip
         options[key] = _int_list(options[key])
     try:
         sections = check_sections([x.strip() for x in only.split(",") if x.strip()])

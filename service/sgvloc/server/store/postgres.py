@@ -162,7 +162,7 @@ def _where(f: KeyframeFilter) -> tuple[str, list[Any]]:
 _INSERT = (
     "INSERT INTO sgvloc_keyframes (map_id, id, key, T_map_sensor, global_descriptor, "
     "keypoints, local_features, cloud, metadata, created_at, x, y, z) "
-    "VALUES (%s, %s, %s, %s, %s, %s, %s, %s, %s, %s, %s, %s, %s)"
+    "VALUES (%s, %s, %s, %b, %b, %b, %b, %b, %s, %s, %s, %s, %s)"  # arrays sent as binary
 )
 
 

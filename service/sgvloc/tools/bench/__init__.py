@@ -1,7 +1,7 @@
 """``sgvloc bench``: the engine's stages (:mod:`.engine`: rerank, retrieval, encoding, prior),
 one localization's cost by stage (:mod:`.pipeline`), the service end to end (:mod:`.http`:
-http, scaling), tracking against global localization (:mod:`.tracking`), one JSON file of
-every figure."""
+http, scaling), tracking against global localization (:mod:`.tracking`), replicas over one
+PostgreSQL store (:mod:`.cluster`), one JSON file of every figure."""
 
 from __future__ import annotations
 
@@ -20,6 +20,7 @@ SECTIONS = (
     "scaling",
     "prior",
     "tracking",
+    "cluster",
 )
 
 
@@ -39,7 +40,7 @@ def run_bench(
 
     ``sections`` are checked with :func:`check_sections` first.
     """
-    from . import engine, http, pipeline, tracking
+    from . import cluster, engine, http, pipeline, tracking
 
     check_sections(sections)
     o = options
@@ -75,9 +76,16 @@ def run_bench(
             data=o["track_data"], map_every=o["track_map_every"], workers=o["service_workers"],
             echo=echo,
         ),
+        "cluster": lambda: cluster.bench_cluster(
+            store=o["cluster_store"], sizes=o["cluster_sizes"], visible=o["cluster_visible"],
+            keypoints=o["cluster_keypoints"], clients=o["cluster_clients"],
+            duration_s=o["cluster_duration"], rounds=o["pipeline_rounds"],
+            data=o["pipeline_data"], echo=echo,
+        ),
     }  # fmt: skip
     formatters = {
-        **engine.FORMATTERS, **pipeline.FORMATTERS, **http.FORMATTERS, **tracking.FORMATTERS
+        **engine.FORMATTERS, **pipeline.FORMATTERS, **http.FORMATTERS, **tracking.FORMATTERS,
+        **cluster.FORMATTERS,
     }  # fmt: skip
     result: dict = {"machine": engine.machine_info(), "command": " ".join(sys.argv)}
     for section in sections:
