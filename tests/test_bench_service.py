@@ -135,6 +135,36 @@ def test_tracking_section_through_the_cli(tmp_path: Path) -> None:
         assert s["global_p50_ms"] > 0 and s["tracked_p50_ms"] > 0
 
 
+def test_cluster_section_through_the_cli(tmp_path: Path, postgres) -> None:
+    """Every figure of the cluster section, tiny, on a database of the test server."""
+    from typer.testing import CliRunner
+
+    from sgvloc.cli import app
+
+    out = tmp_path / "c.json"
+    args = [
+        *("bench", "--only", "cluster", "--out", str(out)),
+        *("--cluster-store", postgres.new_database(), "--cluster-sizes", "300"),
+        *("--cluster-visible", "5", "--cluster-duration", "0.5", "--cluster-clients", "2"),
+        *("--pipeline-rounds", "1"),
+    ]
+    run = CliRunner().invoke(app, args)
+    assert run.exit_code == 0, run.output
+    assert "insert-to-visible" in run.output and "fetched, cold" in run.output
+    res = json.loads(out.read_text())["cluster"]
+    assert res["visible"]["inserts"] == 5 and 0 < res["visible"]["p50_ms"] < 5000
+    assert res["qps"]["one"] > 0 and res["qps"]["two"] > 0
+    paths = res["fetch"]["paths"]
+    assert set(paths) == {"memory", "fetched, cold", "fetched, warm"}
+    assert paths["fetched, cold"]["fetch_p50_ms"] > 0 and paths["memory"]["fetch_p50_ms"] == 0
+    q = res["fetch"]["queries"] * (res["fetch"]["rounds"] + 1)
+    assert res["fetch"]["same_answers"] == f"{q}/{q}"
+    (row,) = res["catch_up"]
+    assert row["keyframes"] == 300
+    assert row["memory"]["keyframes"] == row["slim"]["keyframes"] == 300
+    assert row["slim"]["memory_mib"] < row["memory"]["memory_mib"]
+
+
 def test_cli_names_the_sections() -> None:
     from typer.testing import CliRunner
 
