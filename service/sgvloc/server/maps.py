@@ -485,10 +485,16 @@ class MapManager:
                 return
             try:
                 self.sync()
-            except (StoreUnavailableError, *backend.errors) as exc:
+            except Exception as exc:  # the thread must live on: the next round tries again
                 self.follow_errors += 1
+                expected = isinstance(exc, (StoreUnavailableError, *backend.errors))
                 level = logging.WARNING if self.follow_errors == 1 else logging.DEBUG
-                log.log(level, "catching up with the store failed (serving what is held): %s", exc)
+                log.log(
+                    level if expected else logging.ERROR,
+                    "catching up with the store failed (serving what is held): %s",
+                    exc,
+                    exc_info=not expected,
+                )
                 self._stop.wait(min(5.0, 0.5 * self.follow_errors))
                 continue
             if self.follow_errors:
@@ -507,12 +513,17 @@ class MapManager:
             entry = catalog.get(name)
             if entry is None or entry[0] != getattr(handle.store, "incarnation", None):
                 self._forget(handle, "deleted by another replica")
+        for name in [n for n in self.failed if n not in catalog]:
+            self.failed.pop(name, None)  # a map that failed to load is gone: not degraded
         for name, (_, version, settings_version) in catalog.items():
             with self._lock:
                 handle = self._maps.get(name)
             if handle is None:
                 if name not in self.failed:
-                    self._load_named(name)
+                    try:
+                        self._load_named(name)
+                    except NotFoundError:  # deleted between the catalog and the load
+                        pass
                 continue
             if version != handle.version:
                 with handle.write_lock:
