@@ -75,7 +75,7 @@ class AsyncClient(BaseClient):
 
     def __init__(
         self,
-        base_url: str = DEFAULT_BASE_URL,
+        base_url: str | Sequence[str] = DEFAULT_BASE_URL,
         timeout: float | httpx.Timeout | None = 30.0,
         retries: int = 3,
         api_key: str | None = None,
