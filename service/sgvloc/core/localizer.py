@@ -473,7 +473,16 @@ class Localizer:
             whole = self._whole([c.keyframe_id for c in retrieved])
             if self.keyframe_source is not None:
                 timings["fetch"] = _ms(t)
-            out = rerank(method, query, retrieved, lambda i: whole[i].features, self.index, cfg)
+
+            def features_of(i: int) -> Features:
+                if i not in whole:  # a candidate query expansion found
+                    whole.update(self._whole([i]))
+                return whole[i].features
+
+            out = rerank(method, query, retrieved, features_of, self.index, cfg)
+            whole.update(
+                self._whole([c.keyframe_id for c in out.candidates if c.keyframe_id not in whole])
+            )
             timings["rerank"] = _ms(t)
 
             # 4. estimate the pose against the re-ranked top-1
