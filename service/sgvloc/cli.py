@@ -663,6 +663,21 @@ def eval_track_command(
     typer.echo(f"wrote {out / 'track.json'} and {out / 'trajectory.png'}")
 
 
+def _tracking_registration() -> dict[str, object]:
+    """The default tracking settings a fitted confidence depends on (recorded with it)."""
+    from .core.config import TrackingConfig
+
+    t = TrackingConfig()
+    keys = (
+        "registration",
+        "scan_voxel_m",
+        "scan_neighbors",
+        "vgicp_voxel_m",
+        "vgicp_coarse_voxel_m",
+    )
+    return {k: getattr(t, k) for k in keys}
+
+
 @app.command("calibrate-track", epilog=ONE_THREAD)
 def calibrate_track_command(
     data: Annotated[
@@ -733,7 +748,13 @@ def calibrate_track_command(
             if samples_file is not None:
                 samples_file.write_text(json.dumps({"train": train, "check": held}))
         model = fit_track_confidence(
-            train, {"data": list(data), "map_every": map_every, "draws": draws}
+            train,
+            {
+                "data": list(data),
+                "map_every": map_every,
+                "draws": draws,
+                "tracking": _tracking_registration(),
+            },
         )
         out.write_text(json.dumps(model.to_dict(), indent=1) + "\n")
         typer.echo(f"training: {confidence_figures(train, model, cut)}")

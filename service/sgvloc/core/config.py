@@ -146,7 +146,25 @@ class TrackingConfig(_Section):
         10.0, gt=0.0, le=1000.0, description="submaps are built (and cached) per cell this wide"
     )
     submap_voxel_m: float = Field(0.3, gt=0.0, le=10.0, description="submap downsampling (m)")
-    scan_voxel_m: float = Field(0.7, gt=0.0, le=10.0, description="scan downsampling (m)")
+    scan_voxel_m: float = Field(1.0, gt=0.0, le=10.0, description="scan downsampling (m)")
+    scan_neighbors: int = Field(
+        10, ge=5, le=100, description="neighbours of a scan point's covariance (GICP, VGICP)"
+    )
+    registration: Literal["vgicp", "gicp"] = Field(
+        "vgicp",
+        description="vgicp: against the submap's Gaussian voxels (vgicp_voxel_m), several "
+        "times faster; gicp: against its points through a KD-tree",
+    )
+    vgicp_voxel_m: float = Field(
+        1.0, gt=0.0, le=20.0, description="VGICP: the submap's voxel size (m)"
+    )
+    vgicp_coarse_voxel_m: float = Field(
+        3.0,
+        ge=0.0,
+        le=20.0,
+        description="VGICP: first register against voxels this large (a wider basin for a "
+        "rough seed), then against vgicp_voxel_m; 0 = one stage",
+    )
     max_range_m: float = Field(
         60.0, gt=0.0, le=1000.0, description="scan points beyond are dropped"
     )

@@ -1,12 +1,13 @@
 """Tracking: localize a scan by registering it against the map around a seed pose.
 
 A vehicle that localized a moment ago knows roughly where it is. Instead of a global
-search (encode, retrieve, re-rank, RANSAC), the scan is registered with GICP
-(``small_gicp``) against a *submap*: the stored clouds of the keyframes within
-``submap_radius_m`` of the seed, put into map coordinates, downsampled and indexed once
-and cached per map cell. The fit is trusted only if enough scan points lie on the
-submap (``min_fitness``), closely (``max_rmse_m``), and the pose lies within
-``seed_sigmas`` of the seed; otherwise the caller falls back to the global path.
+search (encode, retrieve, re-rank, RANSAC), the scan is registered (``small_gicp``; VGICP
+against the submap's Gaussian voxels by default, or GICP against its points) against a
+*submap*: the stored clouds of the keyframes within ``submap_radius_m`` of the seed, put
+into map coordinates, downsampled, indexed and voxelised once and cached per map cell.
+The fit is trusted only if enough scan points lie on the submap (``min_fitness``),
+closely (``max_rmse_m``), and the pose lies within ``seed_sigmas`` of the seed;
+otherwise the caller falls back to the global path.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ from sgvloc.about import PACKAGE_DIR
 from .config import TrackingConfig
 from .errors import InputError
 from .pose import check_rigid, nearest_squared_distances
-from .preprocess import as_points, crop_range, finite
+from .preprocess import as_points
 
 try:  # the service extra installs it; the engine still imports without it
     import small_gicp
@@ -54,12 +55,15 @@ class Seed:
 
 @dataclass
 class Submap:
-    """The map around a cell: keyframe clouds in map coordinates, ready for GICP."""
+    """The map around a cell: keyframe clouds in map coordinates, ready for GICP and
+    (``voxels``, when the settings ask for VGICP) for VGICP."""
 
     cloud: Any  # small_gicp.PointCloud with covariances
-    tree: Any  # small_gicp.KdTree
+    tree: Any  # small_gicp.KdTree (GICP, and the fitness of either)
     keyframe_ids: list[int]
     points: int
+    voxels: Any = None  # small_gicp.GaussianVoxelMap
+    coarse: Any = None  # small_gicp.GaussianVoxelMap of vgicp_coarse_voxel_m
 
 
 @dataclass
@@ -219,33 +223,59 @@ def build_submap(
     cloud, tree = small_gicp.preprocess_points(
         pts, downsampling_resolution=cfg.submap_voxel_m, num_threads=1
     )
-    return Submap(cloud, tree, [i for i, _, _ in clouds], int(cloud.size()))
+    voxels = coarse = None
+    if cfg.registration == "vgicp":
+        voxels = small_gicp.GaussianVoxelMap(cfg.vgicp_voxel_m)
+        voxels.insert(cloud)
+        if cfg.vgicp_coarse_voxel_m > 0:
+            coarse = small_gicp.GaussianVoxelMap(cfg.vgicp_coarse_voxel_m)
+            coarse.insert(cloud)
+    return Submap(cloud, tree, [i for i, _, _ in clouds], int(cloud.size()), voxels, coarse)
 
 
 def scan_cloud(points: np.ndarray, cfg: TrackingConfig) -> np.ndarray:
-    """The scan's finite points within ``max_range_m`` ``[M, 3]`` float64."""
-    pts = crop_range(finite(as_points(points).astype(np.float64)), 0.0, cfg.max_range_m)
+    """The scan's finite points within ``max_range_m`` ``[M, 3]`` float64 (tested column
+    by column: a NaN or inf coordinate fails the range test)."""
+    p = as_points(points)
+    x, y, z = p[:, 0], p[:, 1], p[:, 2]
+    pts = p[x * x + y * y + z * z <= np.float32(cfg.max_range_m) ** 2].astype(np.float64)
     if len(pts) < 10:
         raise InputError(f"the scan has {len(pts)} usable points; tracking needs at least 10")
     return pts
 
 
+def scan_source(points: np.ndarray, cfg: TrackingConfig) -> Any:
+    """The scan ready for registration: downsampled to ``scan_voxel_m``, with each point's
+    covariance from its ``scan_neighbors`` nearest neighbours."""
+    source = small_gicp.voxelgrid_sampling(scan_cloud(points, cfg), cfg.scan_voxel_m, num_threads=1)
+    tree = small_gicp.KdTree(source, num_threads=1)
+    small_gicp.estimate_covariances(source, tree, num_neighbors=cfg.scan_neighbors, num_threads=1)
+    return source
+
+
 def register(points: np.ndarray, seed: Seed, submap: Submap, cfg: TrackingConfig) -> TrackResult:
-    """GICP of the scan against the submap from the seed, and the checks."""
+    """VGICP (or GICP) of the scan against the submap from the seed, and the checks."""
     _require_small_gicp()
-    source, _ = small_gicp.preprocess_points(
-        scan_cloud(points, cfg), downsampling_resolution=cfg.scan_voxel_m, num_threads=1
-    )
-    res = small_gicp.align(
-        submap.cloud,
-        source,
-        submap.tree,
-        init_T_target_source=seed.T_map_sensor,
-        registration_type="GICP",
-        max_correspondence_distance=cfg.max_correspondence_m,
-        max_iterations=cfg.max_iterations,
-        num_threads=1,
-    )
+    source = scan_source(points, cfg)
+    common = {
+        "init_T_target_source": seed.T_map_sensor,
+        "max_correspondence_distance": cfg.max_correspondence_m,
+        "max_iterations": cfg.max_iterations,
+        "num_threads": 1,
+    }
+    if cfg.registration == "vgicp" and submap.voxels is not None:
+        if submap.coarse is not None:
+            rough = small_gicp.align(
+                submap.coarse,
+                source,
+                **{**common, "max_correspondence_distance": 2 * cfg.max_correspondence_m},
+            )
+            common["init_T_target_source"] = np.asarray(rough.T_target_source, dtype=np.float64)
+        res = small_gicp.align(submap.voxels, source, **common)
+    else:
+        res = small_gicp.align(
+            submap.cloud, source, submap.tree, registration_type="GICP", **common
+        )
     T = np.asarray(res.T_target_source, dtype=np.float64)
     sq = nearest_squared_distances(submap.tree, source.points()[:, :3], T)
     inl = sq <= cfg.inlier_distance_m**2
