@@ -59,7 +59,10 @@ def test_round_trip_is_exact(source: MapManager, tmp_path: Path) -> None:
     assert (b.version, b.num_keyframes) == (a.version, a.num_keyframes) == (3, 302)
     assert b.record == replace(a.record, name="copy")
     assert b.record.settings_version == 1 and b.record.localizer_config.top_k == 7
-    rows_a, rows_b = list(a.store.iter_keyframes()), list(b.store.iter_keyframes())
+    with a.store.snapshot() as (_, _, rows):
+        rows_a = list(rows)
+    with b.store.snapshot() as (_, _, rows):
+        rows_b = list(rows)
     assert [r.id for r in rows_a] == [r.id for r in rows_b]
     for x, y in zip(rows_a, rows_b, strict=True):
         assert (x.key, x.metadata, x.created_at) == (y.key, y.metadata, y.created_at)

@@ -221,7 +221,8 @@ def test_store_round_trip(tmp_path: Path) -> None:
     np.testing.assert_array_equal(row.keypoints, items[0].features.keypoints)
     m.close()
     store = SqliteMapStore.open(tmp_path / "maps" / "a" / "map.sqlite")
-    assert store.ids() == [ids[0], ids[1], new_id] and store.version() == 3
+    with store.snapshot() as (version, count, rows):
+        assert [r.id for r in rows] == [ids[0], ids[1], new_id] and version == count == 3
     with sqlite3.connect(store.path) as conn:
         assert conn.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
     store.close()

@@ -150,20 +150,21 @@ class TrackingConfig(_Section):
     scan_neighbors: int = Field(
         10, ge=5, le=100, description="neighbours of a scan point's covariance (GICP, VGICP)"
     )
-    registration: Literal["vgicp", "gicp"] = Field(
-        "vgicp",
-        description="vgicp: against the submap's Gaussian voxels (vgicp_voxel_m), several "
-        "times faster; gicp: against its points through a KD-tree",
+    registration: Literal["gicp", "vgicp"] = Field(
+        "gicp",
+        description="the fine stage: gicp against the submap's points (KD-tree); vgicp "
+        "against its Gaussian voxels of vgicp_voxel_m (faster, slides more often along "
+        "corridor-like stretches)",
     )
     vgicp_voxel_m: float = Field(
-        1.0, gt=0.0, le=20.0, description="VGICP: the submap's voxel size (m)"
+        1.0, gt=0.0, le=20.0, description="registration=vgicp: the submap's voxel size (m)"
     )
     vgicp_coarse_voxel_m: float = Field(
         3.0,
         ge=0.0,
         le=20.0,
-        description="VGICP: first register against voxels this large (a wider basin for a "
-        "rough seed), then against vgicp_voxel_m; 0 = one stage",
+        description="the coarse stage: VGICP against the submap's Gaussian voxels this large "
+        "first (a wide basin for a rough seed, cheap), then the fine stage; 0 = none",
     )
     max_range_m: float = Field(
         60.0, gt=0.0, le=1000.0, description="scan points beyond are dropped"
@@ -172,6 +173,10 @@ class TrackingConfig(_Section):
         1.0, gt=0.0, le=50.0, description="GICP correspondence distance (m)"
     )
     max_iterations: int = Field(20, ge=1, le=1000)
+    stop_m: float = Field(
+        0.005, gt=0.0, le=1.0, description="registration stops when a step moves less (m) ..."
+    )
+    stop_deg: float = Field(0.25, gt=0.0, le=10.0, description="... and turns less (deg)")
     inlier_distance_m: float = Field(
         0.5, gt=0.0, le=50.0, description="fitness: scan points within this of the submap"
     )

@@ -227,9 +227,9 @@ def build_submap(
     if cfg.registration == "vgicp":
         voxels = small_gicp.GaussianVoxelMap(cfg.vgicp_voxel_m)
         voxels.insert(cloud)
-        if cfg.vgicp_coarse_voxel_m > 0:
-            coarse = small_gicp.GaussianVoxelMap(cfg.vgicp_coarse_voxel_m)
-            coarse.insert(cloud)
+    if cfg.vgicp_coarse_voxel_m > 0:
+        coarse = small_gicp.GaussianVoxelMap(cfg.vgicp_coarse_voxel_m)
+        coarse.insert(cloud)
     return Submap(cloud, tree, [i for i, _, _ in clouds], int(cloud.size()), voxels, coarse)
 
 
@@ -261,16 +261,18 @@ def register(points: np.ndarray, seed: Seed, submap: Submap, cfg: TrackingConfig
         "init_T_target_source": seed.T_map_sensor,
         "max_correspondence_distance": cfg.max_correspondence_m,
         "max_iterations": cfg.max_iterations,
+        "translation_epsilon": cfg.stop_m,
+        "rotation_epsilon": math.radians(cfg.stop_deg),
         "num_threads": 1,
     }
+    if submap.coarse is not None:  # a rough fit against large voxels first
+        rough = small_gicp.align(
+            submap.coarse,
+            source,
+            **{**common, "max_correspondence_distance": 2 * cfg.max_correspondence_m},
+        )
+        common["init_T_target_source"] = np.asarray(rough.T_target_source, dtype=np.float64)
     if cfg.registration == "vgicp" and submap.voxels is not None:
-        if submap.coarse is not None:
-            rough = small_gicp.align(
-                submap.coarse,
-                source,
-                **{**common, "max_correspondence_distance": 2 * cfg.max_correspondence_m},
-            )
-            common["init_T_target_source"] = np.asarray(rough.T_target_source, dtype=np.float64)
         res = small_gicp.align(submap.voxels, source, **common)
     else:
         res = small_gicp.align(

@@ -287,10 +287,6 @@ class MapStore(ABC):
         """The number of stored keyframes."""
 
     @abstractmethod
-    def ids(self) -> list[int]:
-        """All keyframe ids, ascending."""
-
-    @abstractmethod
     def find_keys(self, keys: list[str]) -> dict[str, int]:
         """The ids of those ``keys`` that exist: ``{key: id}``."""
 
@@ -298,10 +294,6 @@ class MapStore(ABC):
     def get(self, keyframe_id: int) -> KeyframeRow:
         """One keyframe; raises :class:`~sgvloc.core.errors.NotFoundError`, or
         :class:`StoreClosedError` once the store is closed."""
-
-    @abstractmethod
-    def iter_keyframes(self, chunk: int = 256) -> Iterator[KeyframeRow]:
-        """Every keyframe in id order."""
 
     @abstractmethod
     def select(

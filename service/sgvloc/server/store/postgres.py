@@ -452,13 +452,6 @@ class PgMapStore(MapStore):
             cur.execute("SELECT count(*) FROM sgvloc_keyframes WHERE map_id = %s", (self.map_id,))
             return int(cur.fetchone()[0])
 
-    def ids(self) -> list[int]:
-        with self._tx() as cur:
-            cur.execute(
-                "SELECT id FROM sgvloc_keyframes WHERE map_id = %s ORDER BY id", (self.map_id,)
-            )
-            return [int(r[0]) for r in cur.fetchall()]
-
     def find_keys(self, keys: list[str]) -> dict[str, int]:
         if not keys:
             return {}
@@ -495,16 +488,6 @@ class PgMapStore(MapStore):
             binary=True,
         )
         return cur.fetchall()
-
-    def iter_keyframes(self, chunk: int = 256) -> Iterator[KeyframeRow]:
-        last = 0
-        while True:
-            with self._tx() as cur:
-                rows = self._page(cur, last, chunk)
-            if not rows:
-                return
-            yield from (keyframe_row(r) for r in rows)
-            last = int(rows[-1][0])
 
     def select(
         self, where: KeyframeFilter, *, after_id: int = 0, limit: int = 1000

@@ -246,11 +246,6 @@ class SqliteMapStore(MapStore):
         with self._lock:
             return int(self._conn.execute("SELECT COUNT(*) FROM keyframes").fetchone()[0])
 
-    def ids(self) -> list[int]:
-        """All keyframe ids, ascending."""
-        with self._lock:
-            return [r[0] for r in self._conn.execute("SELECT id FROM keyframes ORDER BY id")]
-
     def find_keys(self, keys: list[str]) -> dict[str, int]:
         """The ids of those ``keys`` that exist: ``{key: id}``."""
         found: dict[str, int] = {}
@@ -303,15 +298,6 @@ class SqliteMapStore(MapStore):
         while rows := fetch(last):
             yield from (self._row(r) for r in rows)
             last = rows[-1][0]
-
-    def iter_keyframes(self, chunk: int = 256) -> Iterator[KeyframeRow]:
-        """Every keyframe in id order, read in chunks (the lock is not held between them)."""
-
-        def fetch(last: int) -> list[tuple]:
-            with self._lock:
-                return self._conn.execute(self._PAGE, (last, chunk)).fetchall()
-
-        return self._pages(fetch)
 
     def select(
         self, where: KeyframeFilter, *, after_id: int = 0, limit: int = 1000
