@@ -674,6 +674,8 @@ def _tracking_registration() -> dict[str, object]:
         "scan_neighbors",
         "vgicp_voxel_m",
         "vgicp_coarse_voxel_m",
+        "stop_m",
+        "stop_deg",
     )
     return {k: getattr(t, k) for k in keys}
 
