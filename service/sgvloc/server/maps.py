@@ -322,14 +322,7 @@ class MapManager:
                 log.error("map %r could not be loaded: %s", name, why)
                 self.failed[name] = self._scrubbed(why, folder)
                 continue
-            self._publish(handle)
-            log.info(
-                "loaded map %r: %d keyframes, version %d, in %.2f s",
-                name,
-                handle.num_keyframes,
-                handle.version,
-                time.perf_counter() - t0,
-            )
+            self._serve_loaded(handle, t0)
         self.loaded.set()
 
     def _load_all_shared(self) -> None:
@@ -377,10 +370,14 @@ class MapManager:
         finally:
             with self._lock:
                 self._reserved.discard(name)
+        self._serve_loaded(handle, t0)
+
+    def _serve_loaded(self, handle: MapHandle, t0: float) -> None:
+        """Publish a map loaded at start-up or from the shared store (since ``t0``)."""
         self._publish(handle)
         log.info(
             "loaded map %r: %d keyframes, version %d, in %.2f s",
-            name,
+            handle.name,
             handle.num_keyframes,
             handle.version,
             time.perf_counter() - t0,

@@ -216,6 +216,30 @@ def keyframe_row(r: tuple) -> KeyframeRow:
     )
 
 
+def position(T: np.ndarray) -> tuple[float, float, float]:
+    """The translation of a pose as three floats (the stores' position columns)."""
+    x, y, z = np.asarray(T, dtype=np.float64)[:3, 3]
+    return float(x), float(y), float(z)
+
+
+def row_values(row: KeyframeRow, keyframe_id: int | None, created_at: str) -> tuple:
+    """A keyframe as the values of both stores' insert: id, key, the arrays as ``.npy``
+    blobs, metadata as JSON, creation time, position."""
+    T = np.asarray(row.T_map_sensor, dtype=np.float64)
+    return (
+        keyframe_id,
+        row.key,
+        array_to_blob(T),
+        array_to_blob(row.global_descriptor),
+        array_to_blob(row.keypoints),
+        array_to_blob(row.local_features),
+        None if row.cloud is None else array_to_blob(row.cloud),
+        json.dumps(row.metadata),
+        created_at,
+        *position(T),
+    )
+
+
 @dataclass(frozen=True)
 class KeyframeFilter:
     """Which keyframes a listing or a bulk delete means; every given field must hold.

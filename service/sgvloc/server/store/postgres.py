@@ -35,7 +35,6 @@ from contextlib import contextmanager
 from typing import Any
 from urllib.parse import urlsplit, urlunsplit
 
-import numpy as np
 import psycopg
 from psycopg import errors as pg_errors
 from psycopg_pool import ConnectionPool, PoolTimeout
@@ -58,11 +57,11 @@ from .base import (
     StoreClosedError,
     StoreError,
     StoreUnavailableError,
-    array_to_blob,
     blob_to_array,
     keyframe_row,
     record_from_meta,
     record_to_meta,
+    row_values,
     utc_now,
 )
 
@@ -126,11 +125,6 @@ def redact(url: str) -> str:
     return urlunsplit(parts._replace(netloc=netloc))
 
 
-def _position(T: np.ndarray) -> tuple[float, float, float]:
-    x, y, z = np.asarray(T, dtype=np.float64)[:3, 3]
-    return float(x), float(y), float(z)
-
-
 def _where(f: KeyframeFilter) -> tuple[str, list[Any]]:
     """SQL conditions (each starting with AND) and their parameters; the same meaning as
     the SQLite backend's (a non-numeric ``timestamp`` never matches a time bound)."""
@@ -164,23 +158,6 @@ _INSERT = (
     "keypoints, local_features, cloud, metadata, created_at, x, y, z) "
     "VALUES (%s, %s, %s, %b, %b, %b, %b, %b, %s, %s, %s, %s, %s)"  # arrays sent as binary
 )
-
-
-def _values(map_id: int, row: KeyframeRow, keyframe_id: int, created_at: str) -> tuple:
-    T = np.asarray(row.T_map_sensor, dtype=np.float64)
-    return (
-        map_id,
-        keyframe_id,
-        row.key,
-        array_to_blob(T),
-        array_to_blob(row.global_descriptor),
-        array_to_blob(row.keypoints),
-        array_to_blob(row.local_features),
-        None if row.cloud is None else array_to_blob(row.cloud),
-        json.dumps(row.metadata),
-        created_at,
-        *_position(T),
-    )
 
 
 class PgBackend(SharedBackend):
@@ -615,7 +592,10 @@ class PgMapStore(MapStore):
                 ids = list(range(next_id, next_id + len(rows)))
                 cur.executemany(
                     _INSERT,
-                    [_values(self.map_id, row, i, now) for row, i in zip(rows, ids, strict=True)],
+                    [
+                        (self.map_id, *row_values(row, i, now))
+                        for row, i in zip(rows, ids, strict=True)
+                    ],
                 )
                 version += 1
                 cur.execute(
@@ -662,7 +642,8 @@ class PgMapStore(MapStore):
         with self._tx() as cur:
             _, next_id = self._lock_map(cur)
             cur.executemany(
-                _INSERT, [_values(self.map_id, row, int(row.id), row.created_at) for row in rows]
+                _INSERT,
+                [(self.map_id, *row_values(row, int(row.id), row.created_at)) for row in rows],
             )
             top = max([next_id - 1, *(int(r.id) for r in rows)])
             cur.execute(

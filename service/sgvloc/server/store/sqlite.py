@@ -30,8 +30,6 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-import numpy as np
-
 from sgvloc.core.confidence import Calibration
 from sgvloc.core.config import LocalizerConfig
 from sgvloc.core.errors import NotFoundError
@@ -47,12 +45,13 @@ from .base import (
     StoreBackend,
     StoreClosedError,
     StoreError,
-    array_to_blob,
     blob_to_array,
     keyframe_row,
+    position,
     raise_if_full,
     record_from_meta,
     record_to_meta,
+    row_values,
     utc_now,
 )
 
@@ -92,7 +91,7 @@ def _migrate_1_to_2(conn: sqlite3.Connection) -> None:
         rows = conn.execute("SELECT id, T_map_sensor FROM keyframes").fetchall()
         conn.executemany(
             "UPDATE keyframes SET x = ?, y = ?, z = ? WHERE id = ?",
-            [(*_position(blob_to_array(blob)), i) for i, blob in rows],
+            [(*position(blob_to_array(blob)), i) for i, blob in rows],
         )
         conn.execute("UPDATE meta SET value = '2' WHERE key = 'schema_version'")
         conn.execute("COMMIT")
@@ -103,11 +102,6 @@ def _migrate_1_to_2(conn: sqlite3.Connection) -> None:
 
 
 _MIGRATIONS = {1: _migrate_1_to_2}  # from version -> the step to the next
-
-
-def _position(T: np.ndarray) -> tuple[float, float, float]:
-    x, y, z = np.asarray(T, dtype=np.float64)[:3, 3]
-    return float(x), float(y), float(z)
 
 
 def _where(f: KeyframeFilter) -> tuple[str, list[object]]:
@@ -377,7 +371,7 @@ class SqliteMapStore(MapStore):
                 for row in rows:
                     cur = conn.execute(
                         f"INSERT INTO keyframes ({self._INSERT_COLUMNS}) VALUES ({self._MARKS})",
-                        self._values(row, None, now),
+                        row_values(row, None, now),
                     )
                     ids.append(int(cur.lastrowid))
                 version = self._bump_version(conn)
@@ -424,22 +418,6 @@ class SqliteMapStore(MapStore):
     )
     _MARKS = ",".join("?" * 12)
 
-    @staticmethod
-    def _values(row: KeyframeRow, keyframe_id: int | None, created_at: str) -> tuple:
-        T = np.asarray(row.T_map_sensor, dtype=np.float64)
-        return (
-            keyframe_id,
-            row.key,
-            array_to_blob(T),
-            array_to_blob(row.global_descriptor),
-            array_to_blob(row.keypoints),
-            array_to_blob(row.local_features),
-            None if row.cloud is None else array_to_blob(row.cloud),
-            json.dumps(row.metadata),
-            created_at,
-            *_position(T),
-        )
-
     def insert_exact(self, rows: list[KeyframeRow], version: int) -> None:
         """Insert rows keeping their ids and ``created_at``, and set the version (one
         transaction). For filling a new store from an archive."""
@@ -449,7 +427,7 @@ class SqliteMapStore(MapStore):
             try:
                 conn.executemany(
                     f"INSERT INTO keyframes ({self._INSERT_COLUMNS}) VALUES ({self._MARKS})",
-                    [self._values(row, int(row.id), row.created_at) for row in rows],
+                    [row_values(row, int(row.id), row.created_at) for row in rows],
                 )
                 conn.execute("UPDATE meta SET value = ? WHERE key = 'version'", (str(version),))
                 conn.execute("COMMIT")
