@@ -21,6 +21,7 @@ from conftest import Server
 from svc_helpers import decode, error_of, post_msgpack
 
 from sgvloc.core.sequence import KittiSequence
+from sgvloc.tools.service_process import start_side_by_side
 from sgvloc_client import Client
 
 POLL_S = "0.5"
@@ -34,30 +35,11 @@ def replicas(postgres, tmp_path_factory: pytest.TempPathFactory) -> Iterator[lis
     url = postgres.new_database()
     servers = [_replica(root, name, url) for name in "abc"]
     try:
-        _start_all(servers)
+        start_side_by_side(servers)
         yield servers
     finally:
         for s in servers:
             s.stop()
-
-
-def _start_all(servers: list[Server]) -> None:
-    """Start replicas side by side (each start waits for its /readyz)."""
-    errors: list[BaseException] = []
-
-    def start(s: Server) -> None:
-        try:
-            s.start()
-        except BaseException as exc:  # re-raised below
-            errors.append(exc)
-
-    threads = [threading.Thread(target=start, args=(s,)) for s in servers]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
-    if errors:
-        raise errors[0]
 
 
 def _replica(root: Path, name: str, url: str) -> Server:

@@ -736,6 +736,16 @@ class MapManager:
             self._reserved.add(name)
 
     @contextmanager
+    def _reserving(self, name: str) -> Iterator[None]:
+        """Hold ``name`` (ConflictError if taken) while a new map is made under it."""
+        self._reserve(name)
+        try:
+            yield
+        finally:
+            with self._lock:
+                self._reserved.discard(name)
+
+    @contextmanager
     def _building(self, name: str) -> Iterator[tuple[Path, Path]]:
         """Reserve ``name`` and give ``(tmp, folder)``: a new map is built whole in
         ``tmp`` (store, index snapshot) and renamed to ``folder`` by the block, so a map
@@ -798,16 +808,12 @@ class MapManager:
             return record, localizer
 
         if isinstance(self.backend, SharedBackend):
-            self._reserve(name)
-            try:
+            with self._reserving(name):
                 record, localizer = build()
                 store = self.backend.create(name, record)
                 self._attach_source(localizer, store)
                 handle = MapHandle(name, None, record, store, localizer)
                 self._publish(handle)
-            finally:
-                with self._lock:
-                    self._reserved.discard(name)
         else:
             with self._building(name) as (tmp, folder):
                 record, localizer = build()
@@ -1182,8 +1188,7 @@ class MapManager:
 
         if isinstance(self.backend, SharedBackend):
             # filled under a hidden name, published (renamed) in one step at the end
-            self._reserve(name)
-            try:
+            with self._reserving(name):
                 store = self.backend.staging(record)
                 try:
                     fill(store)
@@ -1194,9 +1199,6 @@ class MapManager:
                     raise
                 handle = self._load_store(store, None, name)
                 self._publish(handle)
-            finally:
-                with self._lock:
-                    self._reserved.discard(name)
         else:
             with self._building(name) as (tmp, folder):
                 store = self.backend.create(tmp, record)

@@ -12,6 +12,7 @@ import socket
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -168,3 +169,25 @@ def temporary_service(
     finally:
         srv.stop()
         shutil.rmtree(root, ignore_errors=True)
+
+
+def start_side_by_side(servers: list) -> list[float]:
+    """Start several services at once (each ``start()`` waits for its ``/readyz``);
+    the seconds each took. The first failure is raised once all have returned."""
+    took: list[float] = [0.0] * len(servers)
+    errors: list[BaseException] = []
+
+    def start(k: int) -> None:
+        try:
+            took[k] = servers[k].start() or 0.0
+        except BaseException as exc:  # re-raised below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=start, args=(k,)) for k in range(len(servers))]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    if errors:
+        raise errors[0]
+    return took

@@ -39,7 +39,7 @@ import numpy as np
 
 from sgvloc_client import wire
 
-from ..service_process import ServiceProcess
+from ..service_process import ServiceProcess, start_side_by_side
 from .engine import _table
 from .http import FIXTURE
 
@@ -58,27 +58,6 @@ def _database(store: str | None) -> Iterator[str]:
 
     with TempCluster() as cluster:
         yield cluster.new_database("bench")
-
-
-def _start_all(replicas: list[ServiceProcess]) -> list[float]:
-    """Start the replicas side by side; seconds each took to be ready."""
-    took: list[float] = [0.0] * len(replicas)
-    errors: list[BaseException] = []
-
-    def start(k: int) -> None:
-        try:
-            took[k] = replicas[k].start()
-        except BaseException as exc:  # re-raised below
-            errors.append(exc)
-
-    threads = [threading.Thread(target=start, args=(k,)) for k in range(len(replicas))]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
-    if errors:
-        raise errors[0]
-    return took
 
 
 def _pct(values: list[float], q: float) -> float:
@@ -313,7 +292,7 @@ def bench_cluster(
             ServiceProcess(Path(tmp) / n, Path(tmp) / f"{n}.log", workers=1, env=env) for n in "ab"
         ]
         try:
-            result["replica_start_s"] = _start_all(replicas)
+            result["replica_start_s"] = start_side_by_side(replicas)
             a, b = (r.url for r in replicas)
             echo(f"insert-to-visible ({visible} inserts) ...")
             result["visible"] = _visibility(a, b, visible, keypoints)
