@@ -303,14 +303,6 @@ class MapStore(ABC):
         ``settings_version`` (not the keyframe version). Returns the new record."""
 
     @abstractmethod
-    def version(self) -> int:
-        """The map's version: bumped by every transaction that inserts or deletes."""
-
-    @abstractmethod
-    def count(self) -> int:
-        """The number of stored keyframes."""
-
-    @abstractmethod
     def find_keys(self, keys: list[str]) -> dict[str, int]:
         """The ids of those ``keys`` that exist: ``{key: id}``."""
 

@@ -418,17 +418,6 @@ class PgMapStore(MapStore):
             self._announce(cur)
         return self.record()
 
-    def version(self) -> int:
-        with self._tx() as cur:
-            return self._meta(cur)[2]
-
-    # -- reading ------------------------------------------------------------------------
-
-    def count(self) -> int:
-        with self._tx() as cur:
-            cur.execute("SELECT count(*) FROM sgvloc_keyframes WHERE map_id = %s", (self.map_id,))
-            return int(cur.fetchone()[0])
-
     def find_keys(self, keys: list[str]) -> dict[str, int]:
         if not keys:
             return {}

@@ -228,18 +228,6 @@ class SqliteMapStore(MapStore):
                 raise
         return self.record()
 
-    def version(self) -> int:
-        """The map's version: bumped by every transaction that inserts or deletes."""
-        with self._lock:
-            row = self._conn.execute("SELECT value FROM meta WHERE key = 'version'").fetchone()
-        return int(row[0])
-
-    # -- keyframes: reading -------------------------------------------------------------
-
-    def count(self) -> int:
-        with self._lock:
-            return int(self._conn.execute("SELECT COUNT(*) FROM keyframes").fetchone()[0])
-
     def find_keys(self, keys: list[str]) -> dict[str, int]:
         """The ids of those ``keys`` that exist: ``{key: id}``."""
         found: dict[str, int] = {}
