@@ -81,6 +81,32 @@ def random_features(
     }
 
 
+def feature_keyframes(
+    rng: np.random.Generator,
+    n: int,
+    key_prefix: str | None = None,
+    metadata: dict[str, Any] | None = None,
+) -> list:
+    """``n`` keyframes of :func:`random_features` for the map manager, keyframe ``i`` at
+    x = i m, keyed ``<key_prefix><i>`` when a prefix is given."""
+    from sgvloc.server.maps import FeaturesIn, KeyframeIn
+
+    out = []
+    for i in range(n):
+        f = random_features(rng)
+        T = np.eye(4)
+        T[:3, 3] = [float(i), 0.0, 0.0]
+        out.append(
+            KeyframeIn(
+                T_map_sensor=T,
+                features=FeaturesIn(f["global_descriptor"], f["keypoints"], f["local_features"]),
+                key=None if key_prefix is None else f"{key_prefix}{i}",
+                metadata=dict(metadata or {}),
+            )
+        )
+    return out
+
+
 PRECOMPUTED = {"kind": "precomputed", "name": "egonn", "global_dim": 16, "local_dim": 8}
 
 

@@ -11,31 +11,15 @@ from pathlib import Path
 import numpy as np
 import psycopg
 import pytest
-from svc_helpers import random_features
+from svc_helpers import feature_keyframes
 
 from sgvloc.core.encoders import EncoderSpec
 from sgvloc.core.errors import NotFoundError
-from sgvloc.server.maps import FeaturesIn, KeyframeIn, MapManager
+from sgvloc.server.maps import MapManager
 from sgvloc.server.store import StoreError, StoreUnavailableError, open_backend
 from sgvloc.server.store.postgres import redact
 
 SPEC = EncoderSpec(kind="precomputed", name="egonn", global_dim=16, local_dim=8)
-
-
-def _items(rng: np.random.Generator, n: int, prefix: str = "k") -> list[KeyframeIn]:
-    out = []
-    for i in range(n):
-        f = random_features(rng)
-        T = np.eye(4)
-        T[:3, 3] = [float(i), 0.0, 0.0]
-        out.append(
-            KeyframeIn(
-                T,
-                features=FeaturesIn(f["global_descriptor"], f["keypoints"], f["local_features"]),
-                key=f"{prefix}{i}",
-            )
-        )
-    return out
 
 
 @pytest.fixture
@@ -62,7 +46,7 @@ def test_sync_applies_every_kind_of_change(
     a.create("m", SPEC)
     b.sync()
     assert b.get("m").version == 0
-    ids = a.insert("m", _items(rng, 4)).ids
+    ids = a.insert("m", feature_keyframes(rng, 4, "k")).ids
     a.delete_keyframe("m", ids[1])
     a.update_settings("m", {"top_k": 2})
     b.sync()
@@ -72,7 +56,7 @@ def test_sync_applies_every_kind_of_change(
     # deleted and made again under the same name: b drops its copy and loads the new map
     a.delete("m")
     a.create("m", SPEC)
-    a.insert("m", _items(rng, 1, "z"))
+    a.insert("m", feature_keyframes(rng, 1, "z"))
     b.sync()
     assert b.get("m").num_keyframes == 1 and b.get("m").version == 1
     a.delete("m")
@@ -88,7 +72,7 @@ def test_a_replica_behind_the_pruned_feed_reloads_the_map(
     a.create("m", SPEC)
     b.sync()
     for k in range(3):
-        a.insert("m", _items(rng, 2, f"p{k}-"))
+        a.insert("m", feature_keyframes(rng, 2, f"p{k}-"))
     with psycopg.connect(url, autocommit=True) as conn:
         conn.execute("DELETE FROM sgvloc_changes WHERE version <= 2")  # as pruning does
     b.sync()
@@ -103,8 +87,8 @@ def test_writes_on_both_keep_both_in_step(
     a, b = pair
     a.create("m", SPEC)
     b.sync()
-    ra = a.insert("m", _items(rng, 2, "a"))
-    rb = b.insert("m", _items(rng, 2, "b"))  # b has not synced: it catches up first
+    ra = a.insert("m", feature_keyframes(rng, 2, "a"))
+    rb = b.insert("m", feature_keyframes(rng, 2, "b"))  # b has not synced: it catches up first
     assert rb.map_version == ra.map_version + 1
     hb = b.get("m")
     assert hb.version == rb.map_version and hb.localizer.keyframe_ids() == ra.ids + rb.ids

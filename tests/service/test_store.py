@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from svc_helpers import random_features
+from svc_helpers import feature_keyframes
 
 from sgvloc.core.encoders import EncoderSpec
 from sgvloc.core.errors import ConflictError, InputError, NotFoundError
@@ -22,20 +22,7 @@ SPEC = EncoderSpec(kind="precomputed", name="egonn", global_dim=16, local_dim=8)
 
 
 def _items(rng: np.random.Generator, n: int, key_prefix: str | None = None) -> list[KeyframeIn]:
-    out = []
-    for i in range(n):
-        f = random_features(rng)
-        T = np.eye(4)
-        T[:3, 3] = [float(i), 0.0, 0.0]
-        out.append(
-            KeyframeIn(
-                T_map_sensor=T,
-                features=FeaturesIn(f["global_descriptor"], f["keypoints"], f["local_features"]),
-                key=None if key_prefix is None else f"{key_prefix}{i}",
-                metadata={"sequence": "s"},
-            )
-        )
-    return out
+    return feature_keyframes(rng, n, key_prefix, {"sequence": "s"})
 
 
 def _manager(root: Path, **kwargs) -> MapManager:

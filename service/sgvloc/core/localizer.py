@@ -226,12 +226,7 @@ class Localizer:
             dup = [i for i in ids if i in self._keyframes]
             if dup or len(set(ids)) != len(ids):
                 raise ConflictError(f"keyframe id(s) already exist: {dup[:5] or ids}")
-            if keyframes:
-                descs = np.stack([kf.features.global_descriptor for kf in keyframes])
-                self.index.add(np.asarray(ids, dtype=np.int64), descs)
-            for kf in keyframes:
-                self._keyframes[kf.id] = kf
-                self._grid.add(kf.id, kf.T_map_sensor[:3, 3])
+            self._put(keyframes)
             if keyframes:
                 self.version += 1
             return ids
@@ -252,10 +247,7 @@ class Localizer:
         with self._lock.write():
             for i in ids:
                 self.keyframe(i)
-            self.index.remove(np.asarray(ids, dtype=np.int64))
-            for i in ids:
-                del self._keyframes[i]
-                self._grid.remove(i)
+            self._drop(ids)
             self.version += 1
 
     def apply_changes(self, add: list[Keyframe], remove: list[int], version: int) -> None:
@@ -264,20 +256,28 @@ class Localizer:
         ``version``. Ids already in the wanted state are skipped, so a change applied
         twice changes nothing."""
         with self._lock.write():
-            gone = [int(i) for i in remove if int(i) in self._keyframes]
-            if gone:
-                self.index.remove(np.asarray(gone, dtype=np.int64))
-                for i in gone:
-                    del self._keyframes[i]
-                    self._grid.remove(i)
-            new = [kf for kf in add if kf.id not in self._keyframes]
-            if new:
-                descs = np.stack([kf.features.global_descriptor for kf in new])
-                self.index.add(np.asarray([kf.id for kf in new], dtype=np.int64), descs)
-                for kf in new:
-                    self._keyframes[kf.id] = kf
-                    self._grid.add(kf.id, kf.T_map_sensor[:3, 3])
+            self._drop([int(i) for i in remove if int(i) in self._keyframes])
+            self._put([kf for kf in add if kf.id not in self._keyframes])
             self.version = int(version)
+
+    def _put(self, keyframes: list[Keyframe]) -> None:
+        """Add keyframes with new ids to the index, the table and the grid (write lock)."""
+        if not keyframes:
+            return
+        descs = np.stack([kf.features.global_descriptor for kf in keyframes])
+        self.index.add(np.asarray([kf.id for kf in keyframes], dtype=np.int64), descs)
+        for kf in keyframes:
+            self._keyframes[kf.id] = kf
+            self._grid.add(kf.id, kf.T_map_sensor[:3, 3])
+
+    def _drop(self, ids: list[int]) -> None:
+        """Take held keyframe ids out of the index, the table and the grid (write lock)."""
+        if not ids:
+            return
+        self.index.remove(np.asarray(ids, dtype=np.int64))
+        for i in ids:
+            del self._keyframes[i]
+            self._grid.remove(i)
 
     def memory_bytes(self) -> int:
         """Bytes held by the keyframes' arrays (features, clouds, poses) and the index's

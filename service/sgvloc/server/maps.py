@@ -407,8 +407,7 @@ class MapManager:
                 calibration=record.calibration,
             )
             self._attach_source(localizer, store)
-            with store.snapshot(slim=not self.features_in_memory) as (version, _, rows):
-                keyframes = [_keyframe(encoder, row) for row in rows]
+            version, keyframes = self._read_keyframes(store, encoder)
             handle = MapHandle(name, folder, record, store, localizer)
             index = self._usable_snapshot(handle, [kf.id for kf in keyframes])
             localizer.restore(keyframes, version, index)
@@ -418,6 +417,12 @@ class MapManager:
         except BaseException:
             store.close()
             raise
+
+    def _read_keyframes(self, store: MapStore, encoder: Encoder) -> tuple[int, list[Keyframe]]:
+        """The map's version and keyframes from one consistent read of its store (without
+        local features and clouds when they are fetched per query)."""
+        with store.snapshot(slim=not self.features_in_memory) as (version, _, rows):
+            return version, [_keyframe(encoder, row) for row in rows]
 
     def _attach_source(self, localizer: Localizer, store: MapStore) -> None:
         """Without features in memory: the localizer fetches whole keyframes from
@@ -523,9 +528,7 @@ class MapManager:
                         pass
                 continue
             if version != handle.version:
-                with handle.write_lock:
-                    if not handle.closed:
-                        self._catch_up(handle)
+                self.sync_map(handle)
             if settings_version != handle.record.settings_version:
                 self._refresh_settings(handle)
 
@@ -564,8 +567,7 @@ class MapManager:
         changes = handle.store.changes_since(have)
         if changes is None:
             log.warning("map %r: too far behind the change feed, reloading it", handle.name)
-            with handle.store.snapshot(slim=not self.features_in_memory) as (version, _, rows):
-                keyframes = [_keyframe(handle.encoder, row) for row in rows]
+            version, keyframes = self._read_keyframes(handle.store, handle.encoder)
             if until is None or version <= until:
                 handle.localizer.restore(keyframes, version)
             self._on_change(handle.name, handle.num_keyframes)
@@ -597,7 +599,7 @@ class MapManager:
             return True
         try:
             self._catch_up(handle, until=version - 1)
-        except (StoreUnavailableError, StoreError) as exc:
+        except StoreError as exc:  # an unreachable store among them
             log.warning("map %r: catching up after a write failed (%s); later", handle.name, exc)
             return False
         return handle.localizer.version == version - 1
@@ -1110,9 +1112,6 @@ class MapManager:
         try:
             extent = handle.store.extent()
             last_write = handle.store.last_write()
-        except StoreClosedError:
-            raise NotFoundError(f"map {name!r} does not exist") from None
-        try:
             disk = handle.store.disk_bytes() if handle.path is None else _folder_bytes(handle.path)
         except StoreClosedError:
             raise NotFoundError(f"map {name!r} does not exist") from None

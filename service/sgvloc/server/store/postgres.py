@@ -205,12 +205,22 @@ class PgBackend(SharedBackend):
     # -- connections --------------------------------------------------------------------
 
     @contextmanager
-    def transaction(self) -> Iterator[psycopg.Cursor]:
+    def transaction(self, read_snapshot: bool = False) -> Iterator[psycopg.Cursor]:
         """A cursor in one transaction (committed when the block ends without error);
-        unreachable server -> :class:`StoreUnavailableError`."""
+        ``read_snapshot``: a read-only REPEATABLE READ one (every query sees one state).
+        Unreachable server -> :class:`StoreUnavailableError`."""
         try:
-            with self.pool.connection() as conn, conn.transaction(), conn.cursor() as cur:
-                yield cur
+            with self.pool.connection() as conn:
+                if read_snapshot:
+                    conn.isolation_level = psycopg.IsolationLevel.REPEATABLE_READ
+                    conn.read_only = True
+                try:
+                    with conn.transaction(), conn.cursor() as cur:
+                        yield cur
+                finally:
+                    if read_snapshot:
+                        conn.isolation_level = None
+                        conn.read_only = None
         except PoolTimeout:
             raise StoreUnavailableError(
                 f"the map store (PostgreSQL) cannot be reached within {self.timeout_s:g} s; "
@@ -359,10 +369,10 @@ class PgMapStore(MapStore):
         return self.map_id
 
     @contextmanager
-    def _tx(self) -> Iterator[psycopg.Cursor]:
+    def _tx(self, read_snapshot: bool = False) -> Iterator[psycopg.Cursor]:
         if self.closed:
             raise StoreClosedError(f"map {self.name!r}: the store is closed")
-        with self.backend.transaction() as cur:
+        with self.backend.transaction(read_snapshot) as cur:
             yield cur
 
     def close(self) -> None:
@@ -512,35 +522,18 @@ class PgMapStore(MapStore):
     @contextmanager
     def snapshot(self, slim: bool = False) -> Iterator[tuple[int, int, Iterator[KeyframeRow]]]:
         """One REPEATABLE READ transaction: the version and every row of one state."""
-        if self.closed:
-            raise StoreClosedError(f"map {self.name!r}: the store is closed")
-        try:
-            with self.backend.pool.connection() as conn:
-                conn.isolation_level = psycopg.IsolationLevel.REPEATABLE_READ
-                conn.read_only = True
-                try:
-                    with conn.transaction(), conn.cursor() as cur:
-                        _, _, version = self._meta(cur)
-                        cur.execute(
-                            "SELECT count(*) FROM sgvloc_keyframes WHERE map_id = %s",
-                            (self.map_id,),
-                        )
-                        count = int(cur.fetchone()[0])
+        with self._tx(read_snapshot=True) as cur:
+            version = self._meta(cur)[2]
+            cur.execute("SELECT count(*) FROM sgvloc_keyframes WHERE map_id = %s", (self.map_id,))
+            count = int(cur.fetchone()[0])
 
-                        def rows() -> Iterator[KeyframeRow]:
-                            last = 0
-                            while page := self._page(cur, last, 1000, slim):
-                                yield from (keyframe_row(r) for r in page)
-                                last = int(page[-1][0])
+            def rows() -> Iterator[KeyframeRow]:
+                last = 0
+                while page := self._page(cur, last, 1000, slim):
+                    yield from (keyframe_row(r) for r in page)
+                    last = int(page[-1][0])
 
-                        yield version, count, rows()
-                finally:
-                    conn.isolation_level = None
-                    conn.read_only = None
-        except PoolTimeout:
-            raise StoreUnavailableError("the map store (PostgreSQL) cannot be reached") from None
-        except psycopg.OperationalError as exc:
-            raise StoreUnavailableError(f"the map store (PostgreSQL) failed: {exc}") from None
+            yield version, count, rows()
 
     def changes_since(self, version: int) -> list[Change] | None:
         with self._tx() as cur:

@@ -41,7 +41,7 @@ from sgvloc_client import wire
 
 from ..service_process import ServiceProcess, start_side_by_side
 from .engine import _table
-from .http import FIXTURE
+from .http import FIXTURE, _pct
 
 Echo = Callable[[str], None]
 GLOBAL_DIM = 620
@@ -58,10 +58,6 @@ def _database(store: str | None) -> Iterator[str]:
 
     with TempCluster() as cluster:
         yield cluster.new_database("bench")
-
-
-def _pct(values: list[float], q: float) -> float:
-    return float(np.percentile(values, q)) if values else float("nan")
 
 
 def _features(rng: np.random.Generator, keypoints: int) -> dict[str, np.ndarray]:
