@@ -115,6 +115,10 @@ class EncoderInfo:
     global_dim: int | None
     local_dim: int | None
     spec: dict[str, Any]
+    #: what the global descriptor is ("polar", "network", "polar+network", ...)
+    global_descriptor: str = ""
+    #: its blocks' lengths; several are searched one by one and merged
+    global_blocks: tuple[int, ...] = ()
 
     @classmethod
     def from_body(cls, d: Mapping[str, Any]) -> EncoderInfo:
@@ -125,6 +129,8 @@ class EncoderInfo:
             global_dim=d.get("global_dim"),
             local_dim=d.get("local_dim"),
             spec=dict(d.get("spec") or {}),
+            global_descriptor=d.get("global_descriptor", ""),
+            global_blocks=tuple(d.get("global_blocks") or ()),
         )
 
 

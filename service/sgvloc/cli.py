@@ -442,7 +442,7 @@ CacheDirOpt = Annotated[
 ProgressOpt = Annotated[bool, typer.Option(help="show progress bars")]
 
 
-def _frames(text: str | None) -> tuple[int, int | None] | None:
+def _frames(text: str | None, option: str = "--frames") -> tuple[int, int | None] | None:
     """``START:STOP`` (STOP optional) as a pair of frame indices."""
     if text is None:
         return None
@@ -452,7 +452,9 @@ def _frames(text: str | None) -> tuple[int, int | None] | None:
             raise ValueError
         return int(start or 0), int(stop) if stop.strip() else None
     except ValueError:
-        raise typer.BadParameter(f"expected START:STOP frame indices, got {text!r}") from None
+        raise typer.BadParameter(
+            f"expected START:STOP frame indices, got {text!r}", param_hint=f"'{option}'"
+        ) from None
 
 
 def _int_list(text: str) -> list[int]:
@@ -473,6 +475,20 @@ def eval_command(
     ],
     db_until: DbUntilOpt = None,
     min_gap: MinGapOpt = None,
+    db_range: Annotated[
+        str | None,
+        typer.Option(
+            help="range split: database = frames START:STOP (by index, STOP exclusive), "
+            "e.g. 0:3000; instead of --db-until / --min-gap"
+        ),
+    ] = None,
+    query_range: Annotated[
+        str | None,
+        typer.Option(
+            help="range split: queries from frames START:STOP (STOP optional), e.g. 3200: "
+            "(default: every frame after --db-range)"
+        ),
+    ] = None,
     methods: Annotated[
         str, typer.Option(help="comma-separated re-ranking methods (default: all)")
     ] = "",
@@ -553,6 +569,8 @@ def eval_command(
             data=data,
             db_until=db_until,
             min_gap=min_gap,
+            db_range=_frames(db_range, "--db-range"),
+            query_range=_frames(query_range, "--query-range"),
             methods=methods,
             topk=_int_list(topk),
             sweep=_int_list(sweep),

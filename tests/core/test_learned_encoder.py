@@ -150,6 +150,25 @@ def test_the_network_global_descriptor_is_another_encoder(
     np.testing.assert_array_equal(a.local_features, b.local_features)
 
 
+def test_both_global_descriptors_are_two_blocks_of_one_vector(
+    enc: LearnedEncoder, network_global: LearnedEncoder, scans: list[np.ndarray]
+) -> None:
+    """'polar+network' concatenates the two descriptors, each normalised, scaled to unit
+    length; its blocks are recorded, and it is an encoder of its own."""
+    both = make_encoder(
+        EncoderSpec(kind="learned", learned=LearnedEncoderConfig(global_descriptor="polar+network"))
+    )
+    assert both.blocks == (620, 256) and both.global_dim == 876
+    assert enc.blocks == (620,) and network_global.blocks == (256,)
+    assert both.identity not in (enc.identity, network_global.identity)
+    g = both.encode(scans[2]).global_descriptor
+    polar = enc.encode(scans[2]).global_descriptor
+    net = network_global.encode(scans[2]).global_descriptor
+    unit = [x / np.linalg.norm(x) for x in (polar, net)]
+    np.testing.assert_allclose(g, np.concatenate(unit) / math.sqrt(2), atol=1e-6)
+    np.testing.assert_allclose(np.linalg.norm(g), 1.0, atol=1e-6)
+
+
 def test_global_descriptor_tells_places_apart(
     enc: LearnedEncoder, scans: list[np.ndarray], balm_mini_dir: Path
 ) -> None:

@@ -7,7 +7,7 @@ import pytest
 
 from sgvloc.core.config import RetrievalConfig
 from sgvloc.core.errors import ConflictError, InputError, NotFoundError
-from sgvloc.core.retrieval import FaissIndex
+from sgvloc.core.retrieval import FaissIndex, SearchHit, merge_hits, retrieve
 
 KINDS = ["flat", "ivf", "hnsw"]
 
@@ -128,3 +128,57 @@ def test_concurrent_search_and_add_agree():
         t.join()
     assert not errors
     assert len(index) == 2000
+
+
+def _two_blocks(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Vectors of two unit blocks (12-D and 20-D) concatenated and scaled to unit length."""
+    a, b = _vectors(n, 12, seed), _vectors(n, 20, seed + 1)
+    return a, b, np.hstack([a, b]) / np.sqrt(2)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_merged_retrieval_unites_each_blocks_top_k(kind):
+    """Merging returns each keyframe once: exactly the union of each block's own top-k
+    (never fewer candidates than either alone), ordered by the whole descriptor."""
+    a, b, x = _two_blocks(300)
+    ids = np.arange(5000, 5300)
+    index = _index(kind, dim=32)
+    index.add(ids, x)
+    qa, qb, q = _two_blocks(5, seed=7)
+    for row in range(5):
+        for k in (1, 5, 20):
+            hits = retrieve(index, q[row], k, (12, 20), "merge")
+            got = [h.id for h in hits]
+            assert len(got) == len(set(got))
+            top_a = set(ids[np.argsort(-(a @ qa[row]))[:k]].tolist())
+            top_b = set(ids[np.argsort(-(b @ qb[row]))[:k]].tolist())
+            if kind == "flat":  # exact search: exactly the union
+                assert set(got) == top_a | top_b
+            assert len(got) >= k
+            sims = [h.similarity for h in hits]
+            assert sims == sorted(sims, reverse=True)
+            whole = x[np.searchsorted(ids, got)] @ q[row]
+            np.testing.assert_allclose(sims, whole, atol=1e-5)
+        # one block, or combine="concat": the whole descriptor's plain top-k
+        plain = [h.id for h in index.search(q[row], 10)[0]]
+        assert [h.id for h in retrieve(index, q[row], 10, (32,), "merge")] == plain
+        assert [h.id for h in retrieve(index, q[row], 10, (12, 20), "concat")] == plain
+
+
+def test_merged_retrieval_keeps_to_a_prior_selection_and_checks_blocks():
+    a, b, x = _two_blocks(200)
+    index = _index("flat", dim=32)
+    index.add(np.arange(200), x)
+    among = np.arange(0, 200, 7)
+    hits = retrieve(index, x[3], 10, (12, 20), "merge", among=among)
+    assert hits and {h.id for h in hits} <= set(among.tolist())
+    with pytest.raises(InputError, match="blocks"):
+        retrieve(index, x[3], 10, (12, 19), "merge")
+
+
+def test_merge_hits_orders_the_union_and_breaks_ties_by_id():
+    one = [SearchHit(4, 0.9), SearchHit(2, 0.5), SearchHit(9, 0.1)]
+    two = [SearchHit(7, 0.5), SearchHit(4, 0.9), SearchHit(1, 0.8)]
+    assert [h.id for h in merge_hits([one, two], 2)] == [4, 2, 7]
+    assert [h.id for h in merge_hits([one, two], 3)] == [4, 1, 2, 7, 9]
+    assert merge_hits([[], []], 5) == []

@@ -121,6 +121,41 @@ def test_eval_refuses_bad_arguments(balm_mini_dir, tmp_path):
     assert res.exit_code == 2 and "magic" in res.output
     res = CliRunner().invoke(app, [*base, "--min-gap", "30", "--db-until", "40"])
     assert res.exit_code == 2 and "exactly one" in res.output
+    res = CliRunner().invoke(app, [*base, "--db-range", "0:8", "--query-range", "5:"])
+    assert res.exit_code == 2 and "overlaps" in res.output
+    res = CliRunner().invoke(app, [*base, "--db-range", "0-8"])
+    assert res.exit_code == 2 and "--db-range" in res.output
+    res = CliRunner().invoke(app, [*base, "--min-gap", "30", "--query-range", "9:"])
+    assert res.exit_code == 2 and "query_range needs db_range" in res.output
+
+
+def test_eval_by_frame_ranges_with_merged_descriptors(balm_mini_dir, tmp_path):
+    """--db-range/--query-range split by frame index; with the learned encoder's two
+    descriptor blocks each (method, k) starts from the merge of each block's top-k, and
+    the ceiling is the share of queries with a true match among those candidates."""
+    out = tmp_path / "out"
+    enc = '{"kind": "learned", "learned": {"global_descriptor": "polar+network"}}'
+    args = ["eval", "--data", str(balm_mini_dir), "--db-range", "0:12", "--query-range", "12:"]
+    args += ["--methods", "none,sgv", "--topk", "3", "--sweep", "1,3", "--encoder", enc]
+    args += ["--no-progress", "--cache-dir", str(tmp_path / "cache"), "--out", str(out)]
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 0, res.output
+    report = json.loads((out / "eval.json").read_text())
+    assert report["split"]["db_range"] == [0, 12] and report["split"]["query_range"] == [12, 15]
+    assert report["split"]["database_scans"] == 12
+    assert "(--db-range 0:12 --query-range 12:15)" in res.output
+    assert "Recall ceiling and R@1 at 5 m over the n_topk sweep" in res.output
+    for r in report["rows"]:
+        recs = [q for q in report["per_query"][f"{r['method']}@{r['k']}"] if q["in_coverage"]]
+        assert recs and all(3 <= q["candidates"] <= 6 for q in recs)
+        assert all(len(set(q["ranked"])) == len(q["ranked"]) == q["candidates"] for q in recs)
+        share = sum(q["rank@5m"] is not None for q in recs) / len(recs)
+        assert r["ceiling_5m"] == pytest.approx(100.0 * share)
+        assert r["candidates_mean"] == pytest.approx(np.mean([q["candidates"] for q in recs]))
+    sweep = {p["k"]: p for p in report["sweep"]["sgv"]}
+    assert 1 <= sweep[1]["candidates_mean"] <= 2 <= 3 <= sweep[3]["candidates_mean"]
+    assert sweep[1]["ceiling_5m"] <= sweep[3]["ceiling_5m"]
+    assert any("descriptor blocks" in n for n in report["notes"])
 
 
 def test_eval_keeps_out_of_coverage_queries_for_the_verdict(first_run):

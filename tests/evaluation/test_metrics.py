@@ -75,3 +75,20 @@ def test_success_needs_both_thresholds():
     ok = success([1.0, 2.0, 2.1, 0.5, float("nan")], [4.0, 5.0, 1.0, 5.1, 0.0])
     assert ok.tolist() == [True, True, False, False, False]
     assert success_rate([1.0, 3.0], [1.0, 1.0]) == 50.0
+
+
+def test_ceiling_counts_a_true_match_anywhere_in_the_candidates():
+    from sgvloc.tools.evaluation.runner import _aggregate, ceiling
+
+    # four queries: true match re-ranked to 1, found at rank 7 of 8, none, rank 2
+    ranks = [1, 7, None, 2]
+    assert ceiling(ranks) == 75.0 and math.isnan(ceiling([]))
+    recs = [
+        {"in_coverage": True, "rank@5m": r, "ms": 1.0, "top1_changed": False, "candidates": 8}
+        for r in ranks
+    ]
+    recs.append({"in_coverage": False, "rank@5m": None, "ms": 1.0, "top1_changed": False})
+    agg = _aggregate("sgv", 5, recs, [5.0], with_pose=False)
+    # the ceiling is not capped at k: merged retrieval starts from up to 2k candidates
+    assert agg["ceiling_5m"] == 75.0 and agg["R@1_5m"] == 25.0 and agg["R@5_5m"] == 50.0
+    assert agg["candidates_mean"] == 8.0 and agg["queries"] == 4

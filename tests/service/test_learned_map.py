@@ -74,3 +74,45 @@ def test_learned_features_are_refused_by_the_handcrafted_map(
         assert r.status_code == 409 and error_of(r)["field"] == field
     after = client.get("/v1/maps/balm").json()
     assert (after["keyframes"], after["version"]) == (before["keyframes"], before["version"])
+
+
+def test_a_map_of_both_global_descriptors_merges_their_candidates(
+    client: httpx.Client, balm_map: BalmMap
+) -> None:
+    """A map whose learned encoder gives the polar and the network descriptor records
+    both blocks, retrieves up to top_k per block (each keyframe once), localizes the
+    fixture's revisits, and refuses features of the single-descriptor encoder."""
+    spec = {"kind": "learned", "learned": {"global_descriptor": "polar+network"}}
+    r = client.post("/v1/maps", json={"name": "both", "encoder": spec})
+    assert r.status_code == 201, r.text
+    enc = r.json()["encoder"]
+    assert enc["global_descriptor"] == "polar+network" and enc["global_blocks"] == [620, 256]
+    assert enc["global_dim"] == 876 and r.json()["retrieval"]["combine"] == "merge"
+    kfs = [
+        {"T_map_sensor": balm_map.seq[i].T_world_sensor, "points": balm_map.seq[i].scan().xyzi()}
+        for i in balm_map.ids
+    ]
+    assert post_msgpack(client, "/v1/maps/both/keyframes", {"keyframes": kfs}).status_code == 201
+    for q in balm_map.queries:
+        frame = balm_map.seq[q]
+        body = {"points": frame.scan().xyzi(), "top_k": 3}
+        out = decode(post_msgpack(client, "/v1/maps/both/localize", body))
+        ids = [c["keyframe_id"] for c in out["retrieved"]]
+        assert 3 <= len(ids) <= 6 and len(set(ids)) == len(ids)
+        assert out["localized"], out["reason"]
+        t_err, r_err = pose_error(np.asarray(out["T_map_sensor"]), frame.T_world_sensor)
+        assert t_err < 1.0 and r_err < 5.0
+    polar = make_encoder(EncoderSpec(kind="learned"))
+    f = polar.encode(balm_map.seq[balm_map.queries[0]].scan().points)
+    feats = {
+        "global_descriptor": f.global_descriptor,
+        "keypoints": f.keypoints,
+        "local_features": f.local_features,
+    }
+    for claim, field in (
+        ({}, "features"),
+        ({"fingerprint": polar.identity.fingerprint}, "features.fingerprint"),
+    ):
+        r = post_msgpack(client, "/v1/maps/both/localize", {"features": {**feats, **claim}})
+        assert r.status_code == 409, r.text
+        assert error_of(r)["code"] == "encoder_mismatch" and error_of(r)["field"] == field

@@ -348,10 +348,12 @@ class LearnedEncoderConfig(BaseModel):
         "before rasterising (the network was trained on level car-mounted scans; a hand-held "
         "or tilted sensor otherwise changes the image), keypoints returned in the sensor frame",
     )
-    global_descriptor: Literal["network", "polar"] = Field(
+    global_descriptor: Literal["network", "polar", "polar+network"] = Field(
         "polar",
-        description="global descriptor: the network's (GeM, 256-D) or the polar/FFT "
-        "descriptor of the same density image (620-D, as the 'bev' encoder's)",
+        description="global descriptor: the network's (GeM, 256-D), the polar/FFT "
+        "descriptor of the same density image (620-D, as the 'bev' encoder's), or both "
+        "(876-D, each block normalised; retrieval merges their candidates, see "
+        "RetrievalConfig.combine)",
     )
     global_rotations: Literal[1, 4] = Field(
         4,

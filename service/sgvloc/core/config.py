@@ -53,6 +53,14 @@ class RetrievalConfig(_Section):
     nprobe: int = Field(16, ge=1, le=65536, description="IVF: cells visited per search")
     hnsw_m: int = Field(32, ge=4, le=128, description="HNSW: neighbours per node")
     ef_search: int = Field(128, ge=1, le=4096, description="HNSW: search breadth")
+    combine: Literal["merge", "concat"] = Field(
+        "merge",
+        description="a global descriptor of several blocks (learned 'polar+network'): "
+        "'merge' retrieves top_k by each block's own similarity and unites them (each "
+        "keyframe once, between top_k and blocks x top_k candidates, ordered by the whole "
+        "descriptor's similarity); 'concat' retrieves top_k by the whole descriptor's "
+        "similarity (the mean of the blocks' cosines)",
+    )
 
 
 class SGVConfig(_Section):
@@ -227,7 +235,13 @@ class LocalizerConfig(_Section):
     pose: PoseConfig = PoseConfig()
     verdict: VerdictConfig = VerdictConfig()
     tracking: TrackingConfig = TrackingConfig()
-    top_k: int = Field(20, ge=1, le=1000)
+    top_k: int = Field(
+        20,
+        ge=1,
+        le=1000,
+        description="candidates retrieved for re-ranking (per descriptor block when "
+        "retrieval merges several: retrieval.combine)",
+    )
     rerank: RerankMethod = "sgv"
     qe_k: int = Field(3, ge=1, le=100, description="query expansion: neighbours averaged")
     qe_alpha: float = Field(3.0, ge=0.0, le=100.0, description="alpha-QE weight exponent")

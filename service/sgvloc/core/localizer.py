@@ -40,7 +40,7 @@ from .features import Features
 from .pose import IcpTarget, PoseResult, check_rigid, ransac_pose, refine_icp
 from .prior import PositionGrid, Prior, yaw_deg
 from .rerank import Candidate, RerankOutput, check_method, rerank
-from .retrieval import FaissIndex
+from .retrieval import FaissIndex, retrieve
 from .tracking import (
     Seed,
     Submap,
@@ -444,7 +444,14 @@ class Localizer:
             if prior is not None:
                 among = self._grid.within(prior)
                 prior_info = {"used": True, "keyframes_in_radius": int(len(among))}
-            hits = self.index.search(query.global_descriptor, top_k, among=among)[0]
+            hits = retrieve(
+                self.index,
+                query.global_descriptor,
+                top_k,
+                self.encoder.blocks,
+                cfg.retrieval.combine,
+                among=among,
+            )
             retrieved = [Candidate(h.id, h.similarity, r, h.similarity) for r, h in enumerate(hits)]
             timings["retrieve"] = _ms(t)
             if not retrieved:

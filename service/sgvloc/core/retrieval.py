@@ -241,6 +241,44 @@ class FaissIndex:
             results.append(hits[:k])
         return results
 
+    def search_blocks(
+        self,
+        query: np.ndarray,
+        k: int,
+        blocks: tuple[int, ...],
+        among: np.ndarray | None = None,
+    ) -> list[list[SearchHit]]:
+        """One query's top-k by each block of its descriptor on its own (the other
+        blocks zeroed; stored vectors are normalised per block, so this ranks by that
+        block's cosine similarity). ``blocks`` are the block lengths (summing to ``dim``).
+        Every hit's similarity is the whole descriptor's (:meth:`search`'s)."""
+        q = np.asarray(query, dtype=np.float32).reshape(-1)
+        if sum(blocks) != self.dim or len(q) != self.dim or min(blocks, default=0) < 1:
+            raise InputError(
+                f"descriptor blocks {list(blocks)} do not cover a {self.dim}-D index "
+                f"(query has {len(q)})"
+            )
+        whole = self._prepare(q)[0]
+        lists, start = [], 0
+        for n in blocks:
+            part = np.zeros_like(q)
+            part[start : start + n] = q[start : start + n]
+            start += n
+            if not part.any():  # an empty block finds nothing
+                lists.append([])
+                continue
+            lists.append(self.search(part, k, among=among)[0])
+        sims: dict[int, float] = {}
+        with self._lock.read():
+            for i in {h.id for hits in lists for h in hits}:
+                if i in self._tombstones:
+                    continue
+                try:
+                    sims[i] = float(self._index.reconstruct(i) @ whole)
+                except RuntimeError:  # removed since the search
+                    continue
+        return [[SearchHit(h.id, sims[h.id]) for h in hits if h.id in sims] for hits in lists]
+
     def _search_among(self, q: np.ndarray, k: int, among: np.ndarray) -> list[list[SearchHit]]:
         with self._lock.read():
             among = among[np.isin(among, self._live_ids())]  # unknown ids select nothing
@@ -306,6 +344,32 @@ class FaissIndex:
             raise InputError(f"index snapshot {path} holds an unsupported index type")
         obj._index = raw
         return obj
+
+
+def merge_hits(lists: list[list[SearchHit]], k: int) -> list[SearchHit]:
+    """The union of each list's first ``k`` hits, each id once, ordered by similarity
+    (highest first; ties by id): at least as many hits as the longest list's first k."""
+    seen: dict[int, SearchHit] = {}
+    for hits in lists:
+        for h in hits[:k]:
+            seen.setdefault(h.id, h)
+    return sorted(seen.values(), key=lambda h: (-h.similarity, h.id))
+
+
+def retrieve(
+    index: FaissIndex,
+    descriptor: np.ndarray,
+    k: int,
+    blocks: tuple[int, ...],
+    combine: str = "merge",
+    among: np.ndarray | None = None,
+) -> list[SearchHit]:
+    """One descriptor's candidates: top-k of the whole descriptor, or with several
+    ``blocks`` and ``combine="merge"`` the merged top-k of each block
+    (:meth:`FaissIndex.search_blocks`, :func:`merge_hits`)."""
+    if len(blocks) > 1 and combine == "merge":
+        return merge_hits(index.search_blocks(descriptor, k, blocks, among=among), k)
+    return index.search(descriptor, k, among=among)[0]
 
 
 def _atomic_write_text(path: Path, text: str) -> None:

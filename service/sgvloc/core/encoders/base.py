@@ -48,6 +48,16 @@ class Encoder(ABC):
     global_dim: int
     #: dimension ``D`` of one local feature row
     local_dim: int
+    #: the global descriptor's blocks (their lengths, summing to ``global_dim``): one for
+    #: most encoders; several when it concatenates separately normalised descriptors,
+    #: which retrieval can search one by one and merge (``RetrievalConfig.combine``)
+    global_blocks: tuple[int, ...] = ()
+
+    @property
+    def blocks(self) -> tuple[int, ...]:
+        """:attr:`global_blocks`, or the whole descriptor as one block."""
+        return tuple(self.global_blocks) or (int(self.global_dim),)
+
     #: the preprocessing the encoder applies to raw scans (None if it takes no scans);
     #: the localizer reuses it to keep clouds for ICP refinement
     preprocess_config: PreprocessConfig | None = None

@@ -21,7 +21,9 @@ Per scan (deterministic):
    sensor (exact pixel turns, as the sensor is the centre of the padded input),
    re-normalised, which makes it invariant to quarter turns and flattens the yaw
    dependence between them; or ``"polar"``: the polar/FFT descriptor of the same image
-   (:func:`sgvloc.core.encoders.bev.polar_fft_descriptor`, yaw-invariant by construction).
+   (:func:`sgvloc.core.encoders.bev.polar_fft_descriptor`, yaw-invariant by construction);
+   or ``"polar+network"``: both, each normalised, as two blocks of one vector
+   (``global_blocks``), which retrieval searches one by one and merges.
 
 The network runs in torch, or in ONNX Runtime on CPU (``runtime``; ``"auto"`` picks ONNX
 Runtime when it is installed and the weights have their ONNX export beside them,
@@ -260,8 +262,10 @@ class LearnedEncoder(Encoder):
         self.runtime = "onnx" if onnx_file else "torch"
         self.meta = meta
         self.min_grey = int(meta.get("min_grey", 0))
-        polar = self.config.global_descriptor == "polar"
-        self.global_dim = POLAR_DIM if polar else int(model.global_dim)
+        kinds = self.config.global_descriptor.split("+")
+        dims = {"polar": POLAR_DIM, "network": int(model.global_dim)}
+        self.global_blocks = tuple(dims[k] for k in kinds)
+        self.global_dim = sum(self.global_blocks)
         self.local_dim = int(model.local_dim)
         self.preprocess_config = None  # prepare() is overridden: box crop + 0.4 m voxels
         self.identity = EncoderIdentity(
@@ -353,7 +357,8 @@ class LearnedEncoder(Encoder):
         with torch.inference_mode():
             x = to_input(image[None]).to(self.device)  # [1, 1, 152, 152]
             g, local, sal = self._forward(x)
-            if c.global_descriptor == "network" and c.global_rotations == 4:
+            blocks = c.global_descriptor.split("+")
+            if "network" in blocks and c.global_rotations == 4:
                 turned = torch.cat([torch.rot90(x, t, dims=(2, 3)) for t in (1, 2, 3)])
                 g = torch.cat([g, self.net.global_descriptor(turned)])
                 g = F.normalize(g.mean(dim=0, keepdim=True), dim=1)
@@ -367,11 +372,13 @@ class LearnedEncoder(Encoder):
             k = int(min(c.num_keypoints, int(torch.isfinite(s).sum())))
             idx = torch.topk(s, k).indices if k else torch.zeros(0, dtype=torch.long)
             feats = local[0].flatten(1)[:, idx.to(self.device)].T.float().cpu().numpy()
-            g_np = (
+            parts = [
                 polar_fft_descriptor(image, KITTI_BEV, POLAR_RINGS, POLAR_SECTORS)
-                if c.global_descriptor == "polar"
+                if b == "polar"
                 else g[0].float().cpu().numpy()
-            )
+                for b in blocks
+            ]
+            g_np = parts[0] if len(parts) == 1 else _concat_unit(parts)
         idx_np = idx.cpu().numpy()
         rows, cols = idx_np // CELLS, idx_np % CELLS
         if c.keypoint_xy == "centroid":
@@ -405,6 +412,13 @@ class LearnedEncoder(Encoder):
         return Features.validated(
             g_np, kp, feats, self.identity, global_dim=self.global_dim, local_dim=self.local_dim
         )
+
+
+def _concat_unit(parts: list[np.ndarray]) -> np.ndarray:
+    """Blocks normalised one by one, concatenated, scaled to unit length: the inner
+    product of two such descriptors is the mean of their blocks' cosine similarities."""
+    unit = [p / max(float(np.linalg.norm(p)), 1e-12) for p in parts]
+    return (np.concatenate(unit) / math.sqrt(len(unit))).astype(np.float32)
 
 
 __all__ = [

@@ -200,6 +200,14 @@ class EncoderInfo(BaseModel):
     name: str
     fingerprint: str
     global_dim: int
+    global_descriptor: str = Field(
+        description="what the global descriptor is: the encoder kind's own, or for the "
+        "learned encoder 'polar', 'network' or 'polar+network'"
+    )
+    global_blocks: list[int] = Field(
+        description="lengths of the descriptor's blocks (several: retrieval searches each "
+        "and merges their candidates, localizer.retrieval.combine)"
+    )
     local_dim: int
     spec: dict[str, Any]
 
@@ -445,7 +453,10 @@ class LocalizeBody(_In):
     points: Array | None = Field(None, description="[P, 3|4] scan, sensor frame")
     features: FeaturesBody | None = None
     top_k: StrictInt | None = Field(
-        None, ge=1, description="candidates retrieved (map default); an integer, not '5' or true"
+        None,
+        ge=1,
+        description="candidates retrieved (map default; per descriptor block when the map "
+        "merges several, localizer.retrieval.combine); an integer, not '5' or true",
     )
     rerank: RerankMethod | None = Field(None, description="re-ranking method (map default)")
     refine: Literal["none", "icp"] | None = Field(None, description="ICP after RANSAC")

@@ -16,6 +16,7 @@ from .report import (
     plot_sgv_scores,
     plot_sweep,
     plot_verdict,
+    sweep_table,
     verdict_table,
     write_json,
 )
@@ -28,6 +29,8 @@ def evaluate(
     db_until: float | None,
     min_gap: float | None,
     methods: str,
+    db_range: tuple[int, int | None] | None = None,
+    query_range: tuple[int, int | None] | None = None,
     topk: list[int],
     sweep: list[int],
     sweep_rir: list[int] | None,
@@ -56,6 +59,8 @@ def evaluate(
         data=str(data),
         db_until=db_until,
         min_gap=min_gap,
+        db_range=db_range,
+        query_range=query_range,
         methods=[m.strip() for m in methods.split(",") if m.strip()] or list(METHODS),
         topk=topk,
         sweep=sweep,
@@ -77,6 +82,8 @@ def evaluate(
     )
     result = run_evaluation(cfg, progress=progress)
     echo(markdown_table(result))
+    echo("")
+    echo(sweep_table(result))
     echo("")
     echo(verdict_table(result))
     echo("")

@@ -19,16 +19,22 @@ def _fmt(v: Any, digits: int = 1) -> str:
     return f"{v:.{digits}f}" if isinstance(v, float) else str(v)
 
 
+def split_label(s: dict[str, Any]) -> str:
+    """The split as the options that make it (``--db-until 44``, ``--min-gap 30``, ...)."""
+    if s["mode"] == "time":
+        return f"--db-until {s['db_until_s']:g}"
+    if s["mode"] == "loop":
+        return f"--min-gap {s['min_gap_s']:g}"
+    (a, b), (c, d) = s["db_range"], s["query_range"]
+    return f"--db-range {a}:{b} --query-range {c}:{d}"
+
+
 def markdown_table(result: EvalResult) -> str:
     """The table of every (method, top-k): recall, MRR, pose success, errors and time."""
     thr = result.config["thresholds"]
     s = result.split
-    split = (
-        f"--db-until {s['db_until_s']:g}"
-        if s["mode"] == "time"
-        else f"--min-gap {s['min_gap_s']:g}"
-    )
-    head = ["method", "top-k", f"ceiling {thr[0]:g}m"]
+    split = split_label(s)
+    head = ["method", "top-k", "candidates", f"ceiling {thr[0]:g}m"]
     for t in thr:
         head += [f"R@1 {t:g}m", f"R@5 {t:g}m", f"MRR {t:g}m"]
     head += ["S %", f"S % top-1 < {thr[0]:g}m", "RTE m", "RRE deg", "rerank ms"]
@@ -42,7 +48,12 @@ def markdown_table(result: EvalResult) -> str:
         "|" + "|".join("---" if i < 2 else "---:" for i in range(len(head))) + "|",
     ]
     for r in result.rows:
-        cells = [r["method"], str(r["k"]), _fmt(r.get(f"ceiling_{thr[0]:g}m"))]
+        cells = [
+            r["method"],
+            str(r["k"]),
+            _fmt(r.get("candidates_mean")),
+            _fmt(r.get(f"ceiling_{thr[0]:g}m")),
+        ]
         for t in thr:
             cells += [_fmt(r[f"R@1_{t:g}m"]), _fmt(r[f"R@5_{t:g}m"]), _fmt(r[f"MRR_{t:g}m"])]
         cells += [
@@ -176,6 +187,38 @@ def _save(fig, path: str | Path) -> Path:
     return p
 
 
+def _ceiling_sweep(result: EvalResult) -> list[dict[str, Any]]:
+    """The sweep of a method that re-ranks the retrieved candidates as they are (sgv or
+    none; query expansion searches again), whose ceiling is retrieval's."""
+    for m in ("sgv", "none"):
+        if result.sweep.get(m):
+            return result.sweep[m]
+    return []
+
+
+def sweep_table(result: EvalResult) -> str:
+    """Per k of the sweep: the candidates re-ranking starts from (mean), the recall
+    ceiling (a true match among them) and R@1 of each fully swept method."""
+    base = _ceiling_sweep(result)
+    if not base:
+        return ""
+    thr = result.config["thresholds"][0]
+    methods = [m for m, pts in result.sweep.items() if len(pts) == len(base)]
+    by_k = {m: {p["k"]: p for p in result.sweep[m]} for m in methods}
+    head = ["k", "candidates", f"ceiling {thr:g}m"] + [f"R@1 {m}" for m in methods]
+    lines = [
+        f"Recall ceiling and R@1 at {thr:g} m over the n_topk sweep (in-coverage queries):",
+        "",
+        "| " + " | ".join(head) + " |",
+        "|" + "|".join("---:" for _ in head) + "|",
+    ]
+    for p in base:
+        cells = [str(p["k"]), _fmt(p.get("candidates_mean")), _fmt(p[f"ceiling_{thr:g}m"])]
+        cells += [_fmt(by_k[m].get(p["k"], {}).get(f"R@1_{thr:g}m")) for m in methods]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def plot_sweep(result: EvalResult, path: str | os.PathLike) -> Path:
     """PNG of R@1 (first threshold) and median re-ranking time against n_topk per method."""
     import matplotlib
@@ -199,15 +242,19 @@ def plot_sweep(result: EvalResult, path: str | os.PathLike) -> Path:
     )
     for ax in (ax_r, ax_t):
         ax.grid(True, alpha=0.3)
+    base = _ceiling_sweep(result)
+    if base:
+        ax_r.plot(
+            [p["k"] for p in base],
+            [p[f"ceiling_{thr:g}m"] for p in base],
+            "k:",
+            lw=1.2,
+            label="ceiling (a true match among the candidates)",
+        )
     ax_r.legend(fontsize=8)
     s = result.split
-    how = (
-        f"database until {s['db_until_s']:g} s"
-        if s["mode"] == "time"
-        else f"database >= {s['min_gap_s']:g} s older"
-    )
     name = Path(result.config["data"]).name
-    fig.suptitle(f"{name}: {s['queries']} queries, {how}", fontsize=10)
+    fig.suptitle(f"{name}: {s['queries']} queries, {split_label(s)}", fontsize=10)
     return _save(fig, path)
 
 

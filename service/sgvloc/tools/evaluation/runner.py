@@ -74,6 +74,12 @@ class EvalConfig(BaseModel):
     )
     db_until: float | None = Field(None, description="time split: database = first SECONDS")
     min_gap: float | None = Field(None, description="loop split: database = scans >= SECONDS older")
+    db_range: tuple[int, int | None] | None = Field(
+        None, description="range split: database = frames [start, stop) (by index)"
+    )
+    query_range: tuple[int, int | None] | None = Field(
+        None, description="range split: queries from frames [start, stop) (default: after db)"
+    )
     methods: list[str] = Field(default_factory=lambda: list(METHODS))
     topk: list[int] = Field(default_factory=lambda: [2, 20])
     thresholds: list[float] = Field(default_factory=lambda: [5.0, 20.0])
@@ -188,7 +194,7 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
     from sgvloc.core.encoders import make_encoder
     from sgvloc.core.pose import ransac_pose, refine_icp
     from sgvloc.core.prior import Prior
-    from sgvloc.core.rerank import Candidate, rerank
+    from sgvloc.core.rerank import rerank
     from sgvloc.core.retrieval import FaissIndex
     from sgvloc.core.sgv import sgv_rerank_scores
 
@@ -206,6 +212,8 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
         poses[:, :3, 3],
         db_until=cfg.db_until,
         min_gap=cfg.min_gap,
+        db_range=cfg.db_range,
+        query_range=cfg.query_range,
         threshold=cfg.thresholds[0],
         query_stride=cfg.query_stride,
         max_queries=cfg.max_queries,
@@ -342,6 +350,8 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
 
     # 2. queries in time order against the database each may see
     index = FaissIndex(encoder.global_dim, loc_cfg.retrieval)
+    # several descriptor blocks merged: each block's top-k, united (as the localizer does)
+    blocks = encoder.blocks if loc_cfg.retrieval.combine == "merge" else (encoder.global_dim,)
     in_index: set[int] = set()
     recs: dict[tuple[str, int], list[dict[str, Any]]] = {
         (m, k): [] for m, ks in plan.items() for k in ks
@@ -368,15 +378,16 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
             prior = Prior(tuple(noisy), cfg.prior_radius)
             among = visible[prior.distance(poses[visible, :3, 3]) <= cfg.prior_radius]
         fq = qfeats[qk]
-        hits = index.search(fq.global_descriptor, min(kmax, len(index)), among=among)[0]
-        retrieved = [Candidate(h.id, h.similarity, r, h.similarity) for r, h in enumerate(hits)]
+        candidates = _retrieval(index, fq.global_descriptor, kmax, blocks, among)
+        retrieved = candidates(kmax)
         spectral: dict[int, Any] = {}
         spectral_for(qk, [c.keyframe_id for c in retrieved], spectral)
         sgv_out = None
         for method, ks in plan.items():
             for k in ks:
                 t = time.perf_counter()
-                out = rerank(method, fq, retrieved[:k], feats.__getitem__, index, loc_cfg)
+                start = candidates(k)
+                out = rerank(method, fq, start, feats.__getitem__, index, loc_cfg)
                 ms = (time.perf_counter() - t) * 1e3
                 if method == "sgv" and k == k_scores:
                     sgv_out = out
@@ -385,7 +396,8 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
                     "query": q,
                     "ms": ms,
                     "ranked": ids,
-                    "top1_changed": bool(ids and retrieved and ids[0] != retrieved[0].keyframe_id),
+                    "candidates": len(start),
+                    "top1_changed": bool(ids and start and ids[0] != start[0].keyframe_id),
                     "in_coverage": covered,
                 }
                 if src:
@@ -416,7 +428,7 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
         )
         match_pairs.append({"query": q, "db": db, "distance_m": float(d.min()), **stats})
         if sgv_out is None:
-            sgv_out = rerank("sgv", fq, retrieved[:k_scores], feats.__getitem__, index, loc_cfg)
+            sgv_out = rerank("sgv", fq, candidates(k_scores), feats.__getitem__, index, loc_cfg)
         ids = [c.keyframe_id for c in sgv_out.candidates]
         dist = np.linalg.norm(poses[ids, :3, 3] - gt[:3, 3], axis=1) if ids else np.zeros(0)
         score_recs.append(
@@ -433,7 +445,11 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
     rows, sweep, per_query = [], {m: [] for m in plan}, {}
     for (method, k), rs in recs.items():
         agg = _aggregate(method, k, rs, cfg.thresholds, with_pose=k in table_ks)
-        keep = [key for key in agg if key.startswith(("R@1", "ceiling")) or key.endswith("_ms")]
+        keep = [
+            key
+            for key in agg
+            if key.startswith(("R@1", "ceiling", "candidates")) or key.endswith("_ms")
+        ]
         sweep[method].append({"k": k, **{key: agg[key] for key in keep}})
         if k in table_ks:
             rows.append(agg)
@@ -445,7 +461,11 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
 
     n_out = len(split.negatives) + sum(len(f.paths) for f in foreign)
     notes = [
-        f"retrieval: top-{kmax} once per query; each (method, k) re-ranks the first k hits",
+        f"retrieval: top-{kmax} once per query; each (method, k) re-ranks the first k hits"
+        if len(blocks) == 1
+        else f"retrieval: top-{kmax} of each of the {len(blocks)} descriptor blocks once per "
+        "query; each (method, k) re-ranks the merge of each block's first k hits (between k "
+        "and blocks x k candidates, each keyframe once)",
         "pose: RANSAC on local features against the re-ranked top-1"
         + (", refined by ICP on the preprocessed clouds" if refine == "icp" else "")
         + "; the same estimator for every method",
@@ -538,6 +558,42 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
     return EvalResult(config, split_info, rows, sweep, per_query, timings, notes, matches, scores)
 
 
+def _retrieval(
+    index: Any, descriptor: np.ndarray, kmax: int, blocks: tuple[int, ...], among: Any
+) -> Any:
+    """One query's retrieval, run once with ``kmax``: returns ``candidates(k)``, the
+    candidate list for any ``k <= kmax`` (the first k hits; with several descriptor
+    blocks, the merge of each block's first k, as :func:`sgvloc.core.retrieval.retrieve`
+    gives it)."""
+    from sgvloc.core.rerank import Candidate
+    from sgvloc.core.retrieval import merge_hits
+
+    k = min(kmax, len(index))
+    if len(blocks) > 1:
+        lists = index.search_blocks(descriptor, k, blocks, among=among) if k else []
+
+        def hits_for(n: int) -> list[Any]:
+            return merge_hits(lists, n)
+    else:
+        hits = index.search(descriptor, k, among=among)[0] if k else []
+
+        def hits_for(n: int) -> list[Any]:
+            return hits[:n]
+
+    def candidates(n: int) -> list[Any]:
+        return [Candidate(h.id, h.similarity, r, h.similarity) for r, h in enumerate(hits_for(n))]
+
+    return candidates
+
+
+def ceiling(first_true_ranks: list[int | None]) -> float:
+    """Recall ceiling in percent: the share of queries with a true match anywhere in the
+    candidate list that re-ranking started from (a rank, not None); NaN for none."""
+    if not first_true_ranks:
+        return float("nan")
+    return 100.0 * sum(r is not None for r in first_true_ranks) / len(first_true_ranks)
+
+
 def _mean(xs: list[float]) -> float:
     return float(np.mean(xs)) if xs else float("nan")
 
@@ -554,8 +610,11 @@ def _aggregate(
         out[f"R@1_{thr:g}m"] = recall_at(ranks, 1)
         out[f"R@5_{thr:g}m"] = recall_at(ranks, 5)
         out[f"MRR_{thr:g}m"] = mrr(ranks)
-    # the recall ceiling: a true match among the k candidates re-ranking starts from
-    out[f"ceiling_{thresholds[0]:g}m"] = recall_at([r[f"rank@{thresholds[0]:g}m"] for r in cov], k)
+    # the recall ceiling: a true match among the candidates re-ranking starts from (k of
+    # them, or up to k per block when descriptor blocks are merged)
+    first = [r[f"rank@{thresholds[0]:g}m"] for r in cov]
+    out[f"ceiling_{thresholds[0]:g}m"] = ceiling(first)
+    out["candidates_mean"] = _mean([float(r.get("candidates", k)) for r in cov])
     ms = [r["ms"] for r in recs]
     out["rerank_median_ms"] = statistics.median(ms) if ms else float("nan")
     out["rerank_mean_ms"] = _mean(ms)

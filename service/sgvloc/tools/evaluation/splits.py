@@ -1,12 +1,16 @@
 """Database/query splits of one sequence (docs/EVALUATION.md).
 
-Two modes:
+Three modes:
 
 - ``time`` (``--db-until SECONDS``): scans up to ``db_until`` seconds after the first scan
   form the database (the map), every later scan is a query;
 - ``loop`` (``--min-gap SECONDS``): loop-closure style; a query's database is every scan
   at least ``min_gap`` seconds older than it, so no query can match its own recent past.
-  Every scan with such an older scan is a query candidate.
+  Every scan with such an older scan is a query candidate;
+- ``range`` (``--db-range START:STOP``, ``--query-range START:STOP``): by frame index, the
+  database is the frames of one range and the query candidates those of the other (by
+  default every frame after the database range), as published splits define them (e.g.
+  database 0:3000 and queries 3200: of a KITTI sequence).
 
 A query without any database scan within ``threshold`` metres (the smallest revisit
 threshold, 5 m by default) has nothing to find: it is out of coverage. It is dropped from
@@ -36,7 +40,7 @@ class Split:
     - ``database``: every scan that is in the database of at least one evaluated query.
     """
 
-    mode: Literal["time", "loop"]
+    mode: Literal["time", "loop", "range"]
     times: np.ndarray
     positions: np.ndarray
     queries: np.ndarray
@@ -46,6 +50,8 @@ class Split:
     db_until: float | None = None
     min_gap: float | None = None
     negatives: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    db_range: tuple[int, int] | None = None
+    query_range: tuple[int, int] | None = None
 
     def database_for(self, query: int) -> np.ndarray:
         """Database scan indices (sorted) visible to ``query``."""
@@ -57,6 +63,8 @@ class Split:
             "mode": self.mode,
             "db_until_s": self.db_until,
             "min_gap_s": self.min_gap,
+            "db_range": list(self.db_range) if self.db_range else None,
+            "query_range": list(self.query_range) if self.query_range else None,
             "drop_threshold_m": self.threshold,
             "scans": int(len(self.times)),
             "database_scans": int(len(self.database)),
@@ -68,6 +76,10 @@ class Split:
 
 def _database_mask(split: Split, q: int) -> np.ndarray:
     t = split.times
+    if split.mode == "range":
+        a, b = split.db_range
+        idx = np.arange(len(t))
+        return (idx >= a) & (idx < b)
     if split.mode == "time":
         return t <= split.db_until
     return t <= t[q] - split.min_gap
@@ -79,6 +91,8 @@ def make_split(
     *,
     db_until: float | None = None,
     min_gap: float | None = None,
+    db_range: tuple[int, int | None] | None = None,
+    query_range: tuple[int, int | None] | None = None,
     threshold: float = 5.0,
     query_stride: int = 1,
     max_queries: int | None = None,
@@ -86,7 +100,8 @@ def make_split(
 ) -> Split:
     """Split a sequence by time (``db_until``) or loop-closure gap (``min_gap``).
 
-    Exactly one of ``db_until`` / ``min_gap`` must be given. ``times`` are seconds (any
+    Exactly one of ``db_until`` / ``min_gap`` / ``db_range`` must be given; frame ranges
+    are ``(start, stop)`` indices, stop exclusive, None = to the end. ``times`` are seconds (any
     origin: they are taken relative to the first scan), ``positions`` ``[F, 3]`` the
     ground-truth sensor positions. Kept queries can be thinned to every ``query_stride``-th
     and capped at ``max_queries`` (evenly spaced) for quick runs; with ``negatives`` the
@@ -98,15 +113,30 @@ def make_split(
         raise InputError(
             f"times must be [F] and positions [F, 3], got {list(t.shape)} and {list(pos.shape)}"
         )
-    if (db_until is None) == (min_gap is None):
-        raise InputError("give exactly one of db_until (time split) or min_gap (loop split)")
+    if sum(x is not None for x in (db_until, min_gap, db_range)) != 1:
+        raise InputError(
+            "give exactly one of db_until (time split), min_gap (loop split) or db_range "
+            "(frame ranges)"
+        )
+    if query_range is not None and db_range is None:
+        raise InputError("query_range needs db_range")
     if query_stride < 1:
         raise InputError(f"query_stride must be >= 1, got {query_stride}")
     if threshold <= 0:
         raise InputError(f"threshold must be positive, got {threshold}")
     t = t - t[0] if len(t) else t
-    if db_until is not None:
-        mode: Literal["time", "loop"] = "time"
+    dbr = qr = None
+    if db_range is not None:
+        mode: Literal["time", "loop", "range"] = "range"
+        dbr = _frame_range(db_range, len(t), "db_range")
+        qr = _frame_range(query_range or (dbr[1], None), len(t), "query_range")
+        if qr[0] < dbr[1] and dbr[0] < qr[1]:
+            raise InputError(
+                f"query_range {list(qr)} overlaps db_range {list(dbr)}: a query would find itself"
+            )
+        candidates = np.arange(*qr)
+    elif db_until is not None:
+        mode = "time"
         candidates = np.flatnonzero(t > db_until)
         if not (t <= db_until).any():
             raise InputError(f"no scan within the first {db_until} s: the database is empty")
@@ -116,7 +146,17 @@ def make_split(
         mode = "loop"
         candidates = np.flatnonzero(t >= min_gap)
     proto = Split(
-        mode, t, pos, candidates, candidates[:0], candidates[:0], threshold, db_until, min_gap
+        mode,
+        t,
+        pos,
+        candidates,
+        candidates[:0],
+        candidates[:0],
+        threshold,
+        db_until,
+        min_gap,
+        db_range=dbr,
+        query_range=qr,
     )
 
     kept, dropped = [], []
@@ -134,7 +174,9 @@ def make_split(
 
     queries = thin(kept)
     negative = thin(dropped) if negatives else np.zeros(0, dtype=np.int64)
-    if mode == "time":
+    if mode == "range":
+        database = np.arange(*dbr)
+    elif mode == "time":
         database = np.flatnonzero(t <= db_until)
     else:
         evaluated = np.concatenate([queries, negative])
@@ -151,4 +193,18 @@ def make_split(
         db_until,
         min_gap,
         negative,
+        dbr,
+        qr,
     )
+
+
+def _frame_range(r: tuple[int, int | None], n: int, name: str) -> tuple[int, int]:
+    """A ``(start, stop)`` frame range of a sequence of ``n`` frames, checked (stop None =
+    the end); raises InputError naming ``name`` when it is empty or outside the sequence."""
+    start, stop = int(r[0]), n if r[1] is None else int(r[1])
+    if not 0 <= start < stop <= n:
+        raise InputError(
+            f"{name} {start}:{'' if r[1] is None else stop} is not a non-empty range of the "
+            f"sequence's {n} frames"
+        )
+    return start, stop

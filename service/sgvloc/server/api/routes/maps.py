@@ -46,6 +46,10 @@ def map_info(handle: MapHandle) -> MapInfo:
             name=enc.identity.name,
             fingerprint=enc.identity.fingerprint,
             global_dim=enc.global_dim,
+            global_descriptor=spec.learned.global_descriptor
+            if spec.kind == "learned"
+            else spec.kind,
+            global_blocks=list(enc.blocks),
             local_dim=enc.local_dim,
             spec=spec.model_dump(),
         ),
