@@ -126,3 +126,35 @@ def test_bev_images_of_a_scan_sequence(small, tmp_path):
     )
     again = CliRunner().invoke(app, ["bev-images", str(small), str(out)])
     assert again.exit_code == 1 and "overwrite" in again.output
+
+
+@pytest.mark.parametrize("pattern", ["spinning", "rosette"])
+def test_a_narrow_field_of_view_has_the_configured_extent(tmp_path, pattern):
+    """--fov 70: every point lies within 35 deg of the forward axis and the scans span
+    most of that window; the rosette covers other lines in each scan."""
+    cfg = SynthConfig(seed=3, scans=3, beams=16, azimuth_steps=512, fov_h_deg=70.0, pattern=pattern)
+    generate(tmp_path, cfg)
+    seq = KittiSequence(tmp_path)
+    scans = [seq[i].scan().points for i in range(3)]
+    for p in scans:
+        az = np.degrees(np.arctan2(p[:, 1], p[:, 0]))
+        el = np.degrees(np.arctan2(p[:, 2], np.hypot(p[:, 0], p[:, 1])))
+        assert np.abs(az).max() <= 35.0 + 1e-3 and az.max() - az.min() > 60.0
+        assert el.min() >= -25.0 - 1e-3 and el.max() <= 15.0 + 1e-3
+    if pattern == "spinning":  # the azimuth spacing of 512 steps per turn is kept
+        full = SynthConfig(seed=3, scans=3, beams=16, azimuth_steps=512)
+        generate(tmp_path / "full", full)
+        n360 = len(KittiSequence(tmp_path / "full")[0].scan().points)
+        assert 0.1 < len(scans[0]) / n360 < 0.35
+    else:  # non-repetitive: two scans trace the petals turned differently
+        from sgvloc.tools.synth import Lidar, Town
+
+        lidar = Lidar(Town({}, 1, 1.0, {}), cfg)
+        (e1, a1), (e2, a2) = (lidar.directions(np.random.default_rng(s)) for s in (1, 2))
+        assert e1.shape == a1.shape == (16 * 512,)
+        one = np.c_[a1, e1][:, None, :]
+        two = np.c_[a2, e2][None, ::16, :]
+        gap = np.degrees(np.abs(one - two).sum(axis=2).min(axis=0))  # per ray of the second
+        assert np.median(gap) > 0.05
+    with pytest.raises(ValueError, match="fov_down_deg"):
+        SynthConfig(fov_up_deg=-30.0, fov_down_deg=-25.0)

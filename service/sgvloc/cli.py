@@ -492,6 +492,15 @@ def eval_command(
     methods: Annotated[
         str, typer.Option(help="comma-separated re-ranking methods (default: all)")
     ] = "",
+    fov: Annotated[
+        float | None,
+        typer.Option(
+            min=0.0,
+            max=360.0,
+            help="crop every scan to this horizontal field of view (deg) about the "
+            "sensor's forward axis before encoding: a forward-looking sensor on 360-degree data",
+        ),
+    ] = None,
     topk: Annotated[str, typer.Option(help="comma-separated top-k values of the table")] = "2,20",
     sweep: Annotated[
         str, typer.Option(help="n_topk values of the plot (none, QE, sgv)")
@@ -571,6 +580,7 @@ def eval_command(
             min_gap=min_gap,
             db_range=_frames(db_range, "--db-range"),
             query_range=_frames(query_range, "--query-range"),
+            fov=fov,
             methods=methods,
             topk=_int_list(topk),
             sweep=_int_list(sweep),
@@ -874,20 +884,55 @@ def synth_command(
     scans: Annotated[int, typer.Option(min=1, help="number of scans")] = 400,
     seed: Annotated[int, typer.Option(help="random seed (same seed, same files)")] = 0,
     beams: Annotated[int, typer.Option(min=8, max=128, help="LiDAR beams")] = 32,
+    fov: Annotated[
+        float,
+        typer.Option(
+            min=0.0,
+            max=360.0,
+            help="horizontal field of view (deg) about the forward axis",
+        ),
+    ] = 360.0,
+    pattern: Annotated[
+        str,
+        typer.Option(help="spinning (rings) or rosette (non-repetitive, solid-state)"),
+    ] = "spinning",
+    fov_up: Annotated[float, typer.Option(help="upper edge of the vertical spread (deg)")] = 15.0,
+    fov_down: Annotated[
+        float, typer.Option(help="lower edge of the vertical spread (deg)")
+    ] = -25.0,
+    max_range: Annotated[float, typer.Option(min=1.0, help="LiDAR range (m)")] = 80.0,
+    step: Annotated[float, typer.Option(min=0.01, help="distance between scans (m)")] = 1.0,
     overwrite: Annotated[bool, typer.Option(help="replace an existing sequence")] = False,
     progress: Annotated[bool, typer.Option(help="show a progress bar")] = True,
     threads: ThreadsOpt = None,
 ) -> None:
-    """Generate a synthetic town with repeated blocks and a revisiting LiDAR drive."""
+    """Generate a synthetic town with repeated blocks and a revisiting LiDAR drive.
+
+    The sensor: --beams rings over --fov-down..--fov-up, a 360-degree spinning LiDAR by
+    default; --fov 70 narrows it to a forward-looking window, --pattern rosette scans it
+    with a non-repetitive petal pattern (solid-state sensors), --max-range and --step set
+    its range and the spacing of the scans (keyframes).
+    """
     _cap_threads(threads)
     from .core.errors import SgvlocError
     from .tools.synth import SynthConfig, generate
 
     _configure_logging("warning")
     try:
+        cfg = SynthConfig(
+            scans=scans,
+            seed=seed,
+            beams=beams,
+            fov_h_deg=fov,
+            pattern=pattern,
+            fov_up_deg=fov_up,
+            fov_down_deg=fov_down,
+            max_range_m=max_range,
+            step_m=step,
+        )
         info = generate(
             out,
-            SynthConfig(scans=scans, seed=seed, beams=beams),
+            cfg,
             overwrite=overwrite,
             progress=progress,
         )

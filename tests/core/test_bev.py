@@ -10,6 +10,7 @@ import pytest
 from sgvloc.core.bev import (
     KITTI_BEV,
     BEVRasterConfig,
+    crop_image_azimuth,
     density_image,
     ground_rotation,
     load_bev_image,
@@ -162,3 +163,23 @@ def test_ground_rotation_without_ground_is_identity() -> None:
         R, deg = ground_rotation(pts)
         np.testing.assert_array_equal(R, np.eye(3))
         assert deg == 0.0
+
+
+def test_image_azimuth_crop_blanks_the_pixels_outside_the_window():
+    img = np.full((KITTI_BEV.size, KITTI_BEV.size), 200, dtype=np.uint8)
+    out = crop_image_azimuth(img, 70.0)
+    assert out.dtype == np.uint8 and out.shape == img.shape
+    rows, cols = np.nonzero(out)
+    xy = pixel_to_metres(rows, cols)
+    az = np.degrees(np.arctan2(xy[:, 1], xy[:, 0]))
+    assert (np.abs(az[np.hypot(*xy.T) > 0]) <= 35.0).all()
+    rows, cols = np.nonzero(out == 0)
+    az = np.degrees(np.arctan2(*pixel_to_metres(rows, cols)[:, ::-1].T))
+    assert (np.abs(az) > 35.0).all()
+    # the window holds about 70/360 of the pixels; points ahead (+x) are rows above the centre
+    assert 0.15 < (out > 0).mean() < 0.25
+    r, c = metres_to_pixel(np.array([[20.0, 0.0], [-20.0, 0.0]]))
+    assert (
+        out[int(r[0] + 0.5), int(c[0] + 0.5)] == 200 and out[int(r[1] + 0.5), int(c[1] + 0.5)] == 0
+    )
+    np.testing.assert_array_equal(crop_image_azimuth(img, 360.0), img)

@@ -5,7 +5,13 @@ import pytest
 
 from sgvloc.core.config import PreprocessConfig
 from sgvloc.core.errors import InputError
-from sgvloc.core.preprocess import crop_range, preprocess, remove_ground, voxel_downsample
+from sgvloc.core.preprocess import (
+    crop_azimuth,
+    crop_range,
+    preprocess,
+    remove_ground,
+    voxel_downsample,
+)
 
 
 def scene(rng: np.random.Generator) -> np.ndarray:
@@ -72,3 +78,20 @@ def test_preprocess_with_ground_removal(rng):
 def test_bad_scans_raise_clear_errors(scan, message):
     with pytest.raises(InputError, match=message):
         preprocess(scan, PreprocessConfig())
+
+
+def test_azimuth_crop_keeps_exactly_the_points_inside_the_window():
+    rng = np.random.default_rng(4)
+    pts = np.c_[rng.uniform(-30, 30, size=(5000, 3)), rng.random(5000)]  # x y z intensity
+    # points exactly on the window's edges (+-35 deg) and just outside
+    edge = np.radians([35.0, -35.0, 35.01, -35.01, 0.0, 180.0])
+    pts[: len(edge), :2] = 10.0 * np.c_[np.cos(edge), np.sin(edge)]
+    out = crop_azimuth(pts, 70.0)
+    az = np.degrees(np.arctan2(pts[:, 1], pts[:, 0]))
+    np.testing.assert_array_equal(out, pts[np.abs(az) <= 35.0])  # every column kept
+    kept = {tuple(p) for p in out[:, :2].round(6)}
+    for i, inside in enumerate([True, True, False, False, True, False]):
+        assert (tuple(pts[i, :2].round(6)) in kept) == inside
+    assert crop_azimuth(pts, 360.0) is pts
+    with pytest.raises(InputError, match="field of view"):
+        crop_azimuth(pts, 0.0)

@@ -214,3 +214,22 @@ def test_eval_with_a_prior_and_scans_of_another_place(balm_mini_dir, tmp_path):
             # within radius + a few sigma of the truth
             d = np.linalg.norm(poses[q["ranked"], :2] - poses[q["query"], :2], axis=1)
             assert (d <= 8.0 + 6.0).all()
+
+
+def test_eval_crops_every_scan_to_a_field_of_view(balm_mini_dir, tmp_path, first_run):
+    """--fov 70 encodes each scan cropped to 70 degrees ahead (features cached apart from
+    the full scans'), so the local matches see fewer keypoints."""
+    cache, out = tmp_path / "cache", tmp_path / "out"
+    args = ["eval", "--data", str(balm_mini_dir), "--min-gap", "30", "--topk", "3"]
+    args += ["--sweep", "3", "--methods", "none,sgv", "--fov", "70", "--no-progress"]
+    args += ["--cache-dir", str(cache), "--out", str(out)]
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 0, res.output
+    report = json.loads((out / "eval.json").read_text())
+    assert report["config"]["fov"] == 70.0
+    assert any(n.startswith("field of view: every scan cropped to 70 deg") for n in report["notes"])
+    assert [p.name.endswith("-fov70") for p in cache.iterdir()] == [True]
+    full = first_run[1]["matches"]
+    assert report["matches"]["query_keypoints_mean"] < full["query_keypoints_mean"]
+    res = CliRunner().invoke(app, [*args[:-4], "--fov", "400", "--out", str(tmp_path / "x")])
+    assert res.exit_code == 2 and "--fov" in res.output

@@ -261,6 +261,25 @@ def level_cloud(
     return voxel_downsample(turned, config.resolution), R
 
 
+def crop_image_azimuth(
+    image: np.ndarray, fov_deg: float, config: BEVRasterConfig = KITTI_BEV
+) -> np.ndarray:
+    """A BEV image with the pixels outside a horizontal field of view centred on the
+    sensor's forward axis set to 0: a pixel is kept when its centre's azimuth satisfies
+    ``|atan2(y, x)| <= fov_deg / 2`` (:func:`pixel_to_metres`); the sensor's own pixel
+    is kept. The image counterpart of :func:`sgvloc.core.preprocess.crop_azimuth`."""
+    if not 0.0 < fov_deg:
+        raise InputError(f"field of view must be positive, got {fov_deg} deg")
+    img = np.asarray(image)
+    if fov_deg >= 360.0:
+        return img
+    rows, cols = np.indices(img.shape[:2])
+    xy = pixel_to_metres(rows.ravel(), cols.ravel(), config)
+    az = np.degrees(np.arctan2(xy[:, 1], xy[:, 0])).reshape(img.shape[:2])
+    keep = (np.abs(az) <= fov_deg / 2.0) | (np.hypot(*xy.T).reshape(img.shape[:2]) < 1e-9)
+    return np.where(keep, img, 0).astype(img.dtype)
+
+
 def load_bev_image(path: str | Path, config: BEVRasterConfig = KITTI_BEV) -> np.ndarray:
     """Read one kitti-bev PNG as ``[S, S]`` uint8.
 

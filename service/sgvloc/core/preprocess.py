@@ -49,6 +49,18 @@ def crop_range(points: np.ndarray, min_range: float, max_range: float) -> np.nda
     return points[(r >= min_range) & (r <= max_range)]
 
 
+def crop_azimuth(points: np.ndarray, fov_deg: float) -> np.ndarray:
+    """The points inside a horizontal field of view centred on the sensor's forward axis
+    (+x): ``|atan2(y, x)| <= fov_deg / 2``, other columns kept. ``fov_deg >= 360`` keeps
+    every point; a narrower window emulates a forward-looking (solid-state) sensor."""
+    if not 0.0 < fov_deg:
+        raise InputError(f"field of view must be positive, got {fov_deg} deg")
+    if fov_deg >= 360.0:
+        return points
+    az = np.degrees(np.arctan2(points[:, 1], points[:, 0]))  # [P] in (-180, 180]
+    return points[np.abs(az) <= fov_deg / 2.0]
+
+
 def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
     """One point per occupied voxel: the centroid of the points that fall in it.
 

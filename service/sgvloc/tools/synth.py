@@ -13,7 +13,9 @@ over). The walk itself revisits streets in the same direction now and then.
 
 The LiDAR is simulated by ray casting (Open3D ``RaycastingScene``): ``beams`` rings over a
 vertical field of view, ``azimuth_steps`` rays per ring with a random azimuth phase per
-scan, Gaussian range noise, random dropouts and a range limit. Intensity is a
+scan, Gaussian range noise, random dropouts and a range limit. ``fov_h_deg`` narrows the
+horizontal field of view about the forward axis and ``pattern="rosette"`` replaces the
+rings by a non-repetitive petal pattern, as forward-looking solid-state sensors have. Intensity is a
 per-material reflectivity times the cosine of the incidence angle, plus noise.
 
 Output (KITTI odometry layout): ``velodyne/NNNNNN.bin`` (float32 x y z intensity, sensor
@@ -30,10 +32,10 @@ import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from sgvloc.core.errors import InputError
 
@@ -66,15 +68,37 @@ class SynthConfig(BaseModel):
     sensor_height_m: float = Field(1.8, gt=0.0)
     tilt_deg: float = Field(0.5, ge=0.0, description="amplitude of roll/pitch wobble")
     # the LiDAR
+    pattern: Literal["spinning", "rosette"] = Field(
+        "spinning",
+        description="spinning: beams rings swept in azimuth; rosette: a non-repetitive "
+        "petal pattern over the field of view, turned per scan (solid-state sensors)",
+    )
     beams: int = Field(32, ge=8, le=128)
-    azimuth_steps: int = Field(1024, ge=64, le=8192)
-    fov_up_deg: float = 15.0
-    fov_down_deg: float = -25.0
+    azimuth_steps: int = Field(
+        1024, ge=64, le=8192, description="rays per ring over 360 deg (rosette: per beam)"
+    )
+    fov_h_deg: float = Field(
+        360.0,
+        gt=0.0,
+        le=360.0,
+        description="horizontal field of view about the forward axis (+x); below 360 the "
+        "spinning pattern keeps its azimuth spacing, so scans hold fewer points",
+    )
+    fov_up_deg: float = Field(15.0, ge=-90.0, le=90.0)
+    fov_down_deg: float = Field(-25.0, ge=-90.0, le=90.0)
     min_range_m: float = Field(1.0, ge=0.0)
     max_range_m: float = Field(80.0, gt=0.0)
     range_noise_m: float = Field(0.02, ge=0.0, description="Gaussian range noise sigma")
     dropout: float = Field(0.05, ge=0.0, lt=1.0, description="share of returns lost")
     intensity_noise: float = Field(0.03, ge=0.0)
+
+    @model_validator(mode="after")
+    def _vertical_fov(self) -> SynthConfig:
+        if self.fov_down_deg >= self.fov_up_deg:
+            raise ValueError(
+                f"fov_down_deg ({self.fov_down_deg}) must be below fov_up_deg ({self.fov_up_deg})"
+            )
+        return self
 
 
 # --------------------------------------------------------------------------------------
@@ -312,13 +336,40 @@ class Lidar:
             self.reflectivity[int(gid)] = MATERIALS[name]
         self.elevation = np.radians(np.linspace(cfg.fov_down_deg, cfg.fov_up_deg, cfg.beams))
 
+    def directions(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """Elevation and azimuth (radians) of one scan's rays, azimuth 0 = forward (+x).
+
+        Spinning: ``beams`` rings, rays every ``360 / azimuth_steps`` deg inside the
+        horizontal field of view, with a random phase per scan. Rosette: the rays trace a
+        7-petal rose over the field of view (an ellipse of ``fov_h_deg`` by the vertical
+        spread), turned and phased at random per scan, so successive scans cover
+        different lines, as a solid-state sensor's non-repetitive pattern does.
+        """
+        cfg = self.cfg
+        half = math.radians(cfg.fov_h_deg) / 2.0
+        if cfg.pattern == "spinning":
+            step = 2.0 * np.pi / cfg.azimuth_steps
+            n = max(1, int(round(2.0 * half / step)))
+            if cfg.fov_h_deg >= 360.0:
+                az = (np.arange(n) + rng.random()) * step
+            else:
+                az = -half + (np.arange(n) + rng.random()) * (2.0 * half / n)
+            el, az = np.meshgrid(self.elevation, az, indexing="ij")
+            return el, az
+        n = cfg.beams * cfg.azimuth_steps
+        t = (np.arange(n) + rng.random()) * (2.0 * np.pi / n)
+        rho = np.cos(7.0 * t)  # [-1, 1] along the petals
+        turn = t + rng.uniform(0.0, 2.0 * np.pi)
+        mid = math.radians(cfg.fov_up_deg + cfg.fov_down_deg) / 2.0
+        vhalf = math.radians(cfg.fov_up_deg - cfg.fov_down_deg) / 2.0
+        return mid + vhalf * rho * np.sin(turn), half * rho * np.cos(turn)
+
     def scan(self, T_world_sensor: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """One scan ``[P, 4]`` float32 (x y z intensity) in the sensor frame."""
         import open3d as o3d
 
         cfg = self.cfg
-        az = (np.arange(cfg.azimuth_steps) + rng.random()) * (2.0 * np.pi / cfg.azimuth_steps)
-        el, az = np.meshgrid(self.elevation, az, indexing="ij")
+        el, az = self.directions(rng)
         dirs = np.stack(
             [np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=-1
         ).reshape(-1, 3)  # [B * A, 3] sensor frame

@@ -5,6 +5,10 @@ hash of the scan's absolute path, size and modification time, so a changed scan 
 another encoder setting never reuses stale features. Each file holds the global
 descriptor, keypoints, local features and the preprocessed cloud (for ICP refinement).
 
+With ``fov_deg`` every scan (and image) is first cropped to that horizontal field of view
+about the sensor's forward axis (a forward-looking sensor emulated on 360-degree data);
+those features live in ``<fingerprint>-fov<deg>/``.
+
 A ``.png`` file is a kitti-bev BEV image (:func:`sgvloc.core.bev.load_bev_image`): it is
 described by the encoder's ``encode_image`` and has no cloud (an empty ``[0, 3]`` one is
 stored).
@@ -42,9 +46,14 @@ class FeatureCache:
     ``hits`` and ``misses`` count :meth:`get` calls served from disk and computed.
     """
 
-    def __init__(self, root: str | os.PathLike, encoder: Encoder) -> None:
+    def __init__(
+        self, root: str | os.PathLike, encoder: Encoder, fov_deg: float | None = None
+    ) -> None:
         self.encoder = encoder
-        self.dir = Path(root) / encoder.identity.fingerprint
+        #: scans and images cropped to this horizontal field of view before encoding
+        self.fov_deg = fov_deg if fov_deg is not None and fov_deg < 360.0 else None
+        fov = f"-fov{self.fov_deg:g}" if self.fov_deg else ""
+        self.dir = Path(root) / (encoder.identity.fingerprint + fov)
         self.dir.mkdir(parents=True, exist_ok=True)
         ident = self.dir / "encoder.json"
         if not ident.exists():
@@ -90,10 +99,19 @@ class FeatureCache:
                     f"encoder {self.encoder.identity.name!r} cannot encode BEV images "
                     f"({path.name}); use an encoder with encode_image, e.g. kind 'bev'"
                 )
-            return encode_image(load_bev_image(path)), np.zeros((0, 3), np.float32)
-        from sgvloc.core.io import read_scan
+            image = load_bev_image(path)
+            if self.fov_deg:
+                from sgvloc.core.bev import crop_image_azimuth
 
-        cloud = self.encoder.prepare(read_scan(path).points)  # [M, 3]
+                image = crop_image_azimuth(image, self.fov_deg)
+            return encode_image(image), np.zeros((0, 3), np.float32)
+        from sgvloc.core.io import read_scan
+        from sgvloc.core.preprocess import crop_azimuth
+
+        points = read_scan(path).points
+        if self.fov_deg:
+            points = crop_azimuth(points, self.fov_deg)
+        cloud = self.encoder.prepare(points)  # [M, 3]
         return self.encoder.encode_cloud(cloud), cloud
 
     def cloud(self, scan_path: str | os.PathLike) -> np.ndarray:

@@ -89,6 +89,13 @@ class EvalConfig(BaseModel):
     query_stride: int = Field(1, ge=1)
     max_queries: int | None = Field(None, ge=1)
     cache_dir: str | None = None
+    fov: float | None = Field(
+        None,
+        gt=0.0,
+        le=360.0,
+        description="crop every scan (database, queries, foreign) to this horizontal field "
+        "of view about the sensor's forward axis (deg), emulating a forward-looking sensor",
+    )
     negatives: bool = Field(
         True, description="keep out-of-coverage queries as negatives for the verdict"
     )
@@ -241,7 +248,7 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
         if cfg.calibration
         else shipped_calibration(cfg.encoder.kind)
     )
-    cache = FeatureCache(cfg.cache_dir or default_cache_dir(), encoder)
+    cache = FeatureCache(cfg.cache_dir or default_cache_dir(), encoder, fov_deg=cfg.fov)
     evaluated = np.union1d(split.queries, split.negatives)
     needed = sorted(set(split.database.tolist()) | set(evaluated.tolist()))
     # every query of the run: (source, index) with source 0 = this sequence, 1.. = foreign
@@ -511,6 +518,12 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
         f"query, true = within {cfg.thresholds[0]:g} m; AUC pooled over all queries and as "
         "the mean of per-query AUCs",
     ]
+    if cache.fov_deg:
+        notes.insert(
+            0,
+            f"field of view: every scan cropped to {cache.fov_deg:g} deg about the sensor's "
+            "forward axis before encoding (a forward-looking sensor emulated)",
+        )
     if cfg.prior_noise is not None:
         notes.append(
             f"prior: per query, the ground-truth x/y plus Gaussian noise of {cfg.prior_noise:g} m "
