@@ -363,6 +363,7 @@ class BaseClient:
         retrieval: str | Mapping[str, Any] | None,
         localizer: Mapping[str, Any] | None,
         calibration: Mapping[str, Any] | None = None,
+        self_test: Mapping[str, Any] | None = None,
     ) -> Call[MapInfo]:
         body: dict[str, Any] = {"name": name}
         for key, value in (
@@ -370,6 +371,7 @@ class BaseClient:
             ("retrieval", _shorthand(retrieval, "index")),
             ("localizer", None if localizer is None else dict(localizer)),
             ("calibration", None if calibration is None else dict(calibration)),
+            ("self_test", None if self_test is None else dict(self_test)),
         ):
             if value is not None:
                 body[key] = value

@@ -183,6 +183,7 @@ class Client(BaseClient):
         retrieval: str | Mapping[str, Any] | None = None,
         localizer: Mapping[str, Any] | None = None,
         calibration: Mapping[str, Any] | None = None,
+        self_test: Mapping[str, Any] | None = None,
     ) -> MapInfo:
         """Create an empty map.
 
@@ -191,10 +192,14 @@ class Client(BaseClient):
         encoder. ``retrieval`` is ``{"index": "flat" | "ivf" | "hnsw", ...}`` or just the
         index name; ``localizer`` the map's default localize settings (``top_k``,
         ``rerank``, ``sgv``, ``pose``, ``verdict``); ``calibration`` a confidence model
-        written by ``sgvloc calibrate`` (default: the one shipped for the encoder kind).
+        written by ``sgvloc calibrate`` (default: the one shipped for the encoder kind);
+        ``self_test`` an encoder self-test to record with the map
+        (:func:`sgvloc.tools.self_test.self_test` makes one).
         Raises :class:`Conflict` if the name is taken.
         """
-        return self._send(self._create_map(name, encoder, retrieval, localizer, calibration))
+        return self._send(
+            self._create_map(name, encoder, retrieval, localizer, calibration, self_test)
+        )
 
     def list_maps(self) -> list[MapInfo]:
         """All maps."""

@@ -155,6 +155,8 @@ class MapInfo:
     localizer: dict[str, Any] = field(default_factory=dict)
     calibration: dict[str, Any] = field(default_factory=dict)
     settings_version: int = 0
+    #: the encoder self-test the map was built after (None: built without one)
+    self_test: dict[str, Any] | None = None
     raw: dict[str, Any] = field(repr=False, compare=False, default_factory=dict)
 
     @classmethod
@@ -171,6 +173,7 @@ class MapInfo:
             localizer=dict(d.get("localizer") or {}),
             calibration=dict(d.get("calibration") or {}),
             settings_version=int(d.get("settings_version") or 0),
+            self_test=d.get("self_test"),
             raw=dict(d),
         )
 

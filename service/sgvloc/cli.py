@@ -4,6 +4,7 @@ each command, so the client-only install can list the commands."""
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated, Any, TypeVar
@@ -368,6 +369,31 @@ def build_map_command(
     api_key: Annotated[
         str | None, typer.Option(help="bearer token for the service", envvar="SGVLOC_API_KEY")
     ] = None,
+    choose_encoder: Annotated[
+        bool,
+        typer.Option(
+            help="first run the encoder self-test (learned, handcrafted, bev: each localizes "
+            "a sample of the scans against the others, its own stretch of the drive left "
+            "out) and build the map with the encoder that does best; recorded with the map"
+        ),
+    ] = False,
+    dry_run: Annotated[
+        bool, typer.Option(help="with --choose-encoder: report the self-test, build nothing")
+    ] = False,
+    self_test_queries: Annotated[
+        int, typer.Option(min=1, help="self-test: scans with a revisit to localize (at most)")
+    ] = 50,
+    self_test_gap: Annotated[
+        float,
+        typer.Option(
+            min=0.0,
+            help="self-test: scans closer in time than SECONDS to a query are left out of "
+            "its database",
+        ),
+    ] = 30.0,
+    self_test_out: Annotated[
+        Path | None, typer.Option(help="self-test: also write the report (JSON) here")
+    ] = None,
     progress: Annotated[bool, typer.Option(help="show a progress bar")] = True,
     threads: ThreadsOpt = None,
 ) -> None:
@@ -402,10 +428,32 @@ def build_map_command(
             ctx=ctx,
             param_hint="'--url' / '--data-dir'",
         )
+    if choose_encoder and encoder is not None:
+        raise typer.BadParameter(
+            "--choose-encoder picks the encoder: leave out --encoder",
+            ctx=ctx,
+            param_hint="'--encoder'",
+        )
+    if dry_run and not choose_encoder:
+        raise typer.BadParameter(
+            "--dry-run reports the encoder self-test: give --choose-encoder",
+            ctx=ctx,
+            param_hint="'--dry-run'",
+        )
     _configure_logging("warning")
 
+    report = None
+    if choose_encoder:
+        report = _encoder_self_test(
+            source, every, limit, until, self_test_queries, self_test_gap, progress
+        )
+        if self_test_out is not None:
+            self_test_out.write_text(json.dumps(report, indent=1))
+        if dry_run:
+            return
+        encoder = report["chosen"]
     options = dict(create=create, encoder=encoder, batch_size=batch_size, every=every)
-    options.update(limit=limit, until=until, progress=progress)
+    options.update(limit=limit, until=until, progress=progress, self_test=report)
     try:
         if data_dir is not None:
             result = build_map(source, data_dir, map_name, **options)
@@ -420,6 +468,41 @@ def build_map_command(
         f"{result.existing} already present; {result.keyframes} keyframes, "
         f"version {result.map_version}"
     )
+
+
+def _encoder_self_test(
+    source: Path,
+    every: int,
+    limit: int | None,
+    until: float | None,
+    queries: int,
+    gap: float,
+    progress: bool,
+) -> dict[str, Any]:
+    """Run and print build-map's encoder self-test over the scans the build would insert
+    (their whole index range: --every does not thin the self-test)."""
+    from .core.errors import SgvlocError
+    from .core.sequence import KittiSequence
+    from .tools.build_map import select_frames
+    from .tools.self_test import report_table, self_test
+
+    try:
+        seq = KittiSequence(source)
+        picked = select_frames(len(seq), every, limit, until=until, times=seq.times)
+        if not len(picked):
+            raise typer.BadParameter("no scan selected for the self-test")
+        report = self_test(
+            source,
+            queries=queries,
+            gap_s=gap,
+            frames=(0, int(max(picked)) + 1),
+            progress=progress,
+        )
+    except (SgvlocError, ValueError) as exc:
+        typer.echo(f"build-map: encoder self-test: {exc}", err=True)
+        raise typer.Exit(1) from None
+    typer.echo(report_table(report))
+    return report
 
 
 # -- eval and synth (sgvloc.tools.evaluation, sgvloc.tools.synth) -------------------------
@@ -492,6 +575,13 @@ def eval_command(
     methods: Annotated[
         str, typer.Option(help="comma-separated re-ranking methods (default: all)")
     ] = "",
+    leave_out: Annotated[
+        float | None,
+        typer.Option(
+            help="self-test split: every scan is a query, its database every other scan at "
+            "least SECONDS away in time (before or after); instead of --db-until / --min-gap"
+        ),
+    ] = None,
     fov: Annotated[
         float | None,
         typer.Option(
@@ -581,6 +671,7 @@ def eval_command(
             db_range=_frames(db_range, "--db-range"),
             query_range=_frames(query_range, "--query-range"),
             fov=fov,
+            leave_out=leave_out,
             methods=methods,
             topk=_int_list(topk),
             sweep=_int_list(sweep),

@@ -232,3 +232,62 @@ def test_build_map_reports_the_services_conflict(
     assert out.exit_code == 1
     assert "map_unavailable" in out.output and "could not be loaded" in out.output, out.output
     assert "reload" in out.output
+
+
+def test_choose_encoder_runs_the_self_test_and_records_it(
+    service_url: str, balm_mini_dir: Path, tmp_path: Path
+) -> None:
+    """--choose-encoder --dry-run reports a figure per encoder and builds nothing; without
+    --dry-run the map gets the chosen encoder and records the self-test."""
+    import json
+
+    runner = CliRunner()
+    base = ["build-map", "--data", str(balm_mini_dir), "--map", "chosen", "--url", service_url]
+    base += ["--choose-encoder", "--self-test-queries", "4", "--no-progress"]
+    base += ["--self-test-out", str(tmp_path / "st.json")]
+    out = runner.invoke(app, [*base, "--dry-run"])
+    assert out.exit_code == 0, out.output
+    report = json.loads((tmp_path / "st.json").read_text())
+    assert set(report["encoders"]) == {"learned", "handcrafted", "bev"}
+    assert f"| {report['chosen']} (chosen) |" in out.output
+    for f in report["encoders"].values():
+        assert f["queries"] == 4 and 0 <= f["pose_success_pct"] <= 100 and f["false_accepts"] >= 0
+    with Client(service_url) as c:
+        assert "chosen" not in {m.name for m in c.list_maps()}
+    out = runner.invoke(app, base)
+    assert out.exit_code == 0, out.output
+    again = json.loads((tmp_path / "st.json").read_text())
+    assert again["chosen"] == report["chosen"]  # deterministic
+    for kind, f in report["encoders"].items():
+        g = again["encoders"][kind]
+        assert {k: v for k, v in f.items() if k != "seconds"} == {
+            k: v for k, v in g.items() if k != "seconds"
+        }
+    with Client(service_url) as c:
+        info = c.get_map("chosen")
+        assert info.encoder.kind == again["chosen"]
+        assert info.self_test["chosen"] == again["chosen"]
+        assert info.self_test["encoders"] == again["encoders"]
+        c.delete_map("chosen")
+    out = runner.invoke(app, [*base, "--encoder", "bev"])
+    assert out.exit_code == 2 and "--encoder" in out.output
+    dry = ["build-map", "--data", str(balm_mini_dir), "--map", "x", "--url", service_url]
+    out = runner.invoke(app, [*dry, "--dry-run"])
+    assert out.exit_code == 2 and "--choose-encoder" in out.output
+
+
+def test_self_test_choice_rule() -> None:
+    from sgvloc.tools.self_test import choose
+
+    def fig(correct: int, fa: int, r1: float) -> dict:
+        return {"correct_poses": correct, "false_accepts": fa, "recall_at_1_pct": r1}
+
+    order = ("learned", "handcrafted", "bev")
+    # most correct poses wins, whatever the rest
+    assert choose({"learned": fig(8, 0, 90), "handcrafted": fig(9, 3, 50)}, order) == "handcrafted"
+    # then fewest false accepts, then R@1, then the order given
+    figs = {"learned": fig(9, 2, 90), "handcrafted": fig(9, 1, 50), "bev": fig(9, 1, 60)}
+    assert choose(figs, order) == "bev"
+    figs["handcrafted"] = fig(9, 1, 60)
+    assert choose(figs, order) == "handcrafted"
+    assert choose(figs, ("bev", "handcrafted", "learned")) == "bev"

@@ -63,3 +63,19 @@ def test_thinning_and_bad_arguments():
         make_split(times, pos, db_until=-1.0)
     with pytest.raises(InputError):
         make_split(times, pos[:, :2], min_gap=5.0)
+
+
+def test_leave_out_split_hides_the_querys_own_stretch_both_ways():
+    times, pos = out_and_back()
+    s = make_split(times, pos, leave_out=5.0, threshold=5.0)
+    assert s.mode == "leave-out" and s.summary()["leave_out_s"] == 5.0
+    assert set(s.queries) | set(s.dropped) == set(range(40))
+    for q in s.queries:
+        db = s.database_for(q)
+        assert q not in db and (np.abs(s.times[db] - s.times[q]) >= 5.0).all()
+        # scans before and after the query's window are both in its database
+        assert (s.times[db] < s.times[q]).any() or (s.times[db] > s.times[q]).any()
+    # the turning point is revisited only within its own window: out of coverage
+    assert 19 in s.dropped and 20 in s.dropped
+    with pytest.raises(InputError, match="leave_out"):
+        make_split(times, pos, leave_out=-1.0)

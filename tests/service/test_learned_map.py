@@ -116,3 +116,15 @@ def test_a_map_of_both_global_descriptors_merges_their_candidates(
         r = post_msgpack(client, "/v1/maps/both/localize", {"features": {**feats, **claim}})
         assert r.status_code == 409, r.text
         assert error_of(r)["code"] == "encoder_mismatch" and error_of(r)["field"] == field
+
+
+def test_a_recorded_self_test_is_bounded(client: httpx.Client) -> None:
+    big = {"encoders": {"x": "y" * 20000}}
+    r = client.post("/v1/maps", json={"name": "st", "encoder": {"kind": "bev"}, "self_test": big})
+    assert r.status_code == 422 and error_of(r)["field"] == "self_test"
+    small = {"chosen": "bev", "encoders": {"bev": {"pose_success_pct": 90.0}}}
+    r = client.post("/v1/maps", json={"name": "st", "encoder": {"kind": "bev"}, "self_test": small})
+    assert r.status_code == 201 and r.json()["self_test"] == small
+    assert client.get("/v1/maps/st").json()["self_test"] == small
+    assert client.get("/v1/maps/both").json()["self_test"] is None
+    client.delete("/v1/maps/st")

@@ -779,11 +779,13 @@ class MapManager:
         *,
         keep_clouds: bool = True,
         calibration: Calibration | None = None,
+        self_test: dict[str, Any] | None = None,
     ) -> MapHandle:
         """Create an empty map. Raises InputError (bad name/spec) or ConflictError (exists).
 
         ``calibration``: the confidence model (default: the one shipped for the encoder's
         kind), recorded with the map so that its answers do not change with an upgrade.
+        ``self_test``: the encoder self-test the map was chosen by, recorded as given.
         """
         self._check_name(name)
         encoder_spec = encoder_spec or EncoderSpec()
@@ -800,6 +802,7 @@ class MapManager:
                 keep_clouds=keep_clouds and encoder_spec.kind != "precomputed",
                 created_at=utc_now(),
                 calibration=calibration or shipped_calibration(encoder_spec.kind),
+                self_test=self_test,
             )
             localizer = Localizer(
                 encoder,

@@ -76,8 +76,15 @@ class ScanKeyframe:
 class KeyframeSink(Protocol):
     """Where :func:`build_map` sends its batches (a service, or a data directory)."""
 
-    def ensure_map(self, name: str, create: bool, encoder: dict[str, Any] | None) -> None:
-        """Make sure map ``name`` exists (created if allowed) with the asked encoder kind."""
+    def ensure_map(
+        self,
+        name: str,
+        create: bool,
+        encoder: dict[str, Any] | None,
+        self_test: Mapping[str, Any] | None = None,
+    ) -> None:
+        """Make sure map ``name`` exists (created if allowed, recording ``self_test``) with
+        the asked encoder kind."""
         ...
 
     def insert(self, name: str, batch: list[ScanKeyframe]) -> int:
@@ -91,6 +98,15 @@ class KeyframeSink(Protocol):
     def close(self) -> None:
         """Release what the sink opened (and save what must be saved)."""
         ...
+
+
+def _self_test_not_recorded(name: str, self_test: Mapping[str, Any] | None) -> None:
+    if self_test is not None:
+        log.warning(
+            "map %s already exists: the self-test is not recorded with it (it is recorded "
+            "when the map is created)",
+            name,
+        )
 
 
 def parse_encoder(value: str | Mapping[str, Any] | None) -> dict[str, Any] | None:
@@ -154,7 +170,13 @@ class ClientSink:
         self.client = Client(target) if isinstance(target, str) else target
         self._owned = self.client is not target
 
-    def ensure_map(self, name: str, create: bool, encoder: dict[str, Any] | None) -> None:
+    def ensure_map(
+        self,
+        name: str,
+        create: bool,
+        encoder: dict[str, Any] | None,
+        self_test: Mapping[str, Any] | None = None,
+    ) -> None:
         client = self.client
         try:
             info = client.get_map(name)
@@ -162,7 +184,7 @@ class ClientSink:
             if not create:
                 raise NotFoundError(f"map {name!r} does not exist (and create is off)") from None
             try:
-                info = client.create_map(name, encoder=encoder)
+                info = client.create_map(name, encoder=encoder, self_test=self_test)
                 log.info(
                     "created map %s (encoder %s)", name, info.encoder.name or info.encoder.kind
                 )
@@ -173,6 +195,7 @@ class ClientSink:
                 except NotFound:  # no: the service refuses the name; say why
                     raise conflict from None
         _check_encoder_kind(name, info.encoder.kind, encoder)
+        _self_test_not_recorded(name, self_test)
         log.info("map %s exists with %d keyframes; resuming", name, info.keyframes)
 
     def insert(self, name: str, batch: list[ScanKeyframe]) -> int:
@@ -221,7 +244,13 @@ class DataDirSink:
         )
         self.manager.load_all()
 
-    def ensure_map(self, name: str, create: bool, encoder: dict[str, Any] | None) -> None:
+    def ensure_map(
+        self,
+        name: str,
+        create: bool,
+        encoder: dict[str, Any] | None,
+        self_test: Mapping[str, Any] | None = None,
+    ) -> None:
         from pydantic import ValidationError
 
         from sgvloc.core.encoders import EncoderSpec
@@ -241,10 +270,13 @@ class DataDirSink:
                 spec = EncoderSpec.model_validate(encoder or {})
             except ValidationError as exc:
                 raise InputError(f"encoder: {exc}") from None
-            handle = manager.create(name, spec)
+            handle = manager.create(
+                name, spec, self_test=None if self_test is None else dict(self_test)
+            )
             log.info("created map %s (encoder %s)", name, handle.encoder.identity.name)
             return
         _check_encoder_kind(name, handle.record.encoder_spec.kind, encoder)
+        _self_test_not_recorded(name, self_test)
         log.info("map %s exists with %d keyframes; resuming", name, handle.num_keyframes)
 
     def insert(self, name: str, batch: list[ScanKeyframe]) -> int:
@@ -281,6 +313,7 @@ def build_map(
     limit: int | None = None,
     until: float | None = None,
     progress: bool = True,
+    self_test: Mapping[str, Any] | None = None,
 ) -> BuildMapResult:
     """Insert a KITTI-layout sequence into map ``map_name`` of a service or a data directory.
 
@@ -302,6 +335,8 @@ def build_map(
         until: insert only the scans of the first ``until`` seconds (``times.txt``,
             counted from the first scan; the database of ``sgvloc eval --db-until``).
         progress: show a tqdm progress bar.
+        self_test: an encoder self-test (:func:`sgvloc.tools.self_test.self_test`) to
+            record with a map this call creates.
 
     Raises :class:`~sgvloc.core.errors.InputError` for a bad sequence or option, the
     engine's errors (:mod:`sgvloc.core.errors`) for a data directory, and the client's
@@ -322,7 +357,7 @@ def build_map(
     )
     created = existing = 0
     try:
-        sink.ensure_map(map_name, create, spec)
+        sink.ensure_map(map_name, create, spec, self_test)
         with tqdm(
             total=len(frames), desc=f"build-map {map_name}", unit="scan", disable=not progress
         ) as bar:

@@ -9,6 +9,7 @@ dimensions) are checked by the map manager, which names the field too.
 
 from __future__ import annotations
 
+import json
 from typing import Annotated, Any, Literal
 
 import numpy as np
@@ -34,6 +35,9 @@ from sgvloc.core.tracking import Seed
 
 from ..maps import FeaturesIn, KeyframeIn, at_field, field_error
 from ..settings import Settings
+
+#: bound of a map's recorded self-test (JSON bytes)
+SELF_TEST_MAX_BYTES = 16384
 
 
 def limits(settings: Settings) -> dict[str, int]:
@@ -125,6 +129,18 @@ class MapCreate(_In):
         description="confidence model as written by 'sgvloc calibrate' (default: the one "
         "shipped for the encoder kind); recorded with the map",
     )
+    self_test: dict[str, Any] | None = Field(
+        None,
+        description="an encoder self-test to record with the map (sgvloc build-map "
+        f"--choose-encoder writes one); JSON of at most {SELF_TEST_MAX_BYTES} bytes",
+    )
+
+    @field_validator("self_test")
+    @classmethod
+    def _self_test_size(cls, v: dict[str, Any] | None) -> dict[str, Any] | None:
+        if v is not None and len(json.dumps(v)) > SELF_TEST_MAX_BYTES:
+            raise ValueError(f"longer than {SELF_TEST_MAX_BYTES} bytes as JSON")
+        return v
 
     @model_validator(mode="after")
     def _one_retrieval(self) -> MapCreate:
@@ -227,6 +243,11 @@ class MapInfo(BaseModel):
     calibration: CalibrationInfo
     settings_version: int = Field(description="changes of the settings after creation (PATCH)")
     settings_updated_at: str | None = Field(description="ISO 8601 UTC of the last change")
+    self_test: dict[str, Any] | None = Field(
+        None,
+        description="the encoder self-test the map was built after (sgvloc build-map "
+        "--choose-encoder): figures per encoder and the one chosen",
+    )
 
 
 class MapList(BaseModel):

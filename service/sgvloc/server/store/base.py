@@ -134,6 +134,8 @@ class MapRecord:
     calibration: Calibration | None = None
     settings_version: int = 0
     settings_updated_at: str | None = None
+    #: the encoder self-test the map was built after (``sgvloc build-map --choose-encoder``)
+    self_test: dict[str, Any] | None = None
 
 
 def record_to_meta(record: MapRecord) -> dict[str, str]:
@@ -151,6 +153,8 @@ def record_to_meta(record: MapRecord) -> dict[str, str]:
         meta["settings_updated_at"] = record.settings_updated_at
     if record.calibration is not None:
         meta["calibration"] = json.dumps(record.calibration.to_dict())
+    if record.self_test is not None:
+        meta["self_test"] = json.dumps(record.self_test)
     return meta
 
 
@@ -169,6 +173,7 @@ def record_from_meta(m: dict[str, str], where: str) -> MapRecord:
             else None,
             settings_version=int(m.get("settings_version", "0")),
             settings_updated_at=m.get("settings_updated_at"),
+            self_test=json.loads(m["self_test"]) if "self_test" in m else None,
         )
     except (KeyError, ValueError) as exc:
         raise StoreError(f"{where}: damaged map settings: {exc}") from None

@@ -25,6 +25,8 @@ def split_label(s: dict[str, Any]) -> str:
         return f"--db-until {s['db_until_s']:g}"
     if s["mode"] == "loop":
         return f"--min-gap {s['min_gap_s']:g}"
+    if s["mode"] == "leave-out":
+        return f"--leave-out {s['leave_out_s']:g}"
     (a, b), (c, d) = s["db_range"], s["query_range"]
     return f"--db-range {a}:{b} --query-range {c}:{d}"
 

@@ -80,6 +80,9 @@ class EvalConfig(BaseModel):
     query_range: tuple[int, int | None] | None = Field(
         None, description="range split: queries from frames [start, stop) (default: after db)"
     )
+    leave_out: float | None = Field(
+        None, description="self-test split: database = scans >= SECONDS away, before or after"
+    )
     methods: list[str] = Field(default_factory=lambda: list(METHODS))
     topk: list[int] = Field(default_factory=lambda: [2, 20])
     thresholds: list[float] = Field(default_factory=lambda: [5.0, 20.0])
@@ -221,6 +224,7 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
         min_gap=cfg.min_gap,
         db_range=cfg.db_range,
         query_range=cfg.query_range,
+        leave_out=cfg.leave_out,
         threshold=cfg.thresholds[0],
         query_stride=cfg.query_stride,
         max_queries=cfg.max_queries,
@@ -380,6 +384,8 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
         gt = sources[src].poses[q]
         covered = src == 0 and q in in_coverage
         prior = among = None
+        if split.mode == "leave-out":  # the index holds the scans near the query too
+            among = visible
         if cfg.prior_noise is not None:
             noisy = gt[:2, 3] + rng_prior.normal(0.0, cfg.prior_noise, size=2)
             prior = Prior(tuple(noisy), cfg.prior_radius)

@@ -7,6 +7,9 @@ Three modes:
 - ``loop`` (``--min-gap SECONDS``): loop-closure style; a query's database is every scan
   at least ``min_gap`` seconds older than it, so no query can match its own recent past.
   Every scan with such an older scan is a query candidate;
+- ``leave-out`` (``--leave-out SECONDS``): a map's self-test; every scan is a query
+  candidate and its database is every other scan at least ``leave_out`` seconds away in
+  time, before or after it (its own stretch of the drive left out);
 - ``range`` (``--db-range START:STOP``, ``--query-range START:STOP``): by frame index, the
   database is the frames of one range and the query candidates those of the other (by
   default every frame after the database range), as published splits define them (e.g.
@@ -40,7 +43,7 @@ class Split:
     - ``database``: every scan that is in the database of at least one evaluated query.
     """
 
-    mode: Literal["time", "loop", "range"]
+    mode: Literal["time", "loop", "range", "leave-out"]
     times: np.ndarray
     positions: np.ndarray
     queries: np.ndarray
@@ -52,6 +55,7 @@ class Split:
     negatives: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     db_range: tuple[int, int] | None = None
     query_range: tuple[int, int] | None = None
+    leave_out: float | None = None
 
     def database_for(self, query: int) -> np.ndarray:
         """Database scan indices (sorted) visible to ``query``."""
@@ -63,6 +67,7 @@ class Split:
             "mode": self.mode,
             "db_until_s": self.db_until,
             "min_gap_s": self.min_gap,
+            "leave_out_s": self.leave_out,
             "db_range": list(self.db_range) if self.db_range else None,
             "query_range": list(self.query_range) if self.query_range else None,
             "drop_threshold_m": self.threshold,
@@ -80,6 +85,8 @@ def _database_mask(split: Split, q: int) -> np.ndarray:
         a, b = split.db_range
         idx = np.arange(len(t))
         return (idx >= a) & (idx < b)
+    if split.mode == "leave-out":
+        return np.abs(t - t[q]) >= split.leave_out
     if split.mode == "time":
         return t <= split.db_until
     return t <= t[q] - split.min_gap
@@ -93,19 +100,22 @@ def make_split(
     min_gap: float | None = None,
     db_range: tuple[int, int | None] | None = None,
     query_range: tuple[int, int | None] | None = None,
+    leave_out: float | None = None,
     threshold: float = 5.0,
     query_stride: int = 1,
     max_queries: int | None = None,
     negatives: bool = False,
 ) -> Split:
-    """Split a sequence by time (``db_until``) or loop-closure gap (``min_gap``).
+    """Split a sequence by time (``db_until``), loop-closure gap (``min_gap``), frame
+    ranges (``db_range``, ``query_range``) or for a self-test (``leave_out``).
 
-    Exactly one of ``db_until`` / ``min_gap`` / ``db_range`` must be given; frame ranges
-    are ``(start, stop)`` indices, stop exclusive, None = to the end. ``times`` are seconds (any
-    origin: they are taken relative to the first scan), ``positions`` ``[F, 3]`` the
-    ground-truth sensor positions. Kept queries can be thinned to every ``query_stride``-th
-    and capped at ``max_queries`` (evenly spaced) for quick runs; with ``negatives`` the
-    out-of-coverage queries are kept as negatives, thinned the same way.
+    Exactly one of ``db_until`` / ``min_gap`` / ``db_range`` / ``leave_out`` must be given;
+    frame ranges are ``(start, stop)`` indices, stop exclusive, None = to the end.
+    ``times`` are seconds (any origin: they are taken relative to the first scan),
+    ``positions`` ``[F, 3]`` the ground-truth sensor positions. Kept queries can be
+    thinned to every ``query_stride``-th and capped at ``max_queries`` (evenly spaced) for
+    quick runs; with ``negatives`` the out-of-coverage queries are kept as negatives,
+    thinned the same way.
     """
     t = np.asarray(times, dtype=np.float64)
     pos = np.asarray(positions, dtype=np.float64)
@@ -113,10 +123,10 @@ def make_split(
         raise InputError(
             f"times must be [F] and positions [F, 3], got {list(t.shape)} and {list(pos.shape)}"
         )
-    if sum(x is not None for x in (db_until, min_gap, db_range)) != 1:
+    if sum(x is not None for x in (db_until, min_gap, db_range, leave_out)) != 1:
         raise InputError(
-            "give exactly one of db_until (time split), min_gap (loop split) or db_range "
-            "(frame ranges)"
+            "give exactly one of db_until (time split), min_gap (loop split), db_range "
+            "(frame ranges) or leave_out (self-test)"
         )
     if query_range is not None and db_range is None:
         raise InputError("query_range needs db_range")
@@ -135,6 +145,11 @@ def make_split(
                 f"query_range {list(qr)} overlaps db_range {list(dbr)}: a query would find itself"
             )
         candidates = np.arange(*qr)
+    elif leave_out is not None:
+        if leave_out <= 0:
+            raise InputError(f"leave_out must be positive, got {leave_out}")
+        mode = "leave-out"
+        candidates = np.arange(len(t))
     elif db_until is not None:
         mode = "time"
         candidates = np.flatnonzero(t > db_until)
@@ -157,6 +172,7 @@ def make_split(
         min_gap,
         db_range=dbr,
         query_range=qr,
+        leave_out=leave_out,
     )
 
     kept, dropped = [], []
@@ -176,6 +192,11 @@ def make_split(
     negative = thin(dropped) if negatives else np.zeros(0, dtype=np.int64)
     if mode == "range":
         database = np.arange(*dbr)
+    elif mode == "leave-out":
+        evaluated = np.concatenate([queries, negative])
+        database = np.flatnonzero(
+            np.array([(np.abs(t[evaluated] - ti) >= leave_out).any() for ti in t], dtype=bool)
+        )
     elif mode == "time":
         database = np.flatnonzero(t <= db_until)
     else:
@@ -195,6 +216,7 @@ def make_split(
         negative,
         dbr,
         qr,
+        leave_out,
     )
 
 

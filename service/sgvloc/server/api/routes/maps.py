@@ -63,6 +63,7 @@ def map_info(handle: MapHandle) -> MapInfo:
         ),
         settings_version=handle.record.settings_version,
         settings_updated_at=handle.record.settings_updated_at,
+        self_test=handle.record.self_test,
     )
 
 
@@ -94,6 +95,7 @@ async def create_map(
                 req.localizer_config(),
                 keep_clouds=req.keep_clouds,
                 calibration=parse_calibration(req.calibration, "calibration"),
+                self_test=req.self_test,
             )
         except InputError as exc:  # a model file's error names it by its name, not its path
             if settings.models_dir is not None:
