@@ -194,7 +194,11 @@ def spectral_candidates(
 
 
 def _rotation_deg(R: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
+    """The angle of a rotation matrix (degrees), from its sine and cosine: accurate near 0,
+    where ``arccos`` of the trace turns rounding of 1e-16 into angles of 1e-6 deg."""
+    sin = 0.5 * np.linalg.norm([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    cos = (np.trace(R) - 1.0) / 2.0
+    return float(np.degrees(np.arctan2(sin, cos)))
 
 
 def poses_agree(
