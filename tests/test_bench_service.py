@@ -53,7 +53,7 @@ def test_http_section_tiny(tmp_path: Path) -> None:
     assert raw["keyframes"] == 2 and raw["batches"] == 2
     assert raw["kib_per_keyframe"] > 100  # 12k float32 points
     m = res["map"]
-    assert m["encoder"] == "bevnet" and m["global_dim"] == 620 and m["local_dim"] == 64
+    assert m["encoder"] == "bevnet" and m["global_dim"] == 876 and m["local_dim"] == 64
     assert m["store_mib"] > 0
     # the raw-scan map localized with ICP and without, and the earlier path's map
     icp = [(r["path"], r["refine"], r["clients"]) for r in res["icp"]]

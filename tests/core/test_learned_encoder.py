@@ -27,7 +27,9 @@ from sgvloc.core.sequence import KittiSequence
 
 @pytest.fixture(scope="module")
 def enc() -> LearnedEncoder:
-    return make_encoder(EncoderSpec(kind="learned"))
+    """The learned encoder with the polar/FFT global descriptor alone."""
+    spec = EncoderSpec(kind="learned", learned=LearnedEncoderConfig(global_descriptor="polar"))
+    return make_encoder(spec)
 
 
 @pytest.fixture(scope="module")
@@ -48,7 +50,12 @@ def test_shipped_weights_are_small_and_named_in_the_identity(enc: LearnedEncoder
     assert enc.identity.name == "bevnet"
     assert enc.identity.params["weights_sha256"] == file_sha256(path)[:16]
     assert enc.meta["steps"] > 0  # exported from a real training run
-    assert (enc.global_dim, enc.local_dim) == (620, 64)  # polar/FFT global by default
+    assert (enc.global_dim, enc.local_dim) == (620, 64)
+    # the default global descriptor: polar/FFT and the network's (one pass), merged
+    default = make_encoder(EncoderSpec(kind="learned"))
+    assert default.config.global_descriptor == "polar+network"
+    assert default.config.global_rotations == 1
+    assert (default.global_dim, default.blocks, default.local_dim) == (876, (620, 256), 64)
 
 
 def test_real_scan_gives_finite_features_of_the_documented_shapes(
@@ -121,8 +128,8 @@ def test_faint_pixels_are_not_described(enc: LearnedEncoder, scans: list[np.ndar
 
 @pytest.fixture(scope="module")
 def network_global() -> LearnedEncoder:
-    spec = EncoderSpec(kind="learned", learned=LearnedEncoderConfig(global_descriptor="network"))
-    return make_encoder(spec)
+    cfg = LearnedEncoderConfig(global_descriptor="network", global_rotations=4)
+    return make_encoder(EncoderSpec(kind="learned", learned=cfg))
 
 
 @pytest.mark.parametrize("which", ["polar", "network"])
@@ -156,7 +163,10 @@ def test_both_global_descriptors_are_two_blocks_of_one_vector(
     """'polar+network' concatenates the two descriptors, each normalised, scaled to unit
     length; its blocks are recorded, and it is an encoder of its own."""
     both = make_encoder(
-        EncoderSpec(kind="learned", learned=LearnedEncoderConfig(global_descriptor="polar+network"))
+        EncoderSpec(
+            kind="learned",
+            learned=LearnedEncoderConfig(global_descriptor="polar+network", global_rotations=4),
+        )
     )
     assert both.blocks == (620, 256) and both.global_dim == 876
     assert enc.blocks == (620,) and network_global.blocks == (256,)

@@ -21,7 +21,7 @@ def test_create_describe_list(client: httpx.Client) -> None:
     assert info["encoder"]["kind"] == "learned"
     assert info["encoder"]["name"] == "bevnet"
     assert len(info["encoder"]["fingerprint"]) == 16
-    assert info["encoder"]["global_dim"] == 620 and info["encoder"]["local_dim"] == 64
+    assert info["encoder"]["global_dim"] == 876 and info["encoder"]["local_dim"] == 64
     assert info["retrieval"]["index"] == "hnsw" and info["index_kind"] == "hnsw"
     assert info["localizer"]["top_k"] == 7 and info["localizer"]["rerank"] == "none"
     assert info["created_at"].endswith("Z")
