@@ -307,3 +307,29 @@ def test_the_shipped_export_is_of_the_shipped_weights() -> None:
     path = onnx_path(shipped_weights_path())
     assert path.is_file() and path.stat().st_size < 5_000_000
     assert OnnxNet.weights_sha256(path) == file_sha256(shipped_weights_path())
+
+
+def test_a_sparse_scan_gives_fewer_keypoints_not_padded_ones(
+    enc: LearnedEncoder, scans: list[np.ndarray]
+) -> None:
+    """A narrow, short-range crop of a scan has fewer occupied cells than keypoints asked
+    for: it yields one keypoint per occupied cell, none repeated, none invented."""
+    from sgvloc.core.preprocess import crop_azimuth, crop_range
+
+    full = enc.encode(scans[0])
+    sparse_points = crop_range(crop_azimuth(scans[0], 40.0), 0.0, 12.0)
+    cloud = enc.prepare(sparse_points)
+    sparse = enc.encode_cloud(cloud)
+    assert 0 < sparse.num_keypoints < min(full.num_keypoints, enc.config.num_keypoints)
+    assert len(np.unique(sparse.keypoints, axis=0)) == sparse.num_keypoints  # no duplicates
+    # exactly one keypoint per occupied 0.8 m cell of the (levelled, faint-cut) image
+    from sgvloc.core.bevnet import cut_faint, occupied_cells, to_input
+
+    level, _ = level_cloud(cloud, KITTI_BEV)
+    image = cut_faint(rasterize_cloud(level, KITTI_BEV).image, enc.min_grey)
+    occupied = int(occupied_cells(to_input(image[None]))[0].sum())
+    assert enc.config.nms_radius == 0 and sparse.num_keypoints == occupied
+    # every keypoint lies in the cropped window (turned back into the sensor frame)
+    az = np.degrees(np.arctan2(sparse.keypoints[:, 1], sparse.keypoints[:, 0]))
+    assert (np.abs(az) <= 20.0 + 5.0).all()
+    assert sparse.local_features.shape == (sparse.num_keypoints, enc.local_dim)
