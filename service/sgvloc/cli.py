@@ -374,7 +374,9 @@ def build_map_command(
         typer.Option(
             help="first run the encoder self-test (learned, handcrafted, bev: each localizes "
             "a sample of the scans against the others, its own stretch of the drive left "
-            "out) and build the map with the encoder that does best; recorded with the map"
+            "out) and build the map with the encoder that does best; recorded with the map. "
+            "It looks at every scan up to where --until/--limit stop the build (--every "
+            "does not thin it)"
         ),
     ] = False,
     dry_run: Annotated[
