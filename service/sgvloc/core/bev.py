@@ -39,7 +39,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from .errors import InputError
-from .preprocess import all_columns, as_points, finite, voxel_downsample
+from .preprocess import all_columns, as_points, finite, in_azimuth_window, voxel_downsample
 
 
 class BEVRasterConfig(BaseModel):
@@ -265,18 +265,16 @@ def crop_image_azimuth(
     image: np.ndarray, fov_deg: float, config: BEVRasterConfig = KITTI_BEV
 ) -> np.ndarray:
     """A BEV image with the pixels outside a horizontal field of view centred on the
-    sensor's forward axis set to 0: a pixel is kept when its centre's azimuth satisfies
-    ``|atan2(y, x)| <= fov_deg / 2`` (:func:`pixel_to_metres`); the sensor's own pixel
-    is kept. The image counterpart of :func:`sgvloc.core.preprocess.crop_azimuth`."""
-    if not 0.0 < fov_deg:
-        raise InputError(f"field of view must be positive, got {fov_deg} deg")
+    sensor's forward axis set to 0: a pixel is kept when its centre
+    (:func:`pixel_to_metres`) is in the window
+    (:func:`sgvloc.core.preprocess.in_azimuth_window`, which
+    :func:`sgvloc.core.preprocess.crop_azimuth` applies to points)."""
     img = np.asarray(image)
     if fov_deg >= 360.0:
         return img
     rows, cols = np.indices(img.shape[:2])
     xy = pixel_to_metres(rows.ravel(), cols.ravel(), config)
-    az = np.degrees(np.arctan2(xy[:, 1], xy[:, 0])).reshape(img.shape[:2])
-    keep = (np.abs(az) <= fov_deg / 2.0) | (np.hypot(*xy.T).reshape(img.shape[:2]) < 1e-9)
+    keep = in_azimuth_window(xy[:, 0], xy[:, 1], fov_deg).reshape(img.shape[:2])
     return np.where(keep, img, 0).astype(img.dtype)
 
 

@@ -49,16 +49,22 @@ def crop_range(points: np.ndarray, min_range: float, max_range: float) -> np.nda
     return points[(r >= min_range) & (r <= max_range)]
 
 
-def crop_azimuth(points: np.ndarray, fov_deg: float) -> np.ndarray:
-    """The points inside a horizontal field of view centred on the sensor's forward axis
-    (+x): ``|atan2(y, x)| <= fov_deg / 2``, other columns kept. ``fov_deg >= 360`` keeps
-    every point; a narrower window emulates a forward-looking (solid-state) sensor."""
+def in_azimuth_window(x: np.ndarray, y: np.ndarray, fov_deg: float) -> np.ndarray:
+    """Whether each ``(x, y)`` lies in a horizontal field of view of ``fov_deg`` centred on
+    the sensor's forward axis (+x): ``|atan2(y, x)| <= fov_deg / 2``. Raises InputError
+    unless ``fov_deg`` is positive."""
     if not 0.0 < fov_deg:
         raise InputError(f"field of view must be positive, got {fov_deg} deg")
+    return np.abs(np.degrees(np.arctan2(y, x))) <= fov_deg / 2.0
+
+
+def crop_azimuth(points: np.ndarray, fov_deg: float) -> np.ndarray:
+    """The points inside a horizontal field of view centred on the sensor's forward axis
+    (:func:`in_azimuth_window`), other columns kept. ``fov_deg >= 360`` keeps every point;
+    a narrower window emulates a forward-looking (solid-state) sensor."""
     if fov_deg >= 360.0:
         return points
-    az = np.degrees(np.arctan2(points[:, 1], points[:, 0]))  # [P] in (-180, 180]
-    return points[np.abs(az) <= fov_deg / 2.0]
+    return points[in_azimuth_window(points[:, 0], points[:, 1], fov_deg)]
 
 
 def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
