@@ -1,6 +1,6 @@
 """Database/query splits of one sequence (docs/EVALUATION.md).
 
-Three modes:
+Four modes:
 
 - ``time`` (``--db-until SECONDS``): scans up to ``db_until`` seconds after the first scan
   form the database (the map), every later scan is a query;
@@ -23,7 +23,7 @@ that is accepted and wrong is a false accept).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
 import numpy as np
@@ -136,8 +136,9 @@ def make_split(
         raise InputError(f"threshold must be positive, got {threshold}")
     t = t - t[0] if len(t) else t
     dbr = qr = None
+    mode: Literal["time", "loop", "range", "leave-out"]
     if db_range is not None:
-        mode: Literal["time", "loop", "range"] = "range"
+        mode = "range"
         dbr = _frame_range(db_range, len(t), "db_range")
         qr = _frame_range(query_range or (dbr[1], None), len(t), "query_range")
         if qr[0] < dbr[1] and dbr[0] < qr[1]:
@@ -192,31 +193,26 @@ def make_split(
     negative = thin(dropped) if negatives else np.zeros(0, dtype=np.int64)
     if mode == "range":
         database = np.arange(*dbr)
-    elif mode == "leave-out":
-        evaluated = np.concatenate([queries, negative])
-        database = np.flatnonzero(
-            np.array([(np.abs(t[evaluated] - ti) >= leave_out).any() for ti in t], dtype=bool)
+    elif mode == "leave-out":  # at least leave_out from the earliest or latest evaluated
+        te = t[np.concatenate([queries, negative])]
+        far = (
+            np.maximum(np.abs(t - te.min()), np.abs(t - te.max()))
+            if len(te)
+            else np.full(len(t), -np.inf)
         )
+        database = np.flatnonzero(far >= leave_out)
     elif mode == "time":
         database = np.flatnonzero(t <= db_until)
     else:
         evaluated = np.concatenate([queries, negative])
         last = t[evaluated].max() - min_gap if len(evaluated) else -np.inf
         database = np.flatnonzero(t <= last)
-    return Split(
-        mode,
-        t,
-        pos,
-        queries,
-        np.asarray(dropped, dtype=np.int64),
-        database,
-        threshold,
-        db_until,
-        min_gap,
-        negative,
-        dbr,
-        qr,
-        leave_out,
+    return replace(
+        proto,
+        queries=queries,
+        dropped=np.asarray(dropped, dtype=np.int64),
+        database=database,
+        negatives=negative,
     )
 
 
