@@ -259,15 +259,16 @@ class FaissIndex:
                 f"(query has {len(q)})"
             )
         whole = self._prepare(q)[0]
-        lists, start = [], 0
-        for n in blocks:
-            part = np.zeros_like(q)
-            part[start : start + n] = q[start : start + n]
-            start += n
-            if not part.any():  # an empty block finds nothing
-                lists.append([])
-                continue
-            lists.append(self.search(part, k, among=among)[0])
+        ends = np.cumsum(blocks)
+        parts = np.zeros((len(blocks), self.dim), dtype=np.float32)  # one masked row per block
+        for b, (start, end) in enumerate(zip(ends - blocks, ends, strict=True)):
+            parts[b, start:end] = q[start:end]
+        live = parts.any(axis=1)  # an empty block finds nothing
+        lists: list[list[SearchHit]] = [[] for _ in blocks]
+        if live.any():  # every block in one search call
+            found = self.search(parts[live], k, among=among)
+            for b, hits in zip(np.flatnonzero(live), found, strict=True):
+                lists[b] = hits
         sims: dict[int, float] = {}
         with self._lock.read():
             for i in {h.id for hits in lists for h in hits}:
