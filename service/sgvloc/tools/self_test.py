@@ -82,14 +82,15 @@ def self_test(
                 f"self-test: no scan of {data} has a revisit (another scan within 5 m and "
                 f"at least {gap_s:g} s away); the encoders cannot be compared on it"
             )
-        correct = round(row["success_pct"] * row["queries"] / 100.0)
+        recs = result.per_query[f"sgv@{row['k']}"]
+        correct = sum(q["correct"] for q in recs if q["in_coverage"])
         figures[kind] = {
             "queries": row["queries"],
             "negatives": row["out_of_coverage"],
             "recall_at_1_pct": row["R@1_5m"],
             "ceiling_pct": row["ceiling_5m"],
             "pose_success_pct": row["success_pct"],
-            "correct_poses": int(correct),
+            "correct_poses": correct,
             "false_accepts": row["false_accepts"],
             "accepted_in_coverage_pct": row["accepted_in_coverage_pct"],
             "encoder_fingerprint": result.config["encoder_fingerprint"],
