@@ -58,6 +58,12 @@ from .errors import InputError, SgvlocError
 
 log = logging.getLogger(__name__)
 
+# torch computes float sqrt on CPU with oneMKL's VML, which picks its kernel on the first
+# call and can run a low-accuracy one for part of that call (relative errors to 3e-4,
+# seen here as wrong SGV scores in the first call of a process; pytorch/pytorch#188792).
+# One call on a single element settles the choice before any real one.
+torch.ones(1).sqrt_()
+
 #: Largest ``M`` (``k * n * n`` float32, bytes) that :func:`sgv_scores` keeps in memory.
 #: Above it the chunked (matrix-free) path runs: ``M v`` block-row-wise, rebuilding each
 #: block at every power iteration, in three scratch tiles of memory whatever ``n`` is.
