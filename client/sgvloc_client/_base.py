@@ -15,7 +15,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from importlib import metadata
 from typing import Any, BinaryIO, Generic, Literal, TypeVar
 from urllib.parse import quote, urlencode
@@ -74,6 +74,8 @@ class Call(Generic[T]):
     headers: Mapping[str, str] | None = None
     idempotent: bool = False
     passthrough: tuple[int, ...] = ()
+    #: seconds for this call instead of the client's timeout (a long-running request)
+    timeout: float | None = None
 
 
 def _body_only(fn: Callable[[Any], T]) -> Callable[[int, Any], T]:
@@ -406,6 +408,27 @@ class BaseClient:
         return self._call(
             "PATCH", _map_path(name), _body_only(MapInfo.from_body), body, idempotent=True
         )
+
+    def _self_test_map(
+        self,
+        name: str,
+        queries: int,
+        gap_s: float,
+        gap_keyframes: int,
+        radius_m: float,
+        timeout: float | None,
+    ) -> Call[dict[str, Any]]:
+        body = {
+            "queries": queries,
+            "gap_s": gap_s,
+            "gap_keyframes": gap_keyframes,
+            "radius_m": radius_m,
+        }
+        # Only records a summary with the map: running it again is harmless.
+        call = self._call(
+            "POST", _map_path(name) + "/self-test", lambda _s, b: dict(b), body, idempotent=True
+        )
+        return replace(call, timeout=timeout)
 
     def _delete_map(self, name: str) -> Call[None]:
         return self._call("DELETE", _map_path(name), lambda _s, _b: None, idempotent=True)

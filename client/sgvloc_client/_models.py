@@ -157,6 +157,8 @@ class MapInfo:
     settings_version: int = 0
     #: the encoder self-test the map was built after (None: built without one)
     self_test: dict[str, Any] | None = None
+    #: the summary of the latest leave-out self-test (``self_test_map``; None: never run)
+    last_self_test: dict[str, Any] | None = None
     raw: dict[str, Any] = field(repr=False, compare=False, default_factory=dict)
 
     @classmethod
@@ -174,6 +176,7 @@ class MapInfo:
             calibration=dict(d.get("calibration") or {}),
             settings_version=int(d.get("settings_version") or 0),
             self_test=d.get("self_test"),
+            last_self_test=d.get("last_self_test"),
             raw=dict(d),
         )
 

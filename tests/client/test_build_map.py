@@ -291,3 +291,42 @@ def test_self_test_choice_rule() -> None:
     figs["handcrafted"] = fig(9, 1, 60)
     assert choose(figs, order) == "handcrafted"
     assert choose(figs, ("bev", "handcrafted", "learned")) == "bev"
+
+
+def test_self_test_of_a_served_map(service_url: str, balm_mini_dir: Path) -> None:
+    """POST /v1/maps/{map}/self-test localizes the map's own keyframes against the rest
+    (each one's 30 s of the drive left out), reports figures that follow from its
+    per-query records, records the summary with the map and gives the same figures twice;
+    bad settings get a 422 naming the field, a drive without a revisit one saying so."""
+    from sgvloc_client import BadRequest
+
+    runner = CliRunner()
+    args = ["build-map", "--data", str(balm_mini_dir), "--map", "st", "--url", service_url]
+    out = runner.invoke(app, [*args, "--no-progress"])
+    assert out.exit_code == 0, out.output
+    with Client(service_url) as c:
+        rep = c.self_test_map("st", queries=4)
+        figs, recs = rep["figures"], rep["records"]
+        assert rep["basis"] == "timestamp" and rep["encoder"] == "learned"
+        inside = [r for r in recs if r["in_coverage"]]
+        assert figs["queries"] == len(inside) == 4
+        assert figs["negatives"] == len(recs) - 4
+        assert figs["pose_success"] == round(100 * sum(r["correct"] for r in inside) / 4, 1)
+        assert figs["false_accepts"] == sum(r["localized"] and not r["correct"] for r in recs)
+        # a real sequence with revisits: the pipeline finds and poses them
+        assert figs["recall_at_1"] >= 75 and figs["pose_success"] >= 75
+        for r in recs:  # no query is answered by a keyframe of its own 30 s
+            assert r["top1"] is None or r["top1"] != r["keyframe"]
+        info = c.get_map("st")
+        assert info.last_self_test["figures"] == figs
+        assert info.version == rep["map_version"]
+        again = c.self_test_map("st", queries=4)
+        strip = [{k: v for k, v in r.items() if k != "ms"} for r in recs]
+        assert [{k: v for k, v in r.items() if k != "ms"} for r in again["records"]] == strip
+        with pytest.raises(BadRequest) as err:
+            c.self_test_map("st", queries=0)
+        assert err.value.status == 422 and "queries" in str(err.value)
+        with pytest.raises(BadRequest) as err:
+            c.self_test_map("st", gap_s=1000)  # the drive lasts 88 s: no revisit
+        assert err.value.status == 422 and "no keyframe has a revisit" in str(err.value)
+        c.delete_map("st")

@@ -135,6 +135,28 @@ def test_everything_survives_a_restart(managers: Factory, rng: np.random.Generat
     assert m2.insert("a", _items(rng, 1)).ids == [6]
 
 
+def test_a_self_test_runs_on_the_stored_map_and_its_summary_survives_a_restart(
+    managers: Factory, rng: np.random.Generator
+) -> None:
+    m = managers()
+    m.create("a", SPEC)
+    items = _items(rng, 8)
+    for i, it in enumerate(items):  # two passes over four places, a second apart
+        it.T_map_sensor[:3, 3] = [10.0 * (i % 4), 0.0, 0.0]
+    m.insert("a", items)
+    m.update_settings("a", {"top_k": 3})
+    version, plan = m.self_test_plan("a", queries=8, gap_s=3.0, gap_keyframes=1, radius_m=1.0)
+    assert plan.basis == "timestamp" and len(plan.in_coverage) == 8
+    recs = [m.self_test_query("a", version, plan, kf, 1.0) for kf in plan.in_coverage]
+    summary = {"format": "test", "figures": {"queries": len(recs)}}
+    m.record_self_test("a", summary)
+    m.close()
+    h = managers().get("a")
+    assert h.record.last_self_test == summary
+    assert h.record.localizer_config.top_k == 3 and h.record.settings_version == 2
+    assert h.version == version  # the keyframes did not change
+
+
 def test_delete_map_and_use_the_name_again(managers: Factory, rng: np.random.Generator) -> None:
     m = managers()
     m.create("a", SPEC)

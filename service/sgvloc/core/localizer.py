@@ -184,6 +184,32 @@ class Localizer:
     def keyframe_ids(self) -> list[int]:
         return sorted(self._keyframes)
 
+    def keyframe_table(self) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """Ids ``[N]``, positions ``[N, 3]`` and timestamps ``[N]`` (``metadata.timestamp``
+        in seconds; None unless every keyframe has a numeric one) of the keyframes."""
+        with self._lock.read():
+            kfs = list(self._keyframes.values())
+        ids = np.array([k.id for k in kfs], dtype=np.int64)
+        xyz = np.array([k.T_map_sensor[:3, 3] for k in kfs], dtype=np.float64).reshape(-1, 3)
+        stamps = [k.metadata.get("timestamp") for k in kfs]
+        numeric = all(
+            isinstance(t, (int, float)) and not isinstance(t, bool) and np.isfinite(t)
+            for t in stamps
+        )
+        return ids, xyz, np.array(stamps, dtype=np.float64) if numeric and kfs else None
+
+    def localize_keyframe(
+        self, keyframe_id: int, among: np.ndarray
+    ) -> tuple[Keyframe, LocalizationResult]:
+        """Localize keyframe ``keyframe_id``'s stored features and cloud against the
+        keyframes ``among`` (the leave-out self-test); returns the keyframe and the
+        :class:`LocalizationResult`."""
+        with self._lock.read():
+            if int(keyframe_id) not in self._keyframes:
+                raise ConflictError(f"keyframe {keyframe_id} was removed during the self-test")
+            kf = self._whole([int(keyframe_id)])[int(keyframe_id)]
+        return kf, self.localize(features=kf.features, cloud=kf.cloud, among=among)
+
     def encode(self, scan: np.ndarray) -> Features:
         """Features of a raw scan ``[P, 3+]`` with this map's encoder."""
         return self.encoder.encode(scan)
@@ -349,6 +375,8 @@ class Localizer:
         prior: Prior | None = None,
         min_confidence: float | None = None,
         seed: Seed | None = None,
+        cloud: np.ndarray | None = None,
+        among: np.ndarray | None = None,
     ) -> LocalizationResult:
         """Localize a raw scan (or precomputed features) in this map.
 
@@ -357,6 +385,9 @@ class Localizer:
         (default: the map's ``verdict.min_confidence``). ``seed``: track: register the
         scan against the map around this pose first (:mod:`sgvloc.core.tracking`); if
         the fit fails, localize globally with the seed as a prior (``tracking.fallback``).
+        ``cloud``: with ``features``, the query's prepared cloud (``encoder.prepare``), so
+        that ICP can refine; ``among``: search only these keyframe ids (the map's leave-out
+        self-test, :mod:`sgvloc.core.leave_out`).
         """
         if seed is not None:
             if scan is None:
@@ -415,6 +446,8 @@ class Localizer:
             raise InputError(f"min_confidence must be in [0, 1], got {min_confidence}")
         if (scan is None) == (features is None):
             raise InputError("give exactly one of scan or features")
+        if cloud is not None and features is None:
+            raise InputError("cloud goes with features (a raw scan brings its own)")
         timings: dict[str, float] = {}
         t_start = time.perf_counter()
         answer = partial(
@@ -426,7 +459,7 @@ class Localizer:
 
         # 1. encode the query (or check that its precomputed features fit this map)
         t = time.perf_counter()
-        query_cloud = None
+        query_cloud = cloud
         if features is None:
             query_cloud = self.encoder.prepare(scan)
             query = self.encoder.encode_cloud(query_cloud)
@@ -440,10 +473,11 @@ class Localizer:
             version = self.version
             # 2. retrieve the top-k keyframes by global descriptor (inside the prior's radius)
             t = time.perf_counter()
-            among, prior_info = None, None
+            prior_info = None
             if prior is not None:
-                among = self._grid.within(prior)
-                prior_info = {"used": True, "keyframes_in_radius": int(len(among))}
+                inside = self._grid.within(prior)
+                prior_info = {"used": True, "keyframes_in_radius": int(len(inside))}
+                among = inside if among is None else np.intersect1d(inside, among)
             hits = retrieve(
                 self.index,
                 query.global_descriptor,
@@ -456,10 +490,10 @@ class Localizer:
             timings["retrieve"] = _ms(t)
             if not retrieved:
                 timings["total"] = _ms(t_start)
-                code = "no_keyframes" if among is None else "no_keyframe_in_prior"
+                code = "no_keyframes" if prior is None else "no_keyframe_in_prior"
                 why = (
-                    "the map has no keyframes"
-                    if among is None
+                    "the map has no keyframes" + ("" if among is None else " to search")
+                    if prior is None
                     else f"no keyframe within {prior.radius_m:g} m of the prior position"
                 )
                 return answer(

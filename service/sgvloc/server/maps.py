@@ -37,6 +37,7 @@ from typing import IO, Any
 import numpy as np
 from pydantic import ValidationError
 
+from sgvloc.core import leave_out
 from sgvloc.core.cache import FetchCache
 from sgvloc.core.confidence import Calibration, shipped_calibration
 from sgvloc.core.config import LocalizerConfig
@@ -906,6 +907,54 @@ class MapManager:
             record.settings_version,
             cal.fingerprint,
         )
+        return handle
+
+    def self_test_plan(
+        self, name: str, queries: int, gap_s: float, gap_keyframes: int, radius_m: float
+    ) -> tuple[int, leave_out.Plan]:
+        """The map's version and the queries of its leave-out self-test
+        (:mod:`sgvloc.core.leave_out`)."""
+        handle = self.get(name)
+        version = handle.version
+        ids, xyz, stamps = handle.localizer.keyframe_table()
+        plan = leave_out.plan(
+            ids,
+            xyz,
+            stamps,
+            queries=queries,
+            gap_s=gap_s,
+            gap_keyframes=gap_keyframes,
+            radius_m=radius_m,
+        )
+        return version, plan
+
+    def self_test_query(
+        self, name: str, version: int, plan: leave_out.Plan, keyframe_id: int, radius_m: float
+    ) -> dict[str, Any]:
+        """One query of a self-test: its record (409 if the map changed since the plan)."""
+        handle = self.get(name)
+        if handle.version != version:
+            raise ConflictError(
+                f"map {name!r} changed during the self-test (version {version} -> "
+                f"{handle.version}); run it again"
+            )
+        kf, result = handle.localizer.localize_keyframe(keyframe_id, plan.searched[keyframe_id])
+        top = result.reranked[0].keyframe_id if result.reranked else None
+        positions = {} if top is None else {top: handle.localizer.keyframe(top).T_map_sensor[:3, 3]}
+        inside = keyframe_id in plan.in_coverage
+        return leave_out.record(keyframe_id, inside, kf.T_map_sensor, result, positions, radius_m)
+
+    def record_self_test(self, name: str, summary: dict[str, Any]) -> MapHandle:
+        """Store a self-test's summary with the map's settings (``last_self_test``)."""
+        handle = self.get(name)
+        with handle.write_lock:
+            if handle.closed:
+                raise NotFoundError(f"map {name!r} does not exist")
+            record = handle.store.update_settings(
+                handle.record.localizer_config, handle.localizer.calibration, summary
+            )
+            handle.record = record
+        log.info("map %r: self-test recorded (%s)", name, summary.get("figures"))
         return handle
 
     # -- keyframes ----------------------------------------------------------------------

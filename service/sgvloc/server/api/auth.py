@@ -51,6 +51,7 @@ ROUTE_ROLES: dict[str, frozenset[Role] | None | str] = {
     "get_map": frozenset({"mapper", "viewer", "admin"}),
     "map_stats": frozenset({"mapper", "viewer", "admin"}),
     "update_map": frozenset({"mapper", "admin"}),
+    "self_test_map": frozenset({"mapper", "admin"}),
     "delete_map": frozenset({"admin"}),
     "reload_keys": frozenset({"admin"}),
     "reload_map": frozenset({"admin"}),

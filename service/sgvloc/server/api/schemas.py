@@ -248,6 +248,53 @@ class MapInfo(BaseModel):
         description="the encoder self-test the map was built after (sgvloc build-map "
         "--choose-encoder): figures per encoder and the one chosen",
     )
+    last_self_test: dict[str, Any] | None = Field(
+        None,
+        description="the summary of the latest leave-out self-test of the served map "
+        "(POST /v1/maps/{map}/self-test)",
+    )
+
+
+class SelfTestRequest(BaseModel):
+    """``POST /v1/maps/{map}/self-test``: the map's keyframes localized against the others."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    queries: int = Field(
+        50, ge=1, le=200, description="at most this many queries in coverage (as many out)"
+    )
+    gap_s: float = Field(
+        30.0,
+        gt=0,
+        le=86400,
+        description="leave out each query's keyframes closer than this in time "
+        "(metadata.timestamp, seconds)",
+    )
+    gap_keyframes: int = Field(
+        30,
+        ge=1,
+        le=100000,
+        description="the same in insertion order, when not every keyframe has a timestamp",
+    )
+    radius_m: float = Field(
+        5.0, gt=0, le=100, description="a keyframe left to search within this is a revisit"
+    )
+
+
+class SelfTestReport(BaseModel):
+    """The figures of a map's leave-out self-test and its per-query records."""
+
+    format: str
+    map_version: int
+    encoder: str = Field(description="the map's encoder kind (learned, handcrafted, bev, ...)")
+    basis: str = Field(description="what the gap was measured in: timestamp | insertion order")
+    settings: dict[str, Any]
+    figures: dict[str, Any] = Field(
+        description="queries, negatives, recall_at_1, pose_success, accepted_of_correct "
+        "(percent), false_accepts, median_ms"
+    )
+    seconds: float
+    records: list[dict[str, Any]]
 
 
 class MapList(BaseModel):

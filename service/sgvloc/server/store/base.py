@@ -136,6 +136,8 @@ class MapRecord:
     settings_updated_at: str | None = None
     #: the encoder self-test the map was built after (``sgvloc build-map --choose-encoder``)
     self_test: dict[str, Any] | None = None
+    #: the summary of the latest leave-out self-test of the served map
+    last_self_test: dict[str, Any] | None = None
 
 
 def record_to_meta(record: MapRecord) -> dict[str, str]:
@@ -155,6 +157,8 @@ def record_to_meta(record: MapRecord) -> dict[str, str]:
         meta["calibration"] = json.dumps(record.calibration.to_dict())
     if record.self_test is not None:
         meta["self_test"] = json.dumps(record.self_test)
+    if record.last_self_test is not None:
+        meta["last_self_test"] = json.dumps(record.last_self_test)
     return meta
 
 
@@ -174,6 +178,7 @@ def record_from_meta(m: dict[str, str], where: str) -> MapRecord:
             settings_version=int(m.get("settings_version", "0")),
             settings_updated_at=m.get("settings_updated_at"),
             self_test=json.loads(m["self_test"]) if "self_test" in m else None,
+            last_self_test=json.loads(m["last_self_test"]) if "last_self_test" in m else None,
         )
     except (KeyError, ValueError) as exc:
         raise StoreError(f"{where}: damaged map settings: {exc}") from None
@@ -302,10 +307,14 @@ class MapStore(ABC):
 
     @abstractmethod
     def update_settings(
-        self, localizer_config: LocalizerConfig, calibration: Calibration
+        self,
+        localizer_config: LocalizerConfig,
+        calibration: Calibration,
+        last_self_test: dict[str, Any] | None = None,
     ) -> MapRecord:
-        """Replace the localizer settings and calibration in one transaction; bumps
-        ``settings_version`` (not the keyframe version). Returns the new record."""
+        """Replace the localizer settings and calibration (and, if given, the latest
+        self-test's summary) in one transaction; bumps ``settings_version`` (not the
+        keyframe version). Returns the new record."""
 
     @abstractmethod
     def find_keys(self, keys: list[str]) -> dict[str, int]:

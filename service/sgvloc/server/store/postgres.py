@@ -411,13 +411,18 @@ class PgMapStore(MapStore):
         return record_from_meta(meta, f"map {self.name!r}")
 
     def update_settings(
-        self, localizer_config: LocalizerConfig, calibration: Calibration
+        self,
+        localizer_config: LocalizerConfig,
+        calibration: Calibration,
+        last_self_test: dict[str, Any] | None = None,
     ) -> MapRecord:
         patch = {
             "localizer_config": localizer_config.model_dump_json(),
             "calibration": json.dumps(calibration.to_dict()),
             "settings_updated_at": utc_now(),
         }
+        if last_self_test is not None:
+            patch["last_self_test"] = json.dumps(last_self_test)
         with self._tx() as cur:
             self._lock_map(cur)
             cur.execute(

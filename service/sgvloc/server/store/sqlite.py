@@ -29,6 +29,7 @@ import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 from sgvloc.core.confidence import Calibration
 from sgvloc.core.config import LocalizerConfig
@@ -201,7 +202,10 @@ class SqliteMapStore(MapStore):
         return record_from_meta(self._meta(), str(self.path))
 
     def update_settings(
-        self, localizer_config: LocalizerConfig, calibration: Calibration
+        self,
+        localizer_config: LocalizerConfig,
+        calibration: Calibration,
+        last_self_test: dict[str, Any] | None = None,
     ) -> MapRecord:
         """Replace the localizer settings and calibration (one transaction)."""
         values = {
@@ -209,6 +213,8 @@ class SqliteMapStore(MapStore):
             "calibration": json.dumps(calibration.to_dict()),
             "settings_updated_at": utc_now(),
         }
+        if last_self_test is not None:
+            values["last_self_test"] = json.dumps(last_self_test)
         with self._lock:
             conn = self._conn
             conn.execute("BEGIN IMMEDIATE")

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 from fastapi import APIRouter, Depends, Request, Response
 
+from sgvloc.core import leave_out
 from sgvloc.core.confidence import shipped_calibration
 from sgvloc.core.encoders import EncoderSpec
 from sgvloc.core.errors import InputError
@@ -24,6 +26,8 @@ from ..schemas import (
     MapList,
     MapPatch,
     MapStats,
+    SelfTestReport,
+    SelfTestRequest,
     limits,
     parse_calibration,
 )
@@ -64,6 +68,7 @@ def map_info(handle: MapHandle) -> MapInfo:
         settings_version=handle.record.settings_version,
         settings_updated_at=handle.record.settings_updated_at,
         self_test=handle.record.self_test,
+        last_self_test=handle.record.last_self_test,
     )
 
 
@@ -203,6 +208,55 @@ async def update_map(
         return map_info(manager.update_settings(map_name, req.localizer, calibration))
 
     return encode(request, await worker.run(work))
+
+
+@router.post(
+    "/{map}/self-test",
+    response_model=SelfTestReport,
+    operation_id="self_test_map",
+    openapi_extra=body_doc(SelfTestRequest),
+    responses=error_responses(400, 404, 409, 413, 415, 422),
+)
+async def self_test_map(
+    request: Request,
+    map_name: MapName,
+    body: BodyDep,
+    manager: ManagerDep,
+    settings: SettingsDep,
+    worker: WorkerDep,
+) -> Response:
+    """Localize a sample of the map's own keyframes against the others, leaving out each
+    one's own stretch of the drive: Recall@1, pose success and false accepts of the map as
+    it is served (:mod:`sgvloc.core.leave_out`). Each query takes a worker on its own, so
+    localizations go on beside it; the summary is recorded with the map
+    (``last_self_test``). 409 if keyframes change meanwhile."""
+    req = SelfTestRequest.model_validate(body.decode())
+    t0 = time.monotonic()
+    version, plan = await worker.run(
+        lambda: manager.self_test_plan(
+            map_name, req.queries, req.gap_s, req.gap_keyframes, req.radius_m
+        )
+    )
+    records = []
+    for kf in plan.in_coverage + plan.out_of_coverage:
+        records.append(
+            await worker.run(
+                lambda kf=kf: manager.self_test_query(map_name, version, plan, kf, req.radius_m),
+                deadline_at=time.monotonic() + settings.request_timeout_s,
+            )
+        )
+    handle = manager.get(map_name)
+    summary = {
+        "format": leave_out.FORMAT,
+        "map_version": version,
+        "encoder": handle.record.encoder_spec.kind,
+        "basis": plan.basis,
+        "settings": req.model_dump(),
+        "figures": leave_out.summarise(records),
+        "seconds": round(time.monotonic() - t0, 2),
+    }
+    await worker.run(lambda: manager.record_self_test(map_name, summary))
+    return encode(request, SelfTestReport(**summary, records=records))
 
 
 @router.post(

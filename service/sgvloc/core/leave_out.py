@@ -1,0 +1,148 @@
+"""A map's leave-out self-test: its own keyframes localized against the others.
+
+Each sampled keyframe is a query: its stored features and cloud (what ``encoder.prepare``
+and ``encode_cloud`` made of its scan, the same as a live query's) are localized with
+the map's settings against every keyframe except its own stretch of the drive: those
+closer than ``gap_s`` seconds to it (``metadata.timestamp``, as ``sgvloc build-map``
+records it) or, when not every keyframe has a timestamp, closer than ``gap_keyframes``
+in insertion order (ids). A query is *in coverage* if a keyframe left to search lies
+within ``radius_m`` of it; such a query should be found and posed. Out-of-coverage
+queries are sampled alike: accepting one of them with a wrong pose is a false accept.
+
+Figures (:func:`summarise`): Recall@1 (re-ranked top-1 within ``radius_m``) and pose
+success (within 2 m and 5 deg of the keyframe's recorded pose) over the in-coverage
+queries, the share of correct answers accepted, and false accepts over all queries:
+the figures of ``sgvloc eval``, on the map as it is served. Only the map's own encoder
+can be measured this way (stored features); comparing encoders needs the raw scans
+(``sgvloc build-map --choose-encoder --dry-run``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from .errors import InputError
+from .tracking import rotation_angle_deg
+
+#: docs/EVALUATION.md: a pose within these of the truth is correct
+MAX_RTE_M = 2.0
+MAX_RRE_DEG = 5.0
+#: format tag of a map's self-test report
+FORMAT = "sgvloc-map-self-test/1"
+
+
+@dataclass(frozen=True)
+class Plan:
+    """The queries of one self-test: keyframe ids in and out of coverage, and per query
+    the keyframe ids left to search."""
+
+    in_coverage: list[int]
+    out_of_coverage: list[int]
+    searched: dict[int, np.ndarray]
+    basis: str  # "timestamp" or "insertion order"
+
+
+def plan(
+    ids: np.ndarray,
+    positions: np.ndarray,
+    timestamps: np.ndarray | None,
+    *,
+    queries: int = 50,
+    gap_s: float = 30.0,
+    gap_keyframes: int = 30,
+    radius_m: float = 5.0,
+) -> Plan:
+    """Choose the queries: at most ``queries`` in coverage and as many out of coverage,
+    each set evenly spaced over the map's keyframes (the same map gives the same plan).
+
+    ``ids`` ``[N]``, ``positions`` ``[N, 3]`` (metres), ``timestamps`` ``[N]`` seconds
+    or None (then the gap is ``gap_keyframes`` in id order).
+    """
+    if queries < 1:
+        raise InputError(f"queries must be at least 1, got {queries}")
+    ids = np.asarray(ids, dtype=np.int64)
+    order = np.argsort(ids, kind="stable")
+    ids, positions = ids[order], np.asarray(positions, dtype=np.float64)[order]
+    if timestamps is not None:
+        key, gap, basis = np.asarray(timestamps, dtype=np.float64)[order], gap_s, "timestamp"
+    else:
+        key, gap, basis = np.arange(len(ids), dtype=np.float64), gap_keyframes, "insertion order"
+    inside, outside, searched = [], [], {}
+    for i in range(len(ids)):
+        keep = np.abs(key - key[i]) >= gap
+        if not keep.any():
+            continue  # nothing to search: not a query
+        near = np.linalg.norm(positions[keep] - positions[i], axis=1) <= radius_m
+        (inside if near.any() else outside).append(i)
+        searched[int(ids[i])] = ids[keep]
+
+    def spaced(rows: list[int]) -> list[int]:
+        if len(rows) <= queries:
+            return [int(ids[r]) for r in rows]
+        pick = np.linspace(0, len(rows) - 1, queries).round().astype(int)
+        return [int(ids[rows[p]]) for p in pick]
+
+    chosen_in, chosen_out = spaced(inside), spaced(outside)
+    if not chosen_in:
+        raise InputError(
+            f"no keyframe has a revisit: none lies within {radius_m:g} m of a keyframe "
+            f"at least {gap:g} {'s' if basis == 'timestamp' else 'keyframes'} away from it "
+            f"({basis}); a self-test needs a map whose drive passes a place twice"
+        )
+    kept = set(chosen_in) | set(chosen_out)
+    return Plan(chosen_in, chosen_out, {k: v for k, v in searched.items() if k in kept}, basis)
+
+
+def record(
+    keyframe_id: int,
+    in_coverage: bool,
+    T_true: np.ndarray,
+    result: Any,
+    positions: dict[int, np.ndarray],
+    radius_m: float,
+) -> dict[str, Any]:
+    """One query's record from its :class:`~sgvloc.core.localizer.LocalizationResult`."""
+    T_est = result.T_map_sensor_estimate
+    rte = rre = None
+    correct = False
+    if T_est is not None:
+        rte = float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]))
+        rre = rotation_angle_deg(T_est[:3, :3].T @ T_true[:3, :3])
+        correct = rte <= MAX_RTE_M and rre <= MAX_RRE_DEG
+    top1 = result.reranked[0].keyframe_id if result.reranked else None
+    found = top1 is not None and bool(np.linalg.norm(positions[top1] - T_true[:3, 3]) <= radius_m)
+    return {
+        "keyframe": int(keyframe_id),
+        "in_coverage": bool(in_coverage),
+        "top1": top1,
+        "found": found,
+        "localized": bool(result.localized),
+        "confidence": round(float(result.confidence), 4),
+        "correct": bool(correct),
+        "rte_m": None if rte is None else round(rte, 3),
+        "rre_deg": None if rre is None else round(rre, 3),
+        "ms": round(float(result.timings_ms.get("total", 0.0)), 1),
+    }
+
+
+def summarise(records: list[dict[str, Any]]) -> dict[str, Any]:
+    """The self-test's figures over its per-query records (percentages to 0.1)."""
+
+    def pct(n: int, d: int) -> float | None:
+        return round(100.0 * n / d, 1) if d else None
+
+    inside = [r for r in records if r["in_coverage"]]
+    correct = [r for r in records if r["correct"]]
+    ms = [r["ms"] for r in records]
+    return {
+        "queries": len(inside),
+        "negatives": len(records) - len(inside),
+        "recall_at_1": pct(sum(r["found"] for r in inside), len(inside)),
+        "pose_success": pct(sum(r["correct"] for r in inside), len(inside)),
+        "accepted_of_correct": pct(sum(r["localized"] for r in correct), len(correct)),
+        "false_accepts": sum(r["localized"] and not r["correct"] for r in records),
+        "median_ms": round(float(np.median(ms)), 1) if ms else None,
+    }
