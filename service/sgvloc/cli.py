@@ -1227,6 +1227,20 @@ def train_command(
     seed: Annotated[int, typer.Option(help="random seed")] = 0,
     device: Annotated[str, typer.Option(help="cpu | cuda | auto")] = "cpu",
     resume: Annotated[bool, typer.Option(help="continue from OUT/checkpoint.pt")] = True,
+    lr: Annotated[float, typer.Option(min=0.0, help="learning rate (AdamW)")] = 1e-3,
+    init: Annotated[
+        Path | None,
+        typer.Option(help="start from these weights (sgvloc export-weights): fine-tune"),
+    ] = None,
+    fov_crop: Annotated[
+        float,
+        typer.Option(
+            min=0.0,
+            max=1.0,
+            help="share of training images cropped to a 60-120 deg field of view ahead "
+            "(forward-looking sensors)",
+        ),
+    ] = 0.0,
     threads: ThreadsOpt = None,
 ) -> None:
     """Train the learned BEV encoder (a small CNN) on BEV image sequences with poses."""
@@ -1238,7 +1252,15 @@ def train_command(
 
     _configure_logging("info")
     try:
-        cfg = TrainConfig(steps=steps, batch=batch, seed=seed, device=device)
+        cfg = TrainConfig(
+            steps=steps,
+            batch=batch,
+            seed=seed,
+            device=device,
+            lr=lr,
+            init=None if init is None else str(init),
+            fov_crop=fov_crop,
+        )
         seqs = [Sequence.load(p) for p in data]
         vals = [Sequence.load(p) for p in val or []]
         ckpt = train(seqs, out, cfg, vals, resume=resume)

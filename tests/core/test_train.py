@@ -29,6 +29,7 @@ from sgvloc.tools.train import (
     export_weights,
     load_checkpoint,
     losses,
+    narrow_view,
     rotate_image,
     sample_batch,
     train,
@@ -227,3 +228,46 @@ def test_density_augmentation_keeps_the_shape_of_the_image(seq: Sequence) -> Non
     assert 0.6 < kept <= 1.0
     off = TrainConfig(gain_jitter=0.0, dropout=0.0)
     assert augment_density(img, off, np.random.default_rng(0)) is img
+
+
+def test_field_of_view_augmentation_keeps_a_window_ahead(seq: Sequence) -> None:
+    """narrow_view keeps exactly what a forward-looking sensor of 60-120 deg sees (the
+    eval's crop), with the configured probability; off, it draws nothing at all."""
+    from sgvloc.core.bev import crop_image_azimuth, pixel_to_metres
+
+    img = seq.images[0]
+    cfg = TrainConfig(fov_crop=1.0)
+    out = narrow_view(img, cfg, np.random.default_rng(0))
+    assert out.shape == img.shape and 0 < (out > 0).sum() < (img > 0).sum()
+    r, c = np.nonzero(out)
+    xy = pixel_to_metres(r, c)
+    assert np.abs(np.degrees(np.arctan2(xy[:, 1], xy[:, 0]))).max() <= 60.0  # <= 120 deg wide
+    for seed in range(3):  # the same crop as the eval's --fov, at the width drawn
+        draw = np.random.default_rng(seed)
+        draw.random()
+        width = draw.uniform(60.0, 120.0)
+        got = narrow_view(img, cfg, np.random.default_rng(seed))
+        assert np.array_equal(got, crop_image_azimuth(img, width))
+    half = TrainConfig(fov_crop=0.5)
+    rng = np.random.default_rng(1)
+    cropped = sum(narrow_view(img, half, rng) is not img for _ in range(200))
+    assert 70 < cropped < 130
+    rng = np.random.default_rng(2)
+    assert narrow_view(img, TrainConfig(), rng) is img
+    assert rng.random() == np.random.default_rng(2).random()  # default training unchanged
+
+
+def test_training_can_start_from_exported_weights(seq: Sequence, tmp_path: Path) -> None:
+    ckpt = train([seq], tmp_path / "a", tiny_config(2), progress=False)
+    weights = export_weights(ckpt, tmp_path / "w.pt")
+    start, _ = load_checkpoint(ckpt)
+    cfg = tiny_config(1)
+    cfg.init, cfg.seed = str(weights), 7  # another seed: the weights must come from init
+    zero = TrainConfig(**{**cfg.__dict__, "steps": 0, "checkpoint_every": 1})
+    ckpt0 = train([seq], tmp_path / "b", zero, progress=False)
+    model, _ = load_checkpoint(ckpt0)
+    for (k, a), b in zip(start.state_dict().items(), model.state_dict().values(), strict=True):
+        assert torch.equal(a, b), k
+    wrong = TrainConfig(**{**cfg.__dict__, "width": 16})
+    with pytest.raises(InputError, match="do not fit"):
+        train([seq], tmp_path / "c", wrong, progress=False)

@@ -31,7 +31,14 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from sgvloc.core.bev import KITTI_BEV, level_cloud, load_bev_image, prepare_points, rasterize_cloud
+from sgvloc.core.bev import (
+    KITTI_BEV,
+    crop_image_azimuth,
+    level_cloud,
+    load_bev_image,
+    prepare_points,
+    rasterize_cloud,
+)
 from sgvloc.core.bevnet import (
     CELLS,
     INPUT_SIZE,
@@ -146,6 +153,14 @@ class TrainConfig:
     #: pixels darker than this are zeroed after augmentation (:func:`cut_faint`); the
     #: encoder applies the same cut (stored with the exported weights)
     min_grey: int = 52
+    #: field-of-view augmentation: with this probability an image keeps only a horizontal
+    #: window of ``fov_min``..``fov_max`` degrees ahead of the sensor (a forward-looking
+    #: sensor; :func:`sgvloc.core.bev.crop_image_azimuth`), before its yaw turn (0: off)
+    fov_crop: float = 0.0
+    fov_min: float = 60.0
+    fov_max: float = 120.0
+    #: start from these weights (a file of ``sgvloc export-weights``: fine-tuning)
+    init: str | None = None
     extra: dict = field(default_factory=dict)
 
 
@@ -159,6 +174,14 @@ def augment_density(img: np.ndarray, cfg: TrainConfig, rng: np.random.Generator)
     if cfg.dropout > 0:
         out[rng.random(img.shape) < rng.uniform(0, cfg.dropout)] = 0
     return out.astype(np.uint8)
+
+
+def narrow_view(img: np.ndarray, cfg: TrainConfig, rng: np.random.Generator) -> np.ndarray:
+    """The image as a forward-looking sensor of a random field of view would see it, with
+    probability ``cfg.fov_crop`` (no random draw at all when that is 0)."""
+    if cfg.fov_crop > 0 and rng.random() < cfg.fov_crop:
+        return crop_image_azimuth(img, float(rng.uniform(cfg.fov_min, cfg.fov_max)))
+    return img
 
 
 def sample_batch(
@@ -178,8 +201,13 @@ def sample_batch(
         cand = np.nonzero((d < cfg.pos_radius) & (np.arange(len(d)) != i))[0]
         j = int(rng.choice(cand)) if len(cand) else i
         ya, yb = rng.uniform(0, 2 * np.pi, 2)
-        ia = cut_faint(augment_density(rotate_image(s.images[i], ya), cfg, rng), cfg.min_grey)
-        ib = cut_faint(augment_density(rotate_image(s.images[j], yb), cfg, rng), cfg.min_grey)
+        ia, ib = (
+            cut_faint(
+                augment_density(rotate_image(narrow_view(s.images[n], cfg, rng), y), cfg, rng),
+                cfg.min_grey,
+            )
+            for n, y in ((i, ya), (j, yb))
+        )
         # anchor cells (occupied) -> metres (augmented A) -> A -> B -> augmented B -> cell
         occ = np.zeros((INPUT_SIZE, INPUT_SIZE), bool)
         occ[:151, :151] = ia > 0
@@ -369,7 +397,16 @@ def train(
     device = resolve_device(cfg.device)
     torch.manual_seed(cfg.seed)
     rng = np.random.default_rng(cfg.seed)
-    model = build_model(cfg).to(device)
+    model = build_model(cfg)
+    if cfg.init:
+        from sgvloc.core.encoders.learned import load_weights
+
+        start, _ = load_weights(cfg.init)
+        try:
+            model.load_state_dict(start.state_dict())
+        except RuntimeError as exc:
+            raise InputError(f"init: weights {cfg.init!r} do not fit this model: {exc}") from None
+    model = model.to(device)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=1e-4)
     ckpt_path = out / "checkpoint.pt"
     step, history, val_hist = 0, [], []
