@@ -101,10 +101,11 @@ def record(
     in_coverage: bool,
     T_true: np.ndarray,
     result: Any,
-    positions: dict[int, np.ndarray],
+    top1_position: np.ndarray | None,
     radius_m: float,
 ) -> dict[str, Any]:
-    """One query's record from its :class:`~sgvloc.core.localizer.LocalizationResult`."""
+    """One query's record from its :class:`~sgvloc.core.localizer.LocalizationResult`
+    and the position of its re-ranked top-1 keyframe (None: nothing retrieved)."""
     T_est = result.T_map_sensor_estimate
     rte = rre = None
     correct = False
@@ -113,7 +114,9 @@ def record(
         rre = rotation_angle_deg(T_est[:3, :3].T @ T_true[:3, :3])
         correct = rte <= MAX_RTE_M and rre <= MAX_RRE_DEG
     top1 = result.reranked[0].keyframe_id if result.reranked else None
-    found = top1 is not None and bool(np.linalg.norm(positions[top1] - T_true[:3, 3]) <= radius_m)
+    found = top1_position is not None and bool(
+        np.linalg.norm(top1_position - T_true[:3, 3]) <= radius_m
+    )
     return {
         "keyframe": int(keyframe_id),
         "in_coverage": bool(in_coverage),

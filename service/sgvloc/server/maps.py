@@ -940,9 +940,9 @@ class MapManager:
             )
         kf, result = handle.localizer.localize_keyframe(keyframe_id, plan.searched[keyframe_id])
         top = result.reranked[0].keyframe_id if result.reranked else None
-        positions = {} if top is None else {top: handle.localizer.keyframe(top).T_map_sensor[:3, 3]}
+        at = None if top is None else handle.localizer.keyframe(top).T_map_sensor[:3, 3]
         inside = keyframe_id in plan.in_coverage
-        return leave_out.record(keyframe_id, inside, kf.T_map_sensor, result, positions, radius_m)
+        return leave_out.record(keyframe_id, inside, kf.T_map_sensor, result, at, radius_m)
 
     def record_self_test(self, name: str, summary: dict[str, Any]) -> MapHandle:
         """Store a self-test's summary with the map's settings (``last_self_test``)."""
