@@ -220,19 +220,30 @@ def test_eval_with_a_prior_and_scans_of_another_place(balm_mini_dir, tmp_path):
 
 
 def test_eval_crops_every_scan_to_a_field_of_view(balm_mini_dir, tmp_path, first_run):
-    """--fov 70 encodes each scan cropped to 70 degrees ahead (features cached apart from
-    the full scans'), so the local matches see fewer keypoints."""
+    """--fov 180 encodes each scan cropped to 180 degrees ahead (features cached apart
+    from the full scans'), so the local matches see fewer keypoints; a query is in
+    coverage only with a map scan facing within half the view: at 70 degrees none of the
+    fixture's three revisits is."""
     cache, out = tmp_path / "cache", tmp_path / "out"
     args = ["eval", "--data", str(balm_mini_dir), "--min-gap", "30", "--topk", "3"]
-    args += ["--sweep", "3", "--methods", "none,sgv", "--fov", "70", "--no-progress"]
+    args += ["--sweep", "3", "--methods", "none,sgv", "--fov", "180", "--no-progress"]
     args += ["--cache-dir", str(cache), "--out", str(out)]
     res = CliRunner().invoke(app, args)
     assert res.exit_code == 0, res.output
     report = json.loads((out / "eval.json").read_text())
-    assert report["config"]["fov"] == 70.0
-    assert any(n.startswith("field of view: every scan cropped to 70 deg") for n in report["notes"])
-    assert [p.name.endswith("-fov70") for p in cache.iterdir()] == [True]
+    assert report["config"]["fov"] == 180.0
+    cropped = "field of view: every scan cropped to 180 deg"
+    assert any(n.startswith(cropped) for n in report["notes"])
+    assert [p.name.endswith("-fov180") for p in cache.iterdir()] == [True]
+    assert report["split"]["coverage_heading_deg"] == 90.0
     full = first_run[1]["matches"]
+    assert report["split"]["queries"] == first_run[1]["split"]["queries"] == 3
     assert report["matches"]["query_keypoints_mean"] < full["query_keypoints_mean"]
+    narrow = [a if a != "180" else "70" for a in args[:-1]]
+    res = CliRunner().invoke(app, [*narrow, str(tmp_path / "n")])
+    assert res.exit_code == 0, res.output
+    split = json.loads((tmp_path / "n" / "eval.json").read_text())["split"]
+    assert split["queries"] == 0 and split["negative_queries"] == 10
+    assert split["coverage_heading_deg"] == 35.0
     res = CliRunner().invoke(app, [*args[:-4], "--fov", "400", "--out", str(tmp_path / "x")])
     assert res.exit_code == 2 and "--fov" in res.output

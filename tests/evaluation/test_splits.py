@@ -79,3 +79,22 @@ def test_leave_out_split_hides_the_querys_own_stretch_both_ways():
     assert 19 in s.dropped and 20 in s.dropped
     with pytest.raises(InputError, match="leave_out"):
         make_split(times, pos, leave_out=-1.0)
+
+
+def test_a_narrow_view_needs_a_database_scan_facing_the_same_way():
+    """Out along x (heading 0) and back (heading 180): with max_heading_deg the way back
+    has no database scan that sees what it sees, so it is out of coverage."""
+    times, pos = out_and_back()
+    heading = np.where(np.arange(40) < 20, 0.0, 180.0)
+    heading[30:] = -10.0  # the last ten turn round to face like the way out (wrapped)
+    s = make_split(times, pos, db_until=19.0, threshold=5.0)
+    assert len(s.queries) == 20 and s.summary()["coverage_heading_deg"] is None
+    v = make_split(
+        times, pos, db_until=19.0, threshold=5.0, headings_deg=heading, max_heading_deg=35.0
+    )
+    assert set(v.queries) == set(range(30, 40)) and set(v.dropped) == set(range(20, 30))
+    assert v.summary()["coverage_heading_deg"] == 35.0
+    with pytest.raises(InputError, match="headings_deg"):
+        make_split(times, pos, db_until=19.0, max_heading_deg=35.0)
+    with pytest.raises(InputError, match="max_heading_deg"):
+        make_split(times, pos, db_until=19.0, headings_deg=heading, max_heading_deg=0.0)

@@ -97,7 +97,9 @@ class EvalConfig(BaseModel):
         gt=0.0,
         le=360.0,
         description="crop every scan (database, queries, foreign) to this horizontal field "
-        "of view about the sensor's forward axis (deg), emulating a forward-looking sensor",
+        "of view about the sensor's forward axis (deg), emulating a forward-looking sensor; "
+        "a query is then in coverage only if a database scan within the threshold also "
+        "faces within half the field of view of it (their views share at least half)",
     )
     negatives: bool = Field(
         True, description="keep out-of-coverage queries as negatives for the verdict"
@@ -229,6 +231,8 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
         query_stride=cfg.query_stride,
         max_queries=cfg.max_queries,
         negatives=cfg.negatives,
+        headings_deg=np.degrees(np.arctan2(poses[:, 1, 0], poses[:, 0, 0])),
+        max_heading_deg=cfg.fov / 2.0 if cfg.fov and cfg.fov < 360.0 else None,
     )
     if len(split.queries) == 0 and len(split.negatives) == 0 and not cfg.foreign:
         raise InputError(f"{cfg.data}: no query has a database scan within {split.threshold} m")
@@ -528,7 +532,9 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
         notes.insert(
             0,
             f"field of view: every scan cropped to {cache.fov_deg:g} deg about the sensor's "
-            "forward axis before encoding (a forward-looking sensor emulated)",
+            "forward axis before encoding (a forward-looking sensor emulated); in coverage "
+            f"= a database scan within {split.threshold:g} m facing within "
+            f"{cache.fov_deg / 2:g} deg of the query",
         )
     if cfg.prior_noise is not None:
         notes.append(

@@ -40,7 +40,10 @@ class Split:
       database scan within ``threshold`` metres (out of coverage; no recall);
     - ``negatives``: the out-of-coverage queries evaluated as negatives for the verdict
       (empty unless asked for);
-    - ``database``: every scan that is in the database of at least one evaluated query.
+    - ``database``: every scan that is in the database of at least one evaluated query;
+    - ``max_heading_deg``: coverage also needs that database scan to face within this
+      many degrees of the query (a narrow field of view: else it sees something else);
+      None: any heading.
     """
 
     mode: Literal["time", "loop", "range", "leave-out"]
@@ -56,6 +59,7 @@ class Split:
     db_range: tuple[int, int] | None = None
     query_range: tuple[int, int] | None = None
     leave_out: float | None = None
+    max_heading_deg: float | None = None
 
     def database_for(self, query: int) -> np.ndarray:
         """Database scan indices (sorted) visible to ``query``."""
@@ -71,6 +75,7 @@ class Split:
             "db_range": list(self.db_range) if self.db_range else None,
             "query_range": list(self.query_range) if self.query_range else None,
             "drop_threshold_m": self.threshold,
+            "coverage_heading_deg": self.max_heading_deg,
             "scans": int(len(self.times)),
             "database_scans": int(len(self.database)),
             "queries": int(len(self.queries)),
@@ -105,6 +110,8 @@ def make_split(
     query_stride: int = 1,
     max_queries: int | None = None,
     negatives: bool = False,
+    headings_deg: np.ndarray | None = None,
+    max_heading_deg: float | None = None,
 ) -> Split:
     """Split a sequence by time (``db_until``), loop-closure gap (``min_gap``), frame
     ranges (``db_range``, ``query_range``) or for a self-test (``leave_out``).
@@ -115,7 +122,9 @@ def make_split(
     ``positions`` ``[F, 3]`` the ground-truth sensor positions. Kept queries can be
     thinned to every ``query_stride``-th and capped at ``max_queries`` (evenly spaced) for
     quick runs; with ``negatives`` the out-of-coverage queries are kept as negatives,
-    thinned the same way.
+    thinned the same way. With ``max_heading_deg`` (and the scans' ``headings_deg``
+    ``[F]``, yaw in degrees) a query is in coverage only if a database scan within
+    ``threshold`` also faces within that many degrees of it.
     """
     t = np.asarray(times, dtype=np.float64)
     pos = np.asarray(positions, dtype=np.float64)
@@ -134,6 +143,11 @@ def make_split(
         raise InputError(f"query_stride must be >= 1, got {query_stride}")
     if threshold <= 0:
         raise InputError(f"threshold must be positive, got {threshold}")
+    if max_heading_deg is not None:
+        if not 0 < max_heading_deg <= 180:
+            raise InputError(f"max_heading_deg must be in (0, 180], got {max_heading_deg}")
+        if headings_deg is None or np.shape(headings_deg) != (len(t),):
+            raise InputError("max_heading_deg needs the scans' headings_deg [F]")
     t = t - t[0] if len(t) else t
     dbr = qr = None
     mode: Literal["time", "loop", "range", "leave-out"]
@@ -174,13 +188,17 @@ def make_split(
         db_range=dbr,
         query_range=qr,
         leave_out=leave_out,
+        max_heading_deg=max_heading_deg,
     )
 
     kept, dropped = [], []
     for q in candidates:
         db = proto.database_for(q)
-        d = np.linalg.norm(pos[db] - pos[q], axis=1) if len(db) else np.zeros(0)
-        (kept if (d <= threshold).any() else dropped).append(int(q))
+        near = np.linalg.norm(pos[db] - pos[q], axis=1) <= threshold
+        if max_heading_deg is not None:
+            turn = np.abs((np.asarray(headings_deg)[db] - headings_deg[q] + 180.0) % 360.0 - 180.0)
+            near &= turn <= max_heading_deg
+        (kept if near.any() else dropped).append(int(q))
 
     def thin(idx: list[int]) -> np.ndarray:
         out = np.asarray(idx, dtype=np.int64)[::query_stride]
