@@ -1435,6 +1435,67 @@ def _stats_dict(s: Any) -> dict[str, Any]:
     }
 
 
+@map_app.command("self-test")
+def map_self_test_command(
+    map_name: Annotated[str, typer.Argument(metavar="MAP")],
+    queries: Annotated[
+        int, typer.Option(min=1, max=200, help="at most this many queries with a revisit")
+    ] = 50,
+    gap_s: Annotated[
+        float, typer.Option(help="leave out each query's keyframes closer in time (seconds)")
+    ] = 30.0,
+    gap_keyframes: Annotated[
+        int, typer.Option(min=1, help="the same in insertion order, without timestamps")
+    ] = 30,
+    radius_m: Annotated[float, typer.Option(help="a keyframe this close is a revisit")] = 5.0,
+    as_json: Annotated[
+        bool, typer.Option("--json", help="print the whole report (with per-query records)")
+    ] = False,
+    url: UrlOpt = DEFAULT_URL,
+    api_key: KeyOpt = None,
+    timeout: TimeoutOpt = 600.0,
+) -> None:
+    """Localize a sample of a served map's own keyframes against the others, each one's
+    own stretch of the drive left out (POST /v1/maps/{map}/self-test): Recall@1, pose
+    success, correct answers accepted and false accepts; recorded with the map."""
+    import json
+
+    with _sdk(url, api_key, timeout) as c:
+        rep = _sdk_call(
+            "self-test",
+            lambda: c.self_test_map(
+                map_name,
+                queries=queries,
+                gap_s=gap_s,
+                gap_keyframes=gap_keyframes,
+                radius_m=radius_m,
+                timeout=timeout,
+            ),
+        )
+    if as_json:
+        typer.echo(json.dumps(rep, indent=1))
+        return
+    f = rep["figures"]
+
+    def pct(v: float | None) -> str:
+        return "-" if v is None else f"{v:.1f}"
+
+    typer.echo(
+        f"map {map_name!r} (version {rep['map_version']}, {rep['encoder']} encoder), "
+        f"gap by {rep['basis']}, {rep['seconds']:.1f} s"
+    )
+    typer.echo(
+        "| queries | negatives | R@1 % | pose success % | correct accepted % | "
+        "false accepts | median ms |"
+    )
+    typer.echo("|---:|---:|---:|---:|---:|---:|---:|")
+    typer.echo(
+        f"| {f['queries']} | {f['negatives']} | {pct(f['recall_at_1'])} | "
+        f"{pct(f['pose_success'])} | {pct(f['accepted_of_correct'])} | "
+        f"{f['false_accepts']} | {pct(f['median_ms'])} |"
+    )
+
+
 @map_app.command("keyframes")
 def map_keyframes_command(
     map_name: Annotated[str, typer.Argument(metavar="MAP")],

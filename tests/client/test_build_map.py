@@ -319,6 +319,14 @@ def test_self_test_of_a_served_map(service_url: str, balm_mini_dir: Path) -> Non
             assert r["top1"] is None or r["top1"] != r["keyframe"]
         info = c.get_map("st")
         assert info.last_self_test["figures"] == figs
+        out = runner.invoke(app, ["map", "self-test", "st", "--queries", "4", "--url", service_url])
+        assert out.exit_code == 0, out.output
+        row = (
+            f"| 4 | {figs['negatives']} | {figs['recall_at_1']:.1f} | {figs['pose_success']:.1f} |"
+        )
+        assert row in out.output and "gap by timestamp" in out.output
+        out = runner.invoke(app, ["map", "self-test", "nope", "--url", service_url])
+        assert out.exit_code == 1 and "nope" in out.output
         assert info.version == rep["map_version"]
         again = c.self_test_map("st", queries=4)
         strip = [{k: v for k, v in r.items() if k != "ms"} for r in recs]
