@@ -45,6 +45,7 @@ import numpy as np
 from sgvloc.about import PACKAGE_DIR
 
 from .errors import InputError
+from .pose import rotation_angle_deg
 
 #: candidates farther than this from the top-1 keyframe count as another place (margin)
 DISTINCT_RADIUS_M = 5.0
@@ -52,8 +53,11 @@ DISTINCT_RADIUS_M = 5.0
 AGREEMENT_CANDIDATES = 5
 #: agreement counts at most this many candidates
 AGREEMENT_CAP = 3
-#: implied poses agree within these bounds (the success thresholds of docs/EVALUATION.md)
-AGREEMENT_M, AGREEMENT_DEG = 2.0, 5.0
+#: a pose this close to the truth is correct, what the confidence is the probability of
+#: (the success thresholds of docs/EVALUATION.md)
+CORRECT_M, CORRECT_DEG = 2.0, 5.0
+#: implied poses agree within the same bounds
+AGREEMENT_M, AGREEMENT_DEG = CORRECT_M, CORRECT_DEG
 
 #: model inputs: name -> how it is derived from the evidence (oriented: larger = better)
 FEATURES: dict[str, Callable[[Evidence], float]] = {}
@@ -193,21 +197,13 @@ def spectral_candidates(
     return out
 
 
-def _rotation_deg(R: np.ndarray) -> float:
-    """The angle of a rotation matrix (degrees), from its sine and cosine: accurate near 0,
-    where ``arccos`` of the trace turns rounding of 1e-16 into angles of 1e-6 deg."""
-    sin = 0.5 * np.linalg.norm([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    cos = (np.trace(R) - 1.0) / 2.0
-    return float(np.degrees(np.arctan2(sin, cos)))
-
-
 def poses_agree(
     T_a: np.ndarray, T_b: np.ndarray, max_m: float = AGREEMENT_M, max_deg: float = AGREEMENT_DEG
 ) -> bool:
     """Whether two 4x4 poses are within ``max_m`` metres and ``max_deg`` degrees."""
     if np.linalg.norm(T_a[:3, 3] - T_b[:3, 3]) > max_m:
         return False
-    return _rotation_deg(T_a[:3, :3].T @ T_b[:3, :3]) <= max_deg
+    return rotation_angle_deg(T_a[:3, :3].T @ T_b[:3, :3]) <= max_deg
 
 
 def gather_evidence(

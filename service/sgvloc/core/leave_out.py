@@ -24,12 +24,10 @@ from typing import Any
 
 import numpy as np
 
+from .confidence import CORRECT_DEG, CORRECT_M
 from .errors import InputError
-from .tracking import rotation_angle_deg
+from .pose import rotation_angle_deg
 
-#: docs/EVALUATION.md: a pose within these of the truth is correct
-MAX_RTE_M = 2.0
-MAX_RRE_DEG = 5.0
 #: format tag of a map's self-test report
 FORMAT = "sgvloc-map-self-test/1"
 
@@ -112,7 +110,7 @@ def record(
     if T_est is not None:
         rte = float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]))
         rre = rotation_angle_deg(T_est[:3, :3].T @ T_true[:3, :3])
-        correct = rte <= MAX_RTE_M and rre <= MAX_RRE_DEG
+        correct = rte <= CORRECT_M and rre <= CORRECT_DEG
     top1 = result.reranked[0].keyframe_id if result.reranked else None
     found = top1_position is not None and bool(
         np.linalg.norm(top1_position - T_true[:3, 3]) <= radius_m

@@ -47,6 +47,14 @@ class PoseResult:
         return self.verdict == "localized"
 
 
+def rotation_angle_deg(R: np.ndarray) -> float:
+    """The angle of a rotation matrix (degrees, 0..180), from its sine and cosine: accurate
+    near 0, where ``arccos`` of the trace turns rounding of 1e-16 into angles of 1e-6 deg."""
+    sin = 0.5 * np.linalg.norm([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    cos = (np.trace(R) - 1.0) / 2.0
+    return float(np.degrees(np.arctan2(sin, cos)))
+
+
 def is_rigid(T: np.ndarray, tol: float = 1e-4) -> bool:
     """True if ``T`` is a 4x4 rigid transform (orthonormal R with det +1, last row 0 0 0 1)."""
     T = np.asarray(T, dtype=np.float64)

@@ -25,7 +25,7 @@ from sgvloc.about import PACKAGE_DIR
 
 from .config import TrackingConfig
 from .errors import InputError
-from .pose import check_rigid, nearest_squared_distances
+from .pose import check_rigid, nearest_squared_distances, rotation_angle_deg
 from .preprocess import as_points
 
 try:  # the service extra installs it; the engine still imports without it
@@ -202,11 +202,6 @@ def _require_small_gicp() -> None:
             "seeded localization needs the small_gicp package (pip install small_gicp; it "
             "is part of the service extra)"
         )
-
-
-def rotation_angle_deg(R: np.ndarray) -> float:
-    """The angle of a rotation matrix (degrees, 0..180)."""
-    return math.degrees(math.acos(float(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
 
 
 def build_submap(

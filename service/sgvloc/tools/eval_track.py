@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from sgvloc.core.confidence import CORRECT_DEG, CORRECT_M  # a fix beyond either is wrong
 from sgvloc.core.config import LocalizerConfig
 from sgvloc.core.encoders import EncoderSpec
 from sgvloc.core.sequence import KittiSequence
@@ -33,8 +34,6 @@ from sgvloc.server.maps import KeyframeIn, MapManager
 from sgvloc_client.tracking import MotionModel
 
 from .evaluation.metrics import rre, rte
-
-CORRECT_M, CORRECT_DEG = 2.0, 5.0  # a fix beyond either is wrong
 
 
 @dataclass

@@ -19,11 +19,11 @@ from collections.abc import Iterable, Sequence
 
 import numpy as np
 
+from sgvloc.core.confidence import CORRECT_DEG, CORRECT_M
 from sgvloc.core.errors import InputError
 
 #: docs/EVALUATION.md: success thresholds on the re-ranked top-1 pose
-MAX_RTE_M = 2.0
-MAX_RRE_DEG = 5.0
+MAX_RTE_M, MAX_RRE_DEG = CORRECT_M, CORRECT_DEG
 
 
 def first_true_rank(
