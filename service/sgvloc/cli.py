@@ -277,8 +277,6 @@ def loadtest_command(
     Retry-After are counted apart, as deliberate refusals). --slow-clients shows whether
     slow uploads hold up the others."""
     _cap_threads(threads)
-    import json
-
     import httpx
 
     from .tools.loadtest import run_loadtest, run_loadtest_local
@@ -752,8 +750,6 @@ def eval_track_command(
     the service's seeded localize with the SDK's motion model, compare with the ground
     truth (errors, availability, wrong fixes, time per mode, kidnap recovery)."""
     _cap_threads(threads)
-    import json
-
     from .core.encoders import EncoderSpec
     from .core.errors import SgvlocError
     from .tools.build_map import parse_encoder
@@ -838,8 +834,6 @@ def calibrate_track_command(
     fitness and RMSE) on sequences with ground truth, from seeds perturbed near and far;
     report it on held-out sequences. Ship the result as sgvloc/calibration/tracking.json."""
     _cap_threads(threads)
-    import json
-
     from .core.config import VerdictConfig
     from .core.encoders import EncoderSpec
     from .core.errors import SgvlocError
@@ -1412,8 +1406,6 @@ def map_stats_command(
 ) -> None:
     """A map's statistics as JSON: keyframes, extent, disk and memory use, index kind,
     last write."""
-    import json
-
     with _sdk(url, api_key, timeout) as c:
         s = _sdk_call("stats", lambda: c.map_stats(map_name))
     typer.echo(json.dumps(_stats_dict(s), indent=1))
@@ -1458,8 +1450,6 @@ def map_self_test_command(
     """Localize a sample of a served map's own keyframes against the others, each one's
     own stretch of the drive left out (POST /v1/maps/{map}/self-test): Recall@1, pose
     success, correct answers accepted and false accepts; recorded with the map."""
-    import json
-
     with _sdk(url, api_key, timeout) as c:
         rep = _sdk_call(
             "self-test",
@@ -1510,8 +1500,6 @@ def map_keyframes_command(
 ) -> None:
     """The keyframes matching the filters, one JSON object per line (id, key, position,
     metadata, created_at), every page."""
-    import json
-
     where = _filters(key_prefix, bbox, time_min, time_max, sequence)
     with _sdk(url, api_key, timeout) as c:
 
