@@ -34,13 +34,20 @@ FORMAT = "sgvloc-map-self-test/1"
 
 @dataclass(frozen=True)
 class Plan:
-    """The queries of one self-test: keyframe ids in and out of coverage, and per query
-    the keyframe ids left to search."""
+    """The queries of one self-test: keyframe ids in and out of coverage; what each
+    searches comes from :meth:`searched` (not stored: that is a map-sized array each)."""
 
     in_coverage: list[int]
     out_of_coverage: list[int]
-    searched: dict[int, np.ndarray]
     basis: str  # "timestamp" or "insertion order"
+    ids: np.ndarray  # [N] every keyframe id, ascending
+    key: np.ndarray  # [N] their timestamps (s) or ranks in insertion order
+    gap: float
+
+    def searched(self, keyframe_id: int) -> np.ndarray:
+        """The keyframe ids a query searches: every one at least ``gap`` away from it."""
+        i = int(np.searchsorted(self.ids, keyframe_id))
+        return self.ids[np.abs(self.key - self.key[i]) >= self.gap]
 
 
 def plan(
@@ -57,25 +64,29 @@ def plan(
     each set evenly spaced over the map's keyframes (the same map gives the same plan).
 
     ``ids`` ``[N]``, ``positions`` ``[N, 3]`` (metres), ``timestamps`` ``[N]`` seconds
-    or None (then the gap is ``gap_keyframes`` in id order).
+    or None (then the gap is ``gap_keyframes`` in id order). A KD-tree finds each
+    keyframe's neighbours within ``radius_m``, so large maps plan in ``N log N``.
     """
+    from scipy.spatial import cKDTree
+
     if queries < 1:
         raise InputError(f"queries must be at least 1, got {queries}")
     ids = np.asarray(ids, dtype=np.int64)
     order = np.argsort(ids, kind="stable")
-    ids, positions = ids[order], np.asarray(positions, dtype=np.float64)[order]
+    ids, positions = ids[order], np.asarray(positions, dtype=np.float64).reshape(-1, 3)[order]
     if timestamps is not None:
         key, gap, basis = np.asarray(timestamps, dtype=np.float64)[order], gap_s, "timestamp"
     else:
         key, gap, basis = np.arange(len(ids), dtype=np.float64), gap_keyframes, "insertion order"
-    inside, outside, searched = [], [], {}
-    for i in range(len(ids)):
-        keep = np.abs(key - key[i]) >= gap
-        if not keep.any():
-            continue  # nothing to search: not a query
-        near = np.linalg.norm(positions[keep] - positions[i], axis=1) <= radius_m
-        (inside if near.any() else outside).append(i)
-        searched[int(ids[i])] = ids[keep]
+    inside, outside = [], []
+    if len(ids):
+        # something to search at all: a keyframe at least the gap away, before or after
+        searchable = np.maximum(key - key.min(), key.max() - key) >= gap
+        near = cKDTree(positions).query_ball_point(positions, radius_m)
+        for i in np.flatnonzero(searchable):
+            nb = np.asarray(near[i], dtype=np.int64)
+            revisit = (np.abs(key[nb] - key[i]) >= gap).any()
+            (inside if revisit else outside).append(int(i))
 
     def spaced(rows: list[int]) -> list[int]:
         if len(rows) <= queries:
@@ -90,8 +101,7 @@ def plan(
             f"at least {gap:g} {'s' if basis == 'timestamp' else 'keyframes'} away from it "
             f"({basis}); a self-test needs a map whose drive passes a place twice"
         )
-    kept = set(chosen_in) | set(chosen_out)
-    return Plan(chosen_in, chosen_out, {k: v for k, v in searched.items() if k in kept}, basis)
+    return Plan(chosen_in, chosen_out, basis, ids, key, float(gap))
 
 
 def record(

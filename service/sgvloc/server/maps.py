@@ -938,7 +938,7 @@ class MapManager:
                 f"map {name!r} changed during the self-test (version {version} -> "
                 f"{handle.version}); run it again"
             )
-        kf, result = handle.localizer.localize_keyframe(keyframe_id, plan.searched[keyframe_id])
+        kf, result = handle.localizer.localize_keyframe(keyframe_id, plan.searched(keyframe_id))
         top = result.reranked[0].keyframe_id if result.reranked else None
         at = None if top is None else handle.localizer.keyframe(top).T_map_sensor[:3, 3]
         inside = keyframe_id in plan.in_coverage
