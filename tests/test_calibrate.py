@@ -7,7 +7,7 @@ import json
 from typer.testing import CliRunner
 
 from sgvloc.cli import app
-from sgvloc.core.confidence import PROFILE_FEATURES, Calibration, Evidence
+from sgvloc.core.confidence import PROFILE_FEATURES, Calibration, Evidence, shipped_calibration
 from sgvloc.tools.synth import SynthConfig, generate
 
 
@@ -44,6 +44,18 @@ def test_calibrate_writes_a_calibration_that_loads(tmp_path):
     assert res.exit_code == 0, res.output
     cal = Calibration.load(tmp_path / "b.json")
     assert set(cal.models) == {"none"} and cal.fitted_on["runs"][0]["refine"] == "none"
+    # with a base, the profiles these answers do not cover are kept from it, and said so
+    args = ["calibrate", "--from", str(report / "eval.json"), "--base", "shipped"]
+    res = CliRunner().invoke(app, [*args, "--name", "partial", "--out", str(tmp_path / "p.json")])
+    assert res.exit_code == 0, res.output
+    partial = Calibration.load(tmp_path / "p.json")
+    shipped = shipped_calibration("learned")
+    assert partial.models["none"] == cal.models["none"]  # refitted on these answers
+    for profile in set(shipped.models) - {"none"}:
+        assert partial.models[profile] == shipped.models[profile]
+        kept = partial.fitted_on["kept"][profile]
+        assert (kept["from"], kept["fingerprint"]) == (shipped.name, shipped.fingerprint)
+    assert "kept from" in res.output
     # a report without sgv at the map's top-k is refused with what to run
     args = ["calibrate", "--from", str(report / "eval.json"), "--config", str(tmp_path / "k.json")]
     (tmp_path / "k.json").write_text('{"top_k": 5}')

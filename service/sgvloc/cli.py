@@ -904,6 +904,13 @@ def calibrate_command(
         str, typer.Option(help="comma-separated: icp, none (3-D sequences run each)")
     ] = "icp,none",
     name: Annotated[str, typer.Option(help="name recorded in the calibration")] = "calibration",
+    base: Annotated[
+        str | None,
+        typer.Option(
+            help="a calibration file, or 'shipped' for the one shipped for the encoder's "
+            "kind: profiles the answers do not cover are kept from it"
+        ),
+    ] = None,
     max_queries: Annotated[
         int | None, typer.Option(min=1, help="at most N queries per sequence")
     ] = None,
@@ -926,6 +933,7 @@ def calibrate_command(
     not report on.
     """
     _cap_threads(threads)
+    from .core.confidence import Calibration, shipped_calibration
     from .core.config import LocalizerConfig
     from .core.encoders import EncoderSpec
     from .core.errors import SgvlocError
@@ -937,13 +945,19 @@ def calibrate_command(
         modes = [m.strip() for m in refine.split(",") if m.strip()]
         if not modes or set(modes) - {"icp", "none"}:
             raise typer.BadParameter(f"expected icp and/or none, got {refine!r}")
+        spec = EncoderSpec.model_validate(parse_encoder(encoder) or {})
+        base_cal = None
+        if base == "shipped":
+            base_cal = shipped_calibration(spec.kind)
+        elif base:
+            base_cal = Calibration.load(base)
         cal = calibrate(
             data or [],
             reports=from_ or [],
             db_until=db_until,
             min_gap=min_gap,
             refine=modes,
-            encoder=EncoderSpec.model_validate(parse_encoder(encoder) or {}),
+            encoder=spec,
             localizer=LocalizerConfig.model_validate_json(config.read_text())
             if config
             else LocalizerConfig(),
@@ -951,6 +965,7 @@ def calibrate_command(
             query_stride=query_stride,
             cache_dir=cache_dir,
             name=name,
+            base=base_cal,
             progress=progress,
             echo=typer.echo,
         )

@@ -44,6 +44,7 @@ GOOD = Evidence(
     inlier_ratio=0.5,
     icp_fitness=0.85,
     icp_rmse=0.25,
+    free_space=0.02,
     agreement=3,
     offset_m=1.0,
 )
@@ -72,14 +73,17 @@ _RISING = [
 @pytest.mark.parametrize(
     "profile, field, values",
     [(p, *r) for p in ("planar", "none", "icp") for r in _RISING]
-    + [("icp", "icp_fitness", [0.1, 0.3, 0.5, 0.7, 0.95])],
+    + [
+        ("icp", "icp_fitness", [0.1, 0.3, 0.5, 0.7, 0.95]),
+        ("icp", "free_space", [0.6, 0.3, 0.1, 0.03, 0.0]),  # less contradiction: better
+    ],
 )
 def test_confidence_rises_with_the_evidence(profile: str, field: str, values: list) -> None:
     cal = shipped_calibration("learned")
     base = GOOD
     if profile != "icp":
         base = dataclasses.replace(
-            GOOD, icp_fitness=None, icp_rmse=None, planar=profile == "planar"
+            GOOD, icp_fitness=None, icp_rmse=None, free_space=None, planar=profile == "planar"
         )
     assert base.profile == profile
     # from weak evidence elsewhere, so that the probability is not saturated at 1
@@ -87,7 +91,7 @@ def test_confidence_rises_with_the_evidence(profile: str, field: str, values: li
         base, sgv=0.06, sgv_margin=0.01, inliers=6, inlier_ratio=0.12, agreement=0
     )
     if base.icp_fitness is not None:
-        weak = dataclasses.replace(weak, icp_fitness=0.45, icp_rmse=0.45)
+        weak = dataclasses.replace(weak, icp_fitness=0.45, icp_rmse=0.45, free_space=0.15)
     conf = [cal.confidence(dataclasses.replace(weak, **{field: v})) for v in values]
     assert all(b >= a for a, b in zip(conf, conf[1:], strict=False)), conf
     # lower RMSE and a smaller offset are better evidence too
@@ -107,6 +111,7 @@ def test_strong_evidence_is_confident_and_weak_evidence_is_not() -> None:
         inlier_ratio=0.06,
         icp_fitness=0.2,
         icp_rmse=0.6,
+        free_space=0.4,
         agreement=0,
         offset_m=12.0,
     )
@@ -208,18 +213,39 @@ def test_gather_evidence_margin_and_agreement() -> None:
         True,
         {"used": True, "fitness": 0.8, "inlier_rmse": 0.3},
     )
+    asked = []
+
+    def free_space(T_map_query: np.ndarray) -> float:
+        asked.append(T_map_query)
+        return 0.07
+
     ev = gather_evidence(
-        [1, 2, 3, 4], spectral, poses.__getitem__, similarity=0.9, pose=pose, T_kf_query=T_kf_q
+        [1, 2, 3, 4],
+        spectral,
+        poses.__getitem__,
+        similarity=0.9,
+        pose=pose,
+        T_kf_query=T_kf_q,
+        free_space=free_space,
     )
+    # the free-space check is asked about the estimate in the map, once
+    assert len(asked) == 1 and np.allclose(asked[0], T_map_q) and ev.free_space == 0.07
     assert ev.sgv == pytest.approx(0.4)
     assert ev.sgv_margin == pytest.approx(0.3)  # 0.4 - 0.1: candidates 2, 4 are near
     assert ev.agreement == 1
     assert (ev.inliers, ev.inlier_ratio, ev.icp_fitness, ev.icp_rmse) == (40, 0.4, 0.8, 0.3)
     assert ev.offset_m == pytest.approx(0.5) and ev.profile == "icp"
     none = gather_evidence(
-        [1], spectral, poses.__getitem__, similarity=0.9, pose=None, T_kf_query=None
+        [1],
+        spectral,
+        poses.__getitem__,
+        similarity=0.9,
+        pose=None,
+        T_kf_query=None,
+        free_space=free_space,
     )
     assert (none.inliers, none.icp_fitness, none.profile) == (0, None, "none")
+    assert none.free_space is None and len(asked) == 1  # no ICP: not asked
 
 
 def test_decide_orders_the_reasons() -> None:

@@ -47,6 +47,10 @@ def test_revisit_queries_localize_within_tolerance(campus):
         assert np.allclose(res.T_map_sensor, T_map_kf @ res.T_keyframe_sensor)
         assert set(res.timings_ms) == {"encode", "retrieve", "rerank", "pose", "verify", "total"}
         assert res.map_version == loc.version
+        # ICP ran, so the free-space check did: a true revisit contradicts little
+        assert res.evidence.free_space is not None and res.evidence.free_space < 0.1
+    plain = loc.localize(scans[queries[0].index], refine="none")
+    assert plain.evidence.icp_fitness is None and plain.evidence.free_space is None
 
 
 def test_sgv_puts_a_true_revisit_first(campus):

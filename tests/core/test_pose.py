@@ -8,6 +8,7 @@ from sgvloc.core.encoders import HandcraftedEncoder
 from sgvloc.core.errors import InputError
 from sgvloc.core.pose import (
     IcpTarget,
+    PoseResult,
     check_rigid,
     fgr_pose,
     is_rigid,
@@ -145,9 +146,23 @@ def test_icp_rejects_a_wrong_pose(pair, settings):
     res = ransac_pose(np.zeros((0, 3)), np.zeros((0, 33)), np.zeros((0, 3)), np.zeros((0, 33)))
     assert not res.localized and "too few keypoints" in res.reason
     res.T_target_source = wrong
+    res.inliers = 12  # as if RANSAC had held a (wrong) hypothesis
     res = refine_icp(res, src_cloud, dst_cloud, PoseConfig(**settings))
     assert not res.localized
     assert "min_icp_fitness" in res.reason
+
+
+def test_icp_from_no_ransac_hypothesis_is_not_localized(pair):
+    """However well ICP fits from where it started, without a RANSAC hypothesis (fewer
+    than ransac_n inliers) the pose is not an estimate of the place."""
+    _, _, src_cloud, dst_cloud, T_gt = pair
+    cfg = PoseConfig()
+    res = PoseResult(T_gt.copy(), 40, cfg.ransac_n - 1, 0.05, 0.3, "not_localized", "")
+    res = refine_icp(res, src_cloud, dst_cloud, cfg)
+    assert res.icp["fitness"] >= cfg.min_icp_fitness  # the fit itself is good
+    assert not res.localized and "no hypothesis" in res.reason
+    res = PoseResult(T_gt.copy(), 40, cfg.ransac_n, 0.1, 0.3, "not_localized", "")
+    assert refine_icp(res, src_cloud, dst_cloud, cfg).localized
 
 
 def test_ransac_batches_stop_early_on_an_easy_match(pair):

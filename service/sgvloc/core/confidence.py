@@ -14,6 +14,9 @@ from evidence the pipeline has already computed, fed to a small fitted model
 - ``inliers`` / ``inlier_ratio``: RANSAC inliers among the feature correspondences;
 - ``icp_fitness`` / ``icp_rmse``: share of query points within the ICP distance of the
   keyframe cloud after ICP, and their RMSE (metres); absent when ICP did not run;
+- ``free_space``: after ICP, the share of the query's points that the nearest keyframes
+  could judge and that lie in space those keyframes saw through
+  (:mod:`sgvloc.core.freespace`; smaller is better); absent without ICP;
 - ``agreement``: how many of the next :data:`AGREEMENT_CANDIDATES` re-ranked candidates
   imply the same query pose (within 2 m and 5 degrees) from their own SpectralGV inlier
   cluster (:func:`spectral_pose`), capped at :data:`AGREEMENT_CAP`;
@@ -91,6 +94,7 @@ class Evidence:
     inlier_ratio: float = 0.0
     icp_fitness: float | None = None
     icp_rmse: float | None = None
+    free_space: float | None = None
     agreement: int = 0
     offset_m: float = 0.0
     planar: bool = False
@@ -122,6 +126,7 @@ _feature("log_inliers")(lambda e: math.log1p(e.inliers))
 _feature("inlier_ratio")(lambda e: e.inlier_ratio)
 _feature("icp_fitness")(lambda e: e.icp_fitness or 0.0)
 _feature("neg_icp_rmse")(lambda e: -(e.icp_rmse or 0.0))
+_feature("neg_free_space")(lambda e: -(e.free_space or 0.0))
 _feature("agreement")(lambda e: e.agreement / AGREEMENT_CAP)
 
 #: the model inputs of each profile
@@ -136,7 +141,11 @@ PROFILE_FEATURES: dict[str, tuple[str, ...]] = {
     ),
 }
 PROFILE_FEATURES["planar"] = PROFILE_FEATURES["none"]
-PROFILE_FEATURES["icp"] = PROFILE_FEATURES["none"] + ("icp_fitness", "neg_icp_rmse")
+PROFILE_FEATURES["icp"] = PROFILE_FEATURES["none"] + (
+    "icp_fitness",
+    "neg_icp_rmse",
+    "neg_free_space",
+)
 
 
 # -- evidence ---------------------------------------------------------------------------
@@ -215,6 +224,7 @@ def gather_evidence(
     pose: Any | None,
     T_kf_query: np.ndarray | None,
     planar: bool = False,
+    free_space: Callable[[np.ndarray], float | None] | None = None,
 ) -> Evidence:
     """The evidence of an answer whose pose ``T_kf_query`` was estimated against
     ``ranked[0]``.
@@ -222,7 +232,9 @@ def gather_evidence(
     ``ranked``: keyframe ids after re-ranking, best first; ``spectral``: their
     :class:`SpectralCandidate`; ``T_map_kf``: a keyframe's pose in the map; ``pose``: the
     :class:`~sgvloc.core.pose.PoseResult` (None: no estimate, most fields stay 0);
-    ``planar``: the query's keypoints have no height (a BEV image).
+    ``planar``: the query's keypoints have no height (a BEV image); ``free_space``:
+    the free-space violation of a map pose of the query
+    (:func:`sgvloc.core.freespace.violation`), asked only after ICP.
     """
     if not ranked:
         return Evidence(planar=bool(planar))
@@ -247,6 +259,8 @@ def gather_evidence(
     if getattr(pose, "refined", False) and pose.icp.get("used"):
         ev.icp_fitness = float(pose.icp["fitness"])
         ev.icp_rmse = float(pose.icp["inlier_rmse"])
+        if free_space is not None:
+            ev.free_space = free_space(T_top @ T_kf_query)
     ev.offset_m = float(np.linalg.norm(T_kf_query[:3, 3]))
     T_map_query = T_top @ T_kf_query
     agree = 0
@@ -333,6 +347,7 @@ def assess(
     T_kf_query: np.ndarray | None,
     min_confidence: float,
     prior: Any | None = None,
+    free_space: Callable[[np.ndarray], float | None] | None = None,
 ) -> Assessment:
     """Judge the answer whose pose ``T_kf_query`` (None: no estimate) was estimated
     against ``ranked[0]`` (non-empty) by ``pose``: the one path the localizer and
@@ -347,6 +362,7 @@ def assess(
         pose=pose if has_estimate else None,
         T_kf_query=T_kf_query,
         planar=not query_keypoints[:, 2].any(),
+        free_space=free_space,
     )
     confidence = calibration.confidence(ev) if has_estimate else 0.0
     T_map_query = T_map_kf(int(ranked[0])) @ T_kf_query if has_estimate else None

@@ -37,6 +37,7 @@ from .deadline import check as check_deadline
 from .encoders import Encoder
 from .errors import ConflictError, InputError, NotFoundError
 from .features import Features
+from .freespace import RADIUS_M, RangeImage, thin, views_near, violation
 from .pose import IcpTarget, PoseResult, check_rigid, ransac_pose, refine_icp
 from .prior import PositionGrid, Prior, yaw_deg
 from .rerank import Candidate, RerankOutput, check_method, rerank
@@ -67,6 +68,8 @@ def _under_way(fn: Callable[..., Any]) -> Callable[..., Any]:
 
 #: keyframe clouds kept indexed for ICP per map (about 0.3 MB each at 5k points)
 ICP_CACHED_KEYFRAMES = 64
+#: keyframe range images kept for the free-space check per map (about 0.26 MB each)
+RANGE_IMAGES_CACHED = 64
 
 
 @dataclass
@@ -169,6 +172,8 @@ class Localizer:
         #: keyframe clouds indexed for ICP, by (keyframe id, id of the cloud array): the
         #: entry holds the array, so its id cannot be reused while the entry lives
         self._icp_targets: BuildCache[IcpTarget] = BuildCache(ICP_CACHED_KEYFRAMES)
+        #: keyframe range images for the free-space check, keyed as the ICP targets
+        self._range_images: BuildCache[RangeImage] = BuildCache(RANGE_IMAGES_CACHED)
 
     # -- the map ------------------------------------------------------------------------
 
@@ -469,6 +474,7 @@ class Localizer:
         timings["encode"] = _ms(t)
 
         check_deadline("retrieval")
+        searched = among  # the keyframes this answer may use, before a prior narrows them
         with self._lock.read():
             version = self.version
             # 2. retrieve the top-k keyframes by global descriptor (inside the prior's radius)
@@ -560,6 +566,7 @@ class Localizer:
                 T_kf_query=T_kf,
                 min_confidence=min_confidence,
                 prior=prior,
+                free_space=lambda T: self._free_space(query_cloud, T, best.id, searched, whole),
             )
             timings["verify"] = _ms(t)
 
@@ -693,6 +700,35 @@ class Localizer:
                 f"keyframes {missing[:5]} are gone from the store; the map is catching up, retry"
             )
         return got
+
+    def _free_space(
+        self,
+        query_cloud: np.ndarray | None,
+        T_map_query: np.ndarray,
+        matched: int,
+        among: np.ndarray | None,
+        whole: dict[int, Keyframe],
+    ) -> float | None:
+        """The free-space violation of the estimate ``T_map_query`` against the matched
+        keyframe and its nearest neighbours (:mod:`sgvloc.core.freespace`), only among
+        ``among`` when given. Call under the read lock."""
+        if query_cloud is None:
+            return None
+        near = self._grid.within(Prior(tuple(T_map_query[:2, 3]), RADIUS_M))
+        if among is not None:
+            near = np.intersect1d(near, among)
+        ids = views_near(
+            T_map_query[:3, 3], matched, near, lambda i: self._keyframes[i].T_map_sensor[:3, 3]
+        )
+        missing = [i for i in ids if i not in whole]
+        if missing:
+            whole.update(self._whole(missing))
+        views = []
+        for kf in (whole[i] for i in ids):
+            if kf.cloud is not None and len(kf.cloud):
+                image = self._range_images.get((kf.id, id(kf.cloud)), partial(RangeImage, kf.cloud))
+                views.append((kf.T_map_sensor, image))
+        return violation(thin(query_cloud), T_map_query, views)
 
     def _refine(
         self, pose: PoseResult, query_cloud: np.ndarray | None, best: Keyframe

@@ -433,8 +433,9 @@ def refine_icp(
     clouds both sharpens it and verifies it far better than the keypoint inlier count.
     So once ICP has run the verdict is taken from its fitness (the share of the query
     cloud's points with a keyframe point within ``icp_max_distance`` under the final
-    pose) against ``min_icp_fitness``. The error is ``icp_method`` (point-to-plane by
-    default), iterated on the query cloud downsampled to ``icp_source_voxel_m``;
+    pose) against ``min_icp_fitness``, provided RANSAC found a hypothesis at all (at
+    least ``ransac_n`` inliers) for ICP to start from. The error is ``icp_method``
+    (point-to-plane by default), iterated on the query cloud downsampled to ``icp_source_voxel_m``;
     ``icp_backend`` picks the implementation. With small_gicp, ``target`` is the keyframe
     cloud already indexed (:class:`IcpTarget`; built here when not given). Diagnostics go
     to ``result.icp``.
@@ -453,7 +454,15 @@ def refine_icp(
         result.icp["iterations"] = iterations
     result.refined = True
     result.T_target_source = T
-    if fitness >= cfg.min_icp_fitness:
+    if result.inliers < cfg.ransac_n:
+        # no RANSAC hypothesis held: ICP started from an arbitrary pose, and a fit found
+        # from there (on ground alone, say) is no evidence of the place
+        result.verdict = "not_localized"
+        result.reason = (
+            f"RANSAC found no hypothesis ({result.inliers} inliers < ransac_n "
+            f"{cfg.ransac_n}); ICP fitness {fitness:.2f} from its starting pose"
+        )
+    elif fitness >= cfg.min_icp_fitness:
         result.verdict = "localized"
         result.reason = f"ICP fitness {fitness:.2f} (rmse {rmse:.2f} m) after RANSAC"
     else:

@@ -13,6 +13,9 @@ Per profile, a logistic regression with non-negative weights on the oriented,
 standardised features (:data:`~sgvloc.core.confidence.PROFILE_FEATURES`) is fitted by
 L-BFGS-B; its L2 penalty is chosen from a small grid by 5-fold cross-validated log-loss
 on the same examples. The result records what it was fitted on and how it fits there.
+With a ``base`` calibration, the profiles these answers do not cover are kept from it
+(and recorded as kept), so that one profile can be refitted without re-running the data
+of the others.
 """
 
 from __future__ import annotations
@@ -179,10 +182,12 @@ def calibrate(
     query_stride: int = 1,
     cache_dir: Path | None = None,
     name: str = "calibration",
+    base: Calibration | None = None,
     progress: bool = True,
     echo: Callable[[str], None] = lambda s: None,
 ) -> Calibration:
-    """Fit a :class:`Calibration` on sequences and/or eval reports (module docstring)."""
+    """Fit a :class:`Calibration` on sequences and/or eval reports (module docstring);
+    profiles without answers come from ``base`` when given."""
     from .evaluation.data import open_sequence
     from .evaluation.report import report_dict
     from .evaluation.runner import EvalConfig, run_evaluation
@@ -229,6 +234,8 @@ def calibrate(
                 localizer=localizer,
             )
             add(report_dict(run_evaluation(cfg, progress=progress)))
+    if base is not None:
+        kinds.add(base.encoder_kind)
     if len(kinds) > 1:
         raise InputError(f"the answers come from different encoder kinds {sorted(kinds)}")
 
@@ -259,6 +266,22 @@ def calibrate(
         )
     if not models:
         raise InputError("no answers with a pose estimate: nothing to calibrate on")
-    return Calibration(
-        name, kinds.pop(), models, {"runs": runs, "fit": fit, "top_k": localizer.top_k}
-    )
+    fitted_on: dict[str, Any] = {"runs": runs, "fit": fit, "top_k": localizer.top_k}
+    if base is not None:
+        kept = sorted(set(base.models) - set(models))
+        for profile in kept:
+            models[profile] = base.models[profile]
+            echo(f"calibrate: profile {profile}: kept from {base.name} ({base.fingerprint})")
+        fitted_on["kept"] = {
+            p: {"from": base.name, "fingerprint": base.fingerprint, **_kept_record(base, p)}
+            for p in kept
+        }
+    return Calibration(name, kinds.pop(), models, fitted_on)
+
+
+def _kept_record(base: Calibration, profile: str) -> dict[str, Any]:
+    """What ``base`` says it fitted ``profile`` on: its fit figures and the runs that
+    gave it answers of that profile."""
+    fitted = base.fitted_on
+    runs = [r for r in fitted.get("runs", []) if profile in r.get("answers", {})]
+    return {"fit": fitted.get("fit", {}).get(profile), "runs": runs}

@@ -204,6 +204,7 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
         spectral_candidates,
     )
     from sgvloc.core.encoders import make_encoder
+    from sgvloc.core.freespace import RADIUS_M, RangeImage, thin, views_near, violation
     from sgvloc.core.pose import ransac_pose, refine_icp
     from sgvloc.core.prior import Prior
     from sgvloc.core.rerank import rerank
@@ -317,8 +318,33 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
             )
             known.update(spectral_candidates(missing, fq.keypoints, kps, res))
 
+    range_images: dict[int, Any] = {}
+
+    def free_space_for(qk: tuple[int, int], matched: int, visible: np.ndarray):
+        """The free-space check of the query's estimates (as the localizer makes it,
+        against the database scans the query may see)."""
+
+        def check(T_map_query: np.ndarray) -> float | None:
+            d = np.linalg.norm(poses[visible, :2, 3] - T_map_query[:2, 3], axis=1)
+            ids = views_near(
+                T_map_query[:3, 3], matched, visible[d <= RADIUS_M], lambda i: poses[i][:3, 3]
+            )
+            for i in ids:
+                if i not in range_images:
+                    range_images[i] = RangeImage(cache.cloud(seq.paths[i]))
+            points = thin(cache.cloud(sources[qk[0]].paths[qk[1]]))
+            return violation(points, T_map_query, [(poses[i], range_images[i]) for i in ids])
+
+        return check
+
     def verdict_record(
-        qk: tuple[int, int], ids: list[int], gt: np.ndarray, same_world: bool, spectral, prior
+        qk: tuple[int, int],
+        ids: list[int],
+        gt: np.ndarray,
+        same_world: bool,
+        spectral,
+        prior,
+        visible: np.ndarray,
     ) -> dict[str, Any]:
         """Pose, evidence, confidence and verdict of one answer (re-ranked ``ids``)."""
         if not ids:
@@ -346,6 +372,7 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
             T_kf_query=T_kf_q,
             min_confidence=min_confidence,
             prior=prior,
+            free_space=free_space_for(qk, ids[0], visible) if refine == "icp" else None,
         )
         T_est = poses[ids[0]] @ (T_kf_q if T_kf_q is not None else np.eye(4))
         e_t, e_r = rte(T_est, gt, in_plane), rre(T_est, gt, in_plane)
@@ -424,7 +451,7 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
                         first_true_rank(poses[ids, :3, 3], gt[:3, 3], thr) if covered else None
                     )
                 if k in table_ks:
-                    rec.update(verdict_record(qk, ids, gt, src == 0, spectral, prior))
+                    rec.update(verdict_record(qk, ids, gt, src == 0, spectral, prior, visible))
                 recs[(method, k)].append(rec)
         if not covered:
             continue
