@@ -236,3 +236,23 @@ def test_a_prior_excludes_far_keyframes(campus):
     assert not empty.localized and empty.verdict == "no_keyframe_in_prior"
     assert "no keyframe within 20 m" in empty.reason
     assert empty.prior == {"used": True, "keyframes_in_radius": 0} and not empty.retrieved
+
+
+def test_the_free_space_check_uses_only_the_keyframes_searched(campus):
+    """With ``among`` (the self-test's leave-out), the free-space check looks only at
+    those keyframes, so that a keyframe left out cannot vouch for the answer."""
+    from sgvloc.core.freespace import RangeImage, thin, violation
+
+    loc, _, queries, scans = campus
+    scan = scans[queries[0].index]
+    whole = loc.localize(scan)
+    alone = loc.localize(scan, among=np.array([whole.keyframe_id]))
+    assert alone.keyframe_id == whole.keyframe_id
+    kf = loc.keyframe(alone.keyframe_id)
+    expected = violation(
+        thin(loc.encoder.prepare(scan)),
+        alone.T_map_sensor_estimate,
+        [(kf.T_map_sensor, RangeImage(kf.cloud))],
+    )
+    assert alone.evidence.free_space == pytest.approx(expected, rel=1e-12)
+    assert alone.evidence.free_space != pytest.approx(whole.evidence.free_space, rel=1e-6)
