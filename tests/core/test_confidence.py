@@ -7,6 +7,7 @@ import json
 
 import numpy as np
 import pytest
+from conftest import planar_pose as _T
 
 from sgvloc.core.confidence import (
     PROFILE_FEATURES,
@@ -26,15 +27,6 @@ from sgvloc.core.errors import InputError
 from sgvloc.core.pose import PoseResult
 from sgvloc.core.prior import Prior
 from sgvloc.tools.calibrate import evidence_matrix, fit_logistic
-
-
-def _T(x: float = 0.0, y: float = 0.0, yaw_deg: float = 0.0) -> np.ndarray:
-    a = np.radians(yaw_deg)
-    T = np.eye(4)
-    T[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
-    T[:2, 3] = x, y
-    return T
-
 
 GOOD = Evidence(
     sgv=0.3,

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import planar_pose as _T
 
 from sgvloc.core.encoders import EncoderSpec, make_encoder
 from sgvloc.core.freespace import (
@@ -18,14 +19,6 @@ from sgvloc.core.freespace import (
     violation,
 )
 from sgvloc.core.sequence import KittiSequence
-
-
-def _T(x: float = 0.0, y: float = 0.0, yaw_deg: float = 0.0) -> np.ndarray:
-    a = np.radians(yaw_deg)
-    T = np.eye(4)
-    T[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
-    T[:2, 3] = x, y
-    return T
 
 
 def _corridor(rng: np.random.Generator, n: int = 6000) -> np.ndarray:
