@@ -84,12 +84,3 @@ def balm_mini_roles(balm_mini_dir: Path) -> list[tuple[int, str]]:
 def rng() -> np.random.Generator:
     """A seeded random generator (deterministic tests)."""
     return np.random.default_rng(0)
-
-
-def planar_pose(x: float = 0.0, y: float = 0.0, yaw_deg: float = 0.0) -> np.ndarray:
-    """A 4x4 pose at ``(x, y, 0)`` turned ``yaw_deg`` about z."""
-    a = np.radians(yaw_deg)
-    T = np.eye(4)
-    T[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
-    T[:2, 3] = x, y
-    return T

@@ -7,7 +7,7 @@ import json
 
 import numpy as np
 import pytest
-from conftest import planar_pose as _T
+from pose_helpers import planar_pose as _T
 
 from sgvloc.core.confidence import (
     PROFILE_FEATURES,

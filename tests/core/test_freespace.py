@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import planar_pose as _T
+from pose_helpers import planar_pose as _T
 
 from sgvloc.core.encoders import EncoderSpec, make_encoder
 from sgvloc.core.freespace import (
