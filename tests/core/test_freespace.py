@@ -37,7 +37,10 @@ def test_a_point_is_judged_only_where_the_keyframe_saw_up_to_it() -> None:
     assert image.judge(along) == (2, 1)  # behind the wall: occluded, not judged
     # a ray with no return says nothing, however near
     assert image.judge(np.array([[0.0, -3.0, 0.0]])) == (0, 0)
-    assert violation(np.array([[0.0, -3.0, 0.0]]), np.eye(4), [(np.eye(4), image)]) is None
+    # nothing judged: the prior share, not a clean record; no keyframe at all: unknown
+    unseen = np.array([[0.0, -3.0, 0.0]])
+    assert violation(unseen, np.eye(4), [(np.eye(4), image)]) == PRIOR_SHARE
+    assert violation(unseen, np.eye(4), []) is None
 
 
 def test_the_right_pose_agrees_with_the_free_space_and_a_shifted_one_does_not() -> None:

@@ -12,10 +12,10 @@ return (occluded) or in bins without returns say nothing.
 :func:`violation` is the share of the query points a keyframe could judge (in front of
 or on its surfaces, within the margin) that contradict it, pooled over the estimate's
 nearest keyframes (:func:`views_near`) and shrunk towards a prior share when few points
-could be judged. A correct pose scores a few percent (moving
-objects, thin structures); a wrong pose that still overlaps the keyframe's surfaces in
-places, which is what a plausible false answer looks like, puts walls into open space
-and scores far higher. Unlike the ICP fitness it does not fall when the query sees much
+could be judged. Of a correct pose a few percent contradict (moving objects, thin
+structures); a wrong pose that still overlaps the keyframe's surfaces in places, which
+is what a plausible false answer looks like, puts walls into open space and scores far
+higher. Unlike the ICP fitness it does not fall when the query sees much
 that the map never did (a scan taken 10-15 m from the mapped path): unobserved space is
 not a contradiction. The confidence model uses it as evidence (``free_space`` in
 :mod:`sgvloc.core.confidence`); the constants are part of what a calibration was fitted
@@ -116,15 +116,17 @@ def violation(
     """Share of the judged query points that contradict the keyframes' observed free
     space, pooled over ``views`` ``(T_map_kf, RangeImage)`` and shrunk towards
     :data:`PRIOR_SHARE` (``(contradicting + PRIOR_SHARE * PRIOR_POINTS) / (judged +
-    PRIOR_POINTS)``); None when no keyframe could judge any point. ``query_points``
-    ``[N, 3]`` in the query's sensor frame (thinned: :func:`thin`)."""
+    PRIOR_POINTS)``, so :data:`PRIOR_SHARE` when no point could be judged); None
+    without views. ``query_points`` ``[N, 3]`` in the query's sensor frame (thinned:
+    :func:`thin`)."""
     pts = np.asarray(query_points, dtype=np.float64)
+    views = list(views)
+    if not views:
+        return None
     judged = contradicting = 0
     for T_map_kf, image in views:
         T = np.linalg.solve(T_map_kf, T_map_query)  # T_kf_query
         j, c = image.judge(pts @ T[:3, :3].T + T[:3, 3])
         judged += j
         contradicting += c
-    if not judged:
-        return None
     return (contradicting + PRIOR_SHARE * PRIOR_POINTS) / (judged + PRIOR_POINTS)
