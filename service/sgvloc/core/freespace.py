@@ -47,34 +47,41 @@ _AZ_BINS = int(round(360.0 / BIN_DEG))
 _EL_BINS = int(round(180.0 / BIN_DEG))
 
 
-def _bins(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Ranges ``[N]`` and flat bin indices ``[N]`` of sensor-frame points ``[N, 3]``."""
+def _bins(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Ranges, elevation rows and azimuth columns ``[N]`` of sensor-frame points
+    ``[N, 3]``."""
     x, y, z = points[:, 0], points[:, 1], points[:, 2]
     r = np.sqrt(x * x + y * y + z * z)
     az = np.degrees(np.arctan2(y, x)) % 360.0
     el = np.degrees(np.arcsin(np.clip(z / np.maximum(r, 1e-9), -1.0, 1.0)))
     ia = np.minimum((az / BIN_DEG).astype(np.int64), _AZ_BINS - 1)
     ie = np.clip(((el + 90.0) / BIN_DEG).astype(np.int64), 0, _EL_BINS - 1)
-    return r, ie * _AZ_BINS + ia
+    return r, ie, ia
 
 
 class RangeImage:
     """The nearest return per angular bin of one keyframe cloud (sensor frame);
-    ``inf`` where the bin holds no return. About 260 kB."""
+    ``inf`` where the bin holds no return. Only the band of elevation rows with returns
+    is kept: about 130 kB for a spinning LiDAR's 90 degrees."""
 
     def __init__(self, cloud: np.ndarray) -> None:
         pts = np.asarray(cloud, dtype=np.float64).reshape(-1, 3)
-        r, b = _bins(pts)
-        first = np.full(_AZ_BINS * _EL_BINS, np.inf, dtype=np.float32)
-        np.minimum.at(first, b, r.astype(np.float32))
+        r, ie, ia = _bins(pts)
+        self.row0 = int(ie.min()) if len(ie) else 0
+        rows = int(ie.max()) + 1 - self.row0 if len(ie) else 0
+        first = np.full(rows * _AZ_BINS, np.inf, dtype=np.float32)
+        np.minimum.at(first, (ie - self.row0) * _AZ_BINS + ia, r.astype(np.float32))
         self.first = first
 
     def judge(self, points: np.ndarray) -> tuple[int, int]:
         """(judged, contradicting) counts of sensor-frame points ``[N, 3]``: judged =
         in a bin with a return and not beyond it by more than the margin; contradicting
         = nearer than it by more than the margin."""
-        r, b = _bins(points)
-        first = self.first[b]
+        r, ie, ia = _bins(points)
+        row = ie - self.row0
+        inside = (row >= 0) & (row * _AZ_BINS < len(self.first))
+        first = np.full(len(r), np.inf, dtype=np.float32)
+        first[inside] = self.first[row[inside] * _AZ_BINS + ia[inside]]
         seen = np.isfinite(first)
         judged = seen & (r <= first + MARGIN_M)
         return int(judged.sum()), int((seen & (r < first - MARGIN_M)).sum())

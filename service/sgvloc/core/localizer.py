@@ -68,7 +68,7 @@ def _under_way(fn: Callable[..., Any]) -> Callable[..., Any]:
 
 #: keyframe clouds kept indexed for ICP per map (about 0.3 MB each at 5k points)
 ICP_CACHED_KEYFRAMES = 64
-#: keyframe range images kept for the free-space check per map (about 0.26 MB each)
+#: keyframe range images kept for the free-space check per map (about 0.13 MB each)
 RANGE_IMAGES_CACHED = 64
 
 
