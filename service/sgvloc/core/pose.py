@@ -435,10 +435,10 @@ def refine_icp(
     cloud's points with a keyframe point within ``icp_max_distance`` under the final
     pose) against ``min_icp_fitness``, provided RANSAC found a hypothesis at all (at
     least ``ransac_n`` inliers) for ICP to start from. The error is ``icp_method``
-    (point-to-plane by default), iterated on the query cloud downsampled to ``icp_source_voxel_m``;
-    ``icp_backend`` picks the implementation. With small_gicp, ``target`` is the keyframe
-    cloud already indexed (:class:`IcpTarget`; built here when not given). Diagnostics go
-    to ``result.icp``.
+    (point-to-plane by default), iterated on the query cloud downsampled to
+    ``icp_source_voxel_m``; ``icp_backend`` picks the implementation. With small_gicp,
+    ``target`` is the keyframe cloud already indexed (:class:`IcpTarget`; built here when
+    not given). Diagnostics go to ``result.icp``.
     """
     if len(src_cloud) < 3 or len(dst_cloud) < 3:
         result.icp = {"used": False, "why": "clouds too small for ICP"}
