@@ -16,6 +16,7 @@ from sgvloc.core.errors import InputError, SgvlocError
 from sgvloc.core.sgv import (
     _nn_torch,
     nn_correspondences,
+    nn_correspondences_cpu,
     reference_sgv_score,
     resolve_backend,
     sgv_rerank_scores,
@@ -274,3 +275,25 @@ def test_kernels_do_not_wait_for_each_other() -> None:
             worker = threading.Thread(target=run, daemon=True)
             worker.start()
             assert done.wait(60), f"a batch of {pts.shape[1]} waited for the lock"
+
+
+def test_nn_correspondences_from_lists_equal_the_padded_search() -> None:
+    """The re-ranking path (candidates' own arrays, no padding copy) gives the same
+    indices as the padded search, including a candidate without keypoints, and refuses
+    NaN the same way."""
+    rng = np.random.default_rng(11)
+    q = rng.normal(size=(200, 32)).astype(np.float32)
+    sizes = [150, 0, 37, 200, 1]
+    cands = [rng.normal(size=(m, 32)).astype(np.float32) for m in sizes]
+    cands[2][5] = q[7] * 3.0  # an exact match (after normalising) at a known place
+    pad = np.zeros((len(sizes), max(sizes), 32), dtype=np.float32)
+    mask = np.zeros((len(sizes), max(sizes)), dtype=bool)
+    for i, c in enumerate(cands):
+        pad[i, : len(c)], mask[i, : len(c)] = c, True
+    got = nn_correspondences_cpu(q, cands)
+    np.testing.assert_array_equal(got, nn_correspondences(q, pad, mask).numpy())
+    assert (got[1] == -1).all() and (got[4] == 0).all() and got[2, 7] == 5
+    np.testing.assert_array_equal(nn_correspondences_cpu(q, cands, budget_bytes=1), got)
+    cands[3][4, 2] = np.nan
+    with pytest.raises(InputError, match="cand_feats"):
+        nn_correspondences_cpu(q, cands)

@@ -311,23 +311,56 @@ _PAD_SIMILARITY = -3.0
 
 
 def _nn_numpy(q: np.ndarray, c: np.ndarray, mask: np.ndarray, budget_bytes: int) -> np.ndarray:
-    """CPU body of :func:`nn_correspondences`, same answers.
-
-    One GEMM per block of query rows against all candidates at once, ``[rows, D + 1] x
-    [D + 1, k * Nc]``: an extra feature dimension (1 for queries; 0 for real keypoints,
-    ``_PAD_SIMILARITY`` for padding) keeps padding from ever winning without a masking
-    pass. Blocks stay cache-sized; argmax takes the first (lowest) index on ties.
-    """
+    """CPU body of :func:`nn_correspondences`, same answers (see :func:`_nn_gemm`)."""
     k, nc, dim = c.shape
-    n = q.shape[0]
-    qn = q / np.maximum(np.linalg.norm(q, axis=1, keepdims=True), 1e-12)  # [N, D]
     cn = c / np.maximum(np.linalg.norm(c, axis=2, keepdims=True), 1e-12)  # [k, Nc, D]
-    qe = np.empty((n, dim + 1), dtype=np.float32)  # [N, D + 1]
-    qe[:, :dim], qe[:, dim] = qn, 1.0
     ce = np.empty((k, nc, dim + 1), dtype=np.float32)  # [k, Nc, D + 1]
     ce[..., :dim], ce[..., dim] = cn, np.where(mask, 0.0, _PAD_SIMILARITY)
-    ct = torch.from_numpy(np.ascontiguousarray(ce.reshape(k * nc, dim + 1).T))  # [D + 1, k*Nc]
-    qt = torch.from_numpy(qe)  # [N, D + 1]
+    ct = np.ascontiguousarray(ce.reshape(k * nc, dim + 1).T)  # [D + 1, k * Nc]
+    return _nn_gemm(q, ct, k, nc, mask.any(axis=1), budget_bytes)
+
+
+def nn_correspondences_cpu(
+    query_feats: np.ndarray, cand_feats: Sequence[np.ndarray], budget_bytes: int = NN_BUDGET_BYTES
+) -> np.ndarray:
+    """:func:`nn_correspondences` on CPU from the candidates' own ``[Nc_i, D]`` arrays, the
+    same answers without padding them first: each candidate is normalised and written
+    once, straight into the transposed block the GEMM reads (re-ranking calls this once
+    per localization with 20-50 candidates). Returns ``[k, N]`` int64 numpy."""
+    q = np.asarray(query_feats, dtype=np.float32)  # [N, D]
+    k, dim = len(cand_feats), q.shape[1]
+    nc = max((len(f) for f in cand_feats), default=0)
+    if k == 0 or len(q) == 0 or nc == 0:
+        return np.full((k, len(q)), -1, dtype=np.int64)
+    if not np.isfinite(q).all():
+        raise InputError("query_feats contain NaN or inf")
+    ct = np.zeros((dim + 1, k * nc), dtype=np.float32)  # [D + 1, k * Nc]
+    ct[dim] = _PAD_SIMILARITY
+    for i, f in enumerate(cand_feats):
+        f = np.asarray(f, dtype=np.float32)  # [Nc_i, D]
+        cols = slice(i * nc, i * nc + len(f))
+        ct[:dim, cols] = (f / np.maximum(np.linalg.norm(f, axis=1, keepdims=True), 1e-12)).T
+        ct[dim, cols] = 0.0
+    if not np.isfinite(ct).all():  # a NaN or inf feature leaves NaN after normalising
+        raise InputError("cand_feats contain NaN or inf")
+    real = np.array([len(f) > 0 for f in cand_feats])
+    return _nn_gemm(q, ct, k, nc, real, budget_bytes)
+
+
+def _nn_gemm(
+    q: np.ndarray, ct: np.ndarray, k: int, nc: int, real: np.ndarray, budget_bytes: int
+) -> np.ndarray:
+    """Nearest candidate keypoint per query row: one GEMM per block of query rows against
+    all candidates at once, ``[rows, D + 1] x [D + 1, k * Nc]``. ``ct`` holds the candidates'
+    unit features, transposed, with an extra row (0 for real keypoints,
+    ``_PAD_SIMILARITY`` for padding) met by a 1 in each query row, so that padding never
+    wins without a masking pass. Blocks stay cache-sized; argmax takes the first (lowest)
+    index on ties. ``real``: ``[k]`` whether the candidate has any keypoint (else -1)."""
+    n, dim = q.shape
+    qe = np.empty((n, dim + 1), dtype=np.float32)  # [N, D + 1]
+    qe[:, :dim] = q / np.maximum(np.linalg.norm(q, axis=1, keepdims=True), 1e-12)
+    qe[:, dim] = 1.0
+    cts, qt = torch.from_numpy(ct), torch.from_numpy(qe)
     block = min(budget_bytes // _F32_BYTES, _NN_BLOCK_ENTRIES)
     rows = max(1, block // (k * nc))
     idx = np.empty((k, n), dtype=np.int64)  # [k, N]
@@ -335,9 +368,9 @@ def _nn_numpy(q: np.ndarray, c: np.ndarray, mask: np.ndarray, budget_bytes: int)
         for r0 in range(0, n, rows):
             # GEMM in torch (measured 1.5-2x faster than numpy's multi-threaded OpenBLAS on
             # 2 busy cores), argmax in numpy (3x faster than torch's on this shape).
-            sim = torch.mm(qt[r0 : r0 + rows], ct).numpy().reshape(-1, k, nc)  # [rows, k, Nc]
+            sim = torch.mm(qt[r0 : r0 + rows], cts).numpy().reshape(-1, k, nc)  # [rows, k, Nc]
             idx[:, r0 : r0 + rows] = sim.argmax(axis=2).T
-    idx[~mask.any(axis=1)] = -1  # candidates without keypoints have no correspondences
+    idx[~real] = -1  # candidates without keypoints have no correspondences
     return idx
 
 
@@ -740,13 +773,18 @@ def sgv_rerank_scores(
             )
     nc_max = max((len(a) for a in kps), default=0)
     kp_pad = np.zeros((k, nc_max, 3), dtype=np.float32)  # [k, Nc_max, 3]
-    ft_pad = np.zeros((k, nc_max, dim), dtype=np.float32)  # [k, Nc_max, D]
-    cmask = np.zeros((k, nc_max), dtype=bool)  # [k, Nc_max]
-    for i, (a, f) in enumerate(zip(kps, fts, strict=True)):
-        kp_pad[i, : len(a)], ft_pad[i, : len(a)], cmask[i, : len(a)] = a, f, True
+    for i, a in enumerate(kps):
+        kp_pad[i, : len(a)] = a
 
     # Correspondences: nearest candidate keypoint in feature space, per query keypoint.
-    idx = nn_correspondences(qf, ft_pad, cmask, device=device)  # [k, N]
+    if device.type == "cpu":
+        idx = torch.from_numpy(nn_correspondences_cpu(qf, fts))  # [k, N]
+    else:
+        ft_pad = np.zeros((k, nc_max, dim), dtype=np.float32)  # [k, Nc_max, D]
+        cmask = np.zeros((k, nc_max), dtype=bool)  # [k, Nc_max]
+        for i, f in enumerate(fts):
+            ft_pad[i, : len(f)], cmask[i, : len(f)] = f, True
+        idx = nn_correspondences(qf, ft_pad, cmask, device=device)  # [k, N]
     valid = idx >= 0  # [k, N]
 
     if resolve_backend(cfg, device) == "numba":
