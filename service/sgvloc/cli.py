@@ -154,11 +154,12 @@ def serve(
     CPU work runs in a pool of --workers threads inside this process (FAISS, Open3D and
     torch release the GIL); each library gets threads_per_worker threads of its own
     (env SGVLOC_THREADS_PER_WORKER, default: cores // workers), unless OMP_NUM_THREADS and
-    the like are already set. There is deliberately no option for several worker
-    processes, --preload or fork: FAISS/OpenMP can hang in forked children, each process
-    would hold its own copy of every map, and Prometheus metrics would split across
-    processes. Scale out with more replicas sharing one PostgreSQL store (--store): each
-    loads the maps and follows the others' writes.
+    the like are already set; a request running alone takes the idle cores where that
+    keeps its answer the same (env SGVLOC_SPARE_CORES, default true). There is
+    deliberately no option for several worker processes, --preload or fork: FAISS/OpenMP
+    can hang in forked children, each process would hold its own copy of every map, and
+    Prometheus metrics would split across processes. Scale out with more replicas sharing
+    one PostgreSQL store (--store): each loads the maps and follows the others' writes.
     """
     # nothing that loads numpy, FAISS, Open3D or torch before run_service caps their threads
     from .server.run import StartupError

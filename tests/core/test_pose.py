@@ -83,8 +83,10 @@ def test_ransac_finds_a_known_pose_among_outliers():
 
 
 ICP_VARIANTS = {
-    "default (small_gicp, point-to-plane, 0.6 m source voxels)": {},
+    "default (numba point-to-plane, 0.6 m source voxels)": {},
+    "small_gicp point-to-plane, 0.6 m source voxels": {"icp_backend": "small_gicp"},
     "small_gicp point-to-point, every point": {
+        "icp_backend": "small_gicp",
         "icp_method": "point_to_point",
         "icp_source_voxel_m": 0.0,
     },
@@ -95,6 +97,7 @@ ICP_VARIANTS = {
         "ransac_first_batch": 1000,
     },
     "Open3D point-to-plane": {"icp_backend": "open3d"},
+    "numba point-to-point, every point": {"icp_method": "point_to_point", "icp_source_voxel_m": 0},
 }
 
 
@@ -127,13 +130,14 @@ def test_icp_backends_agree_on_the_fit(pair):
     assert max(rmse) - min(rmse) < 0.02, fits
 
 
-def test_a_prepared_target_gives_the_same_answer(pair):
+@pytest.mark.parametrize("backend", ["small_gicp", "numba"])
+def test_a_prepared_target_gives_the_same_answer(pair, backend):
     src, dst, src_cloud, dst_cloud, _ = pair
-    cfg = PoseConfig()
+    cfg = PoseConfig(icp_backend=backend)
     a = ransac_pose(src.keypoints, src.local_features, dst.keypoints, dst.local_features, cfg)
     b = ransac_pose(src.keypoints, src.local_features, dst.keypoints, dst.local_features, cfg)
     a = refine_icp(a, src_cloud, dst_cloud, cfg)
-    b = refine_icp(b, src_cloud, dst_cloud, cfg, IcpTarget(dst_cloud))
+    b = refine_icp(b, src_cloud, dst_cloud, cfg, IcpTarget(dst_cloud, backend))
     assert np.array_equal(a.T_target_source, b.T_target_source)
     assert a.icp == b.icp and a.icp["iterations"] >= 1
 

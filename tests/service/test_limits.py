@@ -51,6 +51,7 @@ def test_config_reports_the_limits(client: httpx.Client) -> None:
         "body_timeout_s": 30.0,
         "workers": 2,
         "threads_per_worker": max(1, usable_cpus() // 2),
+        "spare_cores": usable_cpus(),  # a request alone may use them all
     }
     assert cfg["auth"]["enabled"] is False  # the shared test server is in development mode
     # dynamic batching is off by default on CPU

@@ -121,14 +121,18 @@ class PoseConfig(_Section):
         0.005,
         gt=0.0,
         le=1.0,
-        description="small_gicp: ICP stops once an iteration moves the pose less than this "
-        "(m) and turns it less than icp_stop_deg",
+        description="numba, small_gicp: ICP stops once an iteration moves the pose less "
+        "than this (m) and turns it less than icp_stop_deg",
     )
-    icp_stop_deg: float = Field(0.25, gt=0.0, le=10.0, description="small_gicp: see icp_stop_m")
-    icp_backend: Literal["small_gicp", "open3d"] = Field(
-        "small_gicp",
-        description="ICP implementation: small_gicp (one thread, the keyframe's KD-tree "
-        "and normals cached) or Open3D (its OpenMP pool)",
+    icp_stop_deg: float = Field(
+        0.25, gt=0.0, le=10.0, description="numba, small_gicp: see icp_stop_m"
+    )
+    icp_backend: Literal["numba", "small_gicp", "open3d"] = Field(
+        "numba",
+        description="ICP implementation: numba (sgvloc.core.icp_numba: Gauss-Newton "
+        "point-to-plane without the interpreter lock, so concurrent localizations refine "
+        "in parallel), small_gicp (its Python binding holds the lock) or Open3D (its "
+        "OpenMP pool); the keyframe's index and normals are cached for the first two",
     )
     min_icp_fitness: float = Field(
         # a floor under the calibrated confidence, which weighs the fitness with the

@@ -28,6 +28,8 @@ from collections.abc import Callable, Iterable
 
 import numpy as np
 
+from .preprocess import voxel_centroids
+
 #: angular bin of the range images (degrees, azimuth and elevation)
 BIN_DEG = 1.0
 #: a query point this much nearer than a keyframe's first return contradicts it (m)
@@ -89,13 +91,7 @@ class RangeImage:
 
 def thin(cloud: np.ndarray) -> np.ndarray:
     """The query cloud thinned to the centroids of its :data:`VOXEL_M` voxels ``[M, 3]``."""
-    import small_gicp
-
-    pts = np.asarray(cloud, dtype=np.float64).reshape(-1, 3)
-    if len(pts) == 0:
-        return pts
-    thinned = small_gicp.voxelgrid_sampling(pts, VOXEL_M, num_threads=1)
-    return np.asarray(thinned.points(), dtype=np.float64)[:, :3]
+    return voxel_centroids(cloud, VOXEL_M)
 
 
 def views_near(

@@ -742,9 +742,11 @@ class Localizer:
             return pose
         cfg = self.config.pose
         target = None
-        if cfg.icp_backend == "small_gicp" and len(best.cloud) >= 3:
-            cloud = best.cloud
-            target = self._icp_targets.get((best.id, id(cloud)), lambda: IcpTarget(cloud))
+        if cfg.icp_backend != "open3d" and len(best.cloud) >= 3:
+            cloud, backend = best.cloud, cfg.icp_backend
+            target = self._icp_targets.get(
+                (best.id, id(cloud), backend), lambda: IcpTarget(cloud, backend)
+            )
         return refine_icp(pose, query_cloud, best.cloud, cfg, target)
 
 

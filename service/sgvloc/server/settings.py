@@ -74,6 +74,13 @@ class Settings(BaseSettings):
         "numba, torch) may use inside one request. Default: usable cores // workers, at "
         "least 1, so that the worker threads do not oversubscribe the cores",
     )
+    spare_cores: bool = Field(
+        True,
+        description="let a request use the cores no other request is using: the network "
+        "forward (ONNX Runtime) and ICP's fitness pass take usable cores // busy workers "
+        "threads, so that one request alone on an idle service answers sooner; the answers "
+        "are the same at any thread count. false: threads_per_worker always",
+    )
     batch_wait_ms: float | None = Field(
         None,
         ge=0.0,

@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -48,6 +49,7 @@ import numpy as np
 
 from sgvloc.about import PACKAGE_DIR
 
+from .. import cores
 from ..bev import (
     KITTI_BEV,
     BEVRaster,
@@ -94,18 +96,38 @@ def onnxruntime_available() -> bool:
 
 class OnnxNet:
     """BEVNet's forward pass in ONNX Runtime (CPU), called like the torch model: tensors
-    in, ``(global, local, saliency)`` tensors out. Sessions are thread-safe; one
-    intra-op thread per call unless ``threads`` says more (the service's thread policy)."""
+    in, ``(global, local, saliency)`` tensors out. Sessions are thread-safe; ``threads``
+    intra-op threads per call (the service's thread policy), more while cores are spare."""
 
     def __init__(self, path: Path, model: Any, threads: int) -> None:
-        import onnxruntime as ort
-
-        opts = ort.SessionOptions()
-        opts.intra_op_num_threads = max(1, threads)
-        opts.inter_op_num_threads = 1
-        opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
-        self.session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+        self._path = path
+        self._threads = max(1, threads)
+        self._sessions: dict[int, Any] = {}
+        self._lock = threading.Lock()
         self._model = model  # the torch model: global_descriptor() of turned images
+        for n in {self._threads, max(self._threads, cores.cores())}:
+            self._session(n)
+
+    def _session(self, threads: int) -> Any:
+        """The session with ``threads`` intra-op threads (one per count, made once): a call
+        takes the spare cores (:mod:`sgvloc.core.cores`); ONNX Runtime's CPU kernels split
+        outputs, not sums, so every count gives the same outputs."""
+        session = self._sessions.get(threads)
+        if session is None:
+            import onnxruntime as ort
+
+            with self._lock:
+                session = self._sessions.get(threads)
+                if session is None:
+                    opts = ort.SessionOptions()
+                    opts.intra_op_num_threads = threads
+                    opts.inter_op_num_threads = 1
+                    opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
+                    session = ort.InferenceSession(
+                        str(self._path), opts, providers=["CPUExecutionProvider"]
+                    )
+                    self._sessions[threads] = session
+        return session
 
     @staticmethod
     def weights_sha256(path: Path) -> str:
@@ -120,7 +142,8 @@ class OnnxNet:
     def __call__(self, x: Any) -> tuple[Any, Any, Any]:
         import torch
 
-        outs = self.session.run(None, {"image": x.numpy()})
+        session = self._session(max(self._threads, cores.threads()))
+        outs = session.run(None, {"image": x.numpy()})
         return tuple(torch.from_numpy(o) for o in outs)  # type: ignore[return-value]
 
     def global_descriptor(self, x: Any) -> Any:

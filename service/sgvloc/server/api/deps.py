@@ -10,6 +10,7 @@ import anyio
 import anyio.to_thread
 from fastapi import Depends, Path, Request
 
+from sgvloc.core import cores
 from sgvloc.core.deadline import deadline
 
 from ..maps import MapManager
@@ -91,11 +92,8 @@ class Worker:
         try:
             # the token taken above is the bound; ``threads`` (as many) only keeps the
             # work off anyio's default pool of 40
-            if deadline_at is None:
-                return await anyio.to_thread.run_sync(fn, limiter=self._threads)
-
             def limited() -> T:
-                with deadline(deadline_at):
+                with cores.busy(), deadline(deadline_at):
                     return fn()
 
             return await anyio.to_thread.run_sync(limited, limiter=self._threads)

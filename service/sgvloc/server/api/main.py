@@ -26,13 +26,14 @@ from fastapi_offline import FastAPIOffline
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from sgvloc.about import __version__
-from sgvloc.core import batching
+from sgvloc.core import batching, cores
 
 from ..maps import MapManager
 from ..metrics import Metrics
 from ..recent import RecentLocalizations
 from ..settings import Settings
 from ..store import open_backend
+from ..threads import usable_cpus
 from .auth import KeyRing, KeysError, reload_keys
 from .deps import Admission
 from .errors import install_error_handlers
@@ -82,10 +83,14 @@ def _warm_up() -> None:
             log.warning("cannot import %s: %s", module, exc)
             continue
         log.debug("imported %s in %.1f s", module, time.perf_counter() - t0)
-    # compile (or load from numba's cache) the CPU SGV kernels: ~10 s on first use
-    from sgvloc.core import sgv
+    # compile (or load from numba's cache) the CPU SGV and ICP kernels: ~10 s each on
+    # first use
+    from sgvloc.core import icp_numba, sgv
 
     log.debug("SGV kernels ready in %.1f s", sgv.warm_up())
+    t0 = time.perf_counter()
+    icp_numba.warm_up()
+    log.debug("ICP kernels ready in %.1f s", time.perf_counter() - t0)
 
 
 def _load_maps(manager: MapManager) -> None:
@@ -133,6 +138,8 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
         settings.inflight_limit,
         settings.request_timeout_s,
     )
+    cores.set_cores(usable_cpus() if settings.spare_cores else 1)
+    log.info("spare cores: a request running alone may use %d thread(s)", cores.cores())
     batcher = batching.configure(
         settings.batch_wait_ms, settings.batch_max, observe=app.state.metrics.observe_batch
     )

@@ -722,6 +722,11 @@ class LimitsOut(BaseModel):
         description="threads each numeric library may use inside one request (as configured; "
         "OMP_NUM_THREADS and the like set by the operator take precedence)"
     )
+    spare_cores: int = Field(
+        description="cores that requests share while some are idle (setting spare_cores): "
+        "the network forward and ICP's fitness pass take this // busy workers threads; "
+        "1 = off"
+    )
 
 
 class KeysReloaded(BaseModel):

@@ -5,6 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter, Depends, Request, Response
 
 from sgvloc.about import __version__
+from sgvloc.core import cores
 
 from ...maps import MapManager
 from ...settings import Settings
@@ -46,6 +47,7 @@ async def get_config(request: Request, settings: SettingsDep) -> Response:
                 body_timeout_s=s.body_timeout_s,
                 workers=s.workers,
                 threads_per_worker=s.library_threads,
+                spare_cores=cores.cores(),
             ),
             auth=AuthOut(
                 enabled=ring.enabled,
