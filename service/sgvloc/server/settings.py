@@ -77,7 +77,7 @@ class Settings(BaseSettings):
     spare_cores: bool = Field(
         True,
         description="let a request use the cores no other request is using: the network "
-        "forward (ONNX Runtime) and ICP's fitness pass take usable cores // busy workers "
+        "forward (ONNX Runtime) and ICP with its fitness pass take usable cores // busy workers "
         "threads, so that one request alone on an idle service answers sooner; the answers "
         "are the same at any thread count. false: threads_per_worker always",
     )

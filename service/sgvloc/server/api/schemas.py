@@ -724,7 +724,7 @@ class LimitsOut(BaseModel):
     )
     spare_cores: int = Field(
         description="cores that requests share while some are idle (setting spare_cores): "
-        "the network forward and ICP's fitness pass take this // busy workers threads; "
+        "the network forward and ICP with its fitness pass take this // busy workers threads; "
         "1 = off"
     )
 
