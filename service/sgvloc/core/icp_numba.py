@@ -135,17 +135,25 @@ def _nearest(tp, lo, hi, axis, split, left, right, x, y, z, r2, stack, gaps):  #
 
 
 @njit(cache=True, nogil=True)
+def _match(tp, lo, hi, axis, split, left, right, pts, i, T, r2, stack, gaps):  # pragma: no cover
+    """Point ``pts[i]`` moved by ``T`` and its nearest tree point within ``sqrt(r2)``:
+    ``(x, y, z, index into tp or -1, squared distance)``."""
+    p0, p1, p2 = pts[i, 0], pts[i, 1], pts[i, 2]
+    x = T[0, 0] * p0 + T[0, 1] * p1 + T[0, 2] * p2 + T[0, 3]
+    y = T[1, 0] * p0 + T[1, 1] * p1 + T[1, 2] * p2 + T[1, 3]
+    z = T[2, 0] * p0 + T[2, 1] * p1 + T[2, 2] * p2 + T[2, 3]
+    j, s = _nearest(tp, lo, hi, axis, split, left, right, x, y, z, r2, stack, gaps)
+    return x, y, z, j, s
+
+
+@njit(cache=True, nogil=True)
 def _fit_chunk(tp, lo, hi, axis, split, left, right, pts, T, r2, start, stop):  # pragma: no cover
     """(points with a tree point within ``sqrt(r2)``, sum of their squared distances)
     over ``pts[start:stop]`` moved by ``T``."""
     inliers, total = 0, 0.0
     stack, gaps = np.empty(_STACK, np.int64), np.empty(_STACK, np.float64)
     for i in range(start, stop):
-        p0, p1, p2 = pts[i, 0], pts[i, 1], pts[i, 2]
-        x = T[0, 0] * p0 + T[0, 1] * p1 + T[0, 2] * p2 + T[0, 3]
-        y = T[1, 0] * p0 + T[1, 1] * p1 + T[1, 2] * p2 + T[1, 3]
-        z = T[2, 0] * p0 + T[2, 1] * p1 + T[2, 2] * p2 + T[2, 3]
-        j, s = _nearest(tp, lo, hi, axis, split, left, right, x, y, z, r2, stack, gaps)
+        _x, _y, _z, j, s = _match(tp, lo, hi, axis, split, left, right, pts, i, T, r2, stack, gaps)
         if j >= 0:
             inliers += 1
             total += s
@@ -199,11 +207,7 @@ def _normal_equations(
     matched = 0
     stack, gaps = np.empty(_STACK, np.int64), np.empty(_STACK, np.float64)
     for i in range(start, stop):
-        p0, p1, p2 = src[i, 0], src[i, 1], src[i, 2]
-        x = T[0, 0] * p0 + T[0, 1] * p1 + T[0, 2] * p2 + T[0, 3]
-        y = T[1, 0] * p0 + T[1, 1] * p1 + T[1, 2] * p2 + T[1, 3]
-        z = T[2, 0] * p0 + T[2, 1] * p1 + T[2, 2] * p2 + T[2, 3]
-        j, _s = _nearest(tp, lo, hi, axis, split, left, right, x, y, z, r2, stack, gaps)
+        x, y, z, j, _s = _match(tp, lo, hi, axis, split, left, right, src, i, T, r2, stack, gaps)
         if j < 0:
             continue
         matched += 1
