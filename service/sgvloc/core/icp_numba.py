@@ -244,6 +244,76 @@ def _step(H, g, T):  # pragma: no cover - compiled
     return _compose(R, delta[3], delta[4], delta[5], T), moved, turned
 
 
+@njit(cache=True, nogil=True)
+def _fit_serial(tp, lo, hi, axis, split, left, right, pts, T, r2, bounds):  # pragma: no cover
+    """:func:`_fit_chunk` over every chunk of ``bounds`` ``[k, 2]``, added in chunk order
+    (the same arithmetic as :meth:`Tree.fit_quality` on several threads)."""
+    inliers, total = 0, 0.0
+    for c in range(bounds.shape[0]):
+        n, s = _fit_chunk(
+            tp, lo, hi, axis, split, left, right, pts, T, r2, bounds[c, 0], bounds[c, 1]
+        )
+        inliers += n
+        total += s
+    return inliers, total
+
+
+@njit(cache=True, nogil=True)
+def _align_serial(
+    tp,
+    tn,
+    lo,
+    hi,
+    axis,
+    split,
+    left,
+    right,
+    src,
+    T0,
+    plane,
+    r2,
+    bounds,
+    max_iterations,
+    stop_m,
+    stop_rad,
+):  # pragma: no cover - compiled
+    """The whole of :meth:`Tree.align` on the calling thread, lock released once: the
+    same chunk sums in the same order as with helper threads."""
+    T = T0.copy()
+    iterations = 0
+    for _ in range(max_iterations):
+        iterations += 1
+        H, g, matched = _normal_equations(
+            tp, tn, lo, hi, axis, split, left, right, src, T, plane, r2, bounds[0, 0], bounds[0, 1]
+        )
+        for c in range(1, bounds.shape[0]):
+            h, v, m = _normal_equations(
+                tp,
+                tn,
+                lo,
+                hi,
+                axis,
+                split,
+                left,
+                right,
+                src,
+                T,
+                plane,
+                r2,
+                bounds[c, 0],
+                bounds[c, 1],
+            )
+            H += h
+            g += v
+            matched += m
+        if matched == 0:
+            break
+        T, moved, turned = _step(H, g, T)
+        if moved < stop_m and turned < stop_rad:
+            break
+    return T, iterations
+
+
 def _chunks(n: int) -> list[tuple[int, int]]:
     """:data:`CHUNKS` index ranges over ``n`` points (fewer when there are fewer points)."""
     k = max(1, min(CHUNKS, n))
@@ -270,16 +340,20 @@ class Tree:
         p = np.ascontiguousarray(pts, dtype=np.float64)
         T = np.ascontiguousarray(T, dtype=np.float64)
         r2 = max_distance * max_distance
-        parts = cores.split(
-            lambda c: _fit_chunk(self.points, *self.nodes, p, T, r2, c[0], c[1]),
-            _chunks(len(p)),
-        )
-        inliers = sum(n for n, _ in parts)
+        chunks = _chunks(len(p))
+        if cores.threads() == 1:  # one call, the lock released once
+            bounds = np.array(chunks, dtype=np.int64)
+            inliers, total = _fit_serial(self.points, *self.nodes, p, T, r2, bounds)
+        else:
+            parts = cores.split(
+                lambda c: _fit_chunk(self.points, *self.nodes, p, T, r2, c[0], c[1]), chunks
+            )
+            inliers, total = 0, 0.0
+            for n, s in parts:
+                inliers += n
+                total += s
         if inliers == 0:
             return 0.0, 0.0
-        total = 0.0
-        for _, s in parts:
-            total += s
         return inliers / len(p), float(np.sqrt(total / inliers))
 
     def align(
@@ -301,6 +375,21 @@ class Tree:
         T = np.ascontiguousarray(T0, dtype=np.float64).copy()
         r2 = max_distance * max_distance
         chunks = _chunks(len(src))
+        if cores.threads() == 1:  # one call: a busy service re-takes the lock once
+            T, iterations = _align_serial(
+                self.points,
+                normals,
+                *self.nodes,
+                src,
+                T,
+                plane,
+                r2,
+                np.array(chunks, dtype=np.int64),
+                max_iterations,
+                stop_m,
+                stop_rad,
+            )
+            return T, int(iterations)
         iterations = 0
         for _ in range(max_iterations):
             iterations += 1
