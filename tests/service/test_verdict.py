@@ -183,3 +183,43 @@ def test_bad_patches(
 def test_patch_of_a_missing_map_is_404(client: httpx.Client) -> None:
     r = client.patch("/v1/maps/nothing-here", json={"localizer": {"top_k": 3}})
     assert r.status_code == 404
+
+
+def test_a_map_on_small_gicps_icp_moves_to_the_default_by_patch(
+    client: httpx.Client, balm_mini_dir: Path, balm_mini_roles: list
+) -> None:
+    """Maps keep the ICP backend they were made with; new maps get the numba one, and a
+    PATCH moves an older map over: the same place, the pose within a few centimetres."""
+    from sgvloc.core.sequence import KittiSequence
+
+    seq = KittiSequence(balm_mini_dir)
+    db = [i for i, (_, role) in enumerate(balm_mini_roles) if role == "database"]
+    query = next(i for i, (_, role) in enumerate(balm_mini_roles) if role == "query")
+    old = {"pose": {"icp_backend": "small_gicp"}}
+    r = client.post("/v1/maps", json={"name": "icp-move", "localizer": old})
+    assert r.status_code == 201, r.text
+    assert r.json()["localizer"]["pose"]["icp_backend"] == "small_gicp"
+    kfs = [{"T_map_sensor": seq[i].T_world_sensor, "points": seq[i].scan().xyzi()} for i in db]
+    r = post_msgpack(client, "/v1/maps/icp-move/keyframes", {"keyframes": kfs})
+    assert r.status_code == 201, r.text
+    body = {"points": seq[query].scan().xyzi()}
+    before = _localize(client, "icp-move", body)
+
+    r = client.patch("/v1/maps/icp-move", json={"localizer": {"pose": {"icp_backend": "numba"}}})
+    assert r.status_code == 200, r.text
+    assert r.json()["localizer"]["pose"]["icp_backend"] == "numba"
+    after = _localize(client, "icp-move", body)
+    assert before["localized"] and after["localized"], (before["reason"], after["reason"])
+    assert after["keyframe_id"] == before["keyframe_id"]
+    moved = np.subtract(after["translation"], before["translation"])
+    assert np.linalg.norm(moved) < 0.05
+    assert after["evidence"]["icp_fitness"] == pytest.approx(
+        before["evidence"]["icp_fitness"], abs=0.02
+    )
+
+    r = client.patch("/v1/maps/icp-move", json={"localizer": {"pose": {"icp_backend": "gicp"}}})
+    assert r.status_code == 422 and error_of(r)["field"] == "localizer.pose.icp_backend"
+    r = client.post("/v1/maps", json={"name": "icp-new"})
+    assert r.status_code == 201 and r.json()["localizer"]["pose"]["icp_backend"] == "numba"
+    for name in ("icp-move", "icp-new"):
+        assert client.delete(f"/v1/maps/{name}").status_code in (200, 204)
