@@ -283,25 +283,11 @@ def _align_serial(
     iterations = 0
     for _ in range(max_iterations):
         iterations += 1
-        H, g, matched = _normal_equations(
-            tp, tn, lo, hi, axis, split, left, right, src, T, plane, r2, bounds[0, 0], bounds[0, 1]
-        )
-        for c in range(1, bounds.shape[0]):
+        H, g, matched = np.zeros((6, 6)), np.zeros(6), 0
+        for c in range(bounds.shape[0]):
+            a, b = bounds[c, 0], bounds[c, 1]
             h, v, m = _normal_equations(
-                tp,
-                tn,
-                lo,
-                hi,
-                axis,
-                split,
-                left,
-                right,
-                src,
-                T,
-                plane,
-                r2,
-                bounds[c, 0],
-                bounds[c, 1],
+                tp, tn, lo, hi, axis, split, left, right, src, T, plane, r2, a, b
             )
             H += h
             g += v
@@ -400,8 +386,8 @@ class Tree:
                 ),
                 chunks,
             )
-            H, g = parts[0][0].copy(), parts[0][1].copy()
-            for h, v, _ in parts[1:]:
+            H, g = np.zeros((6, 6)), np.zeros(6)
+            for h, v, _ in parts:
                 H += h
                 g += v
             if sum(m for _, _, m in parts) == 0:
