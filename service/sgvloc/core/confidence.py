@@ -256,13 +256,13 @@ def gather_evidence(
     if pose is None or T_kf_query is None:
         return ev
     ev.inliers, ev.inlier_ratio = int(pose.inliers), float(pose.fitness)
+    T_map_query = T_top @ T_kf_query
     if getattr(pose, "refined", False) and pose.icp.get("used"):
         ev.icp_fitness = float(pose.icp["fitness"])
         ev.icp_rmse = float(pose.icp["inlier_rmse"])
         if free_space is not None:
-            ev.free_space = free_space(T_top @ T_kf_query)
+            ev.free_space = free_space(T_map_query)
     ev.offset_m = float(np.linalg.norm(T_kf_query[:3, 3]))
-    T_map_query = T_top @ T_kf_query
     agree = 0
     for c in ranked[1 : 1 + AGREEMENT_CANDIDATES]:
         cand = spectral.get(int(c))
