@@ -18,6 +18,7 @@ from sgvloc.core.confidence import (
     SpectralCandidate,
     decide,
     gather_evidence,
+    nearest_of_place,
     poses_agree,
     rigid_fit,
     shipped_calibration,
@@ -238,6 +239,42 @@ def test_gather_evidence_margin_and_agreement() -> None:
     )
     assert (none.inliers, none.icp_fitness, none.profile) == (0, None, "none")
     assert none.free_space is None and len(asked) == 1  # no ICP: not asked
+
+
+def test_the_nearest_keyframe_of_the_place_comes_first() -> None:
+    # keyframes along a road; the query stands at x = 10
+    poses = {i: _T(float(x), 0.0) for i, x in enumerate([4.0, 9.0, 12.0, 40.0, 9.5, 3.0])}
+
+    def seen_from(i: int, score: float, shift: float = 0.0) -> SpectralCandidate:
+        """What SpectralGV says of keyframe i: the query's pose (moved by shift m)."""
+        return SpectralCandidate(score, np.linalg.inv(poses[i]) @ _T(10.0 + shift, 0.0))
+
+    spectral = {
+        0: seen_from(0, 0.40),  # the top-1, 6 m from the query
+        1: seen_from(1, 0.37),  # 1 m away, within 10 % of the top-1's score
+        2: seen_from(2, 0.38),  # 2 m away
+        3: seen_from(3, 0.39, shift=30.0),  # another place
+        4: seen_from(4, 0.20),  # 0.5 m away but scored far below
+        5: SpectralCandidate(0.395, None),  # no pose of its own
+    }
+    kf = poses.__getitem__
+    assert nearest_of_place([0, 3, 2, 1, 4, 5], spectral, kf, 0.1) == [1, 0, 3, 2, 4, 5]
+    # a tolerance that 1 misses (0.37 < 0.94 * 0.40) leaves 2; none at all keeps the order
+    assert nearest_of_place([0, 3, 2, 1, 4, 5], spectral, kf, 0.06) == [2, 0, 3, 1, 4, 5]
+    assert nearest_of_place([0, 3, 2, 1, 4, 5], spectral, kf, 0.0) == [0, 3, 2, 1, 4, 5]
+    # 4 is the nearest, but only a tolerance of one half admits its score
+    assert nearest_of_place([0, 4, 1], spectral, kf, 0.5)[0] == 4
+    # only the next five candidates are looked at
+    assert nearest_of_place([0, 3, 3, 3, 3, 3, 1], spectral, kf, 0.1)[0] == 0
+    # another place, however near its keyframe seems, never takes the first place
+    far = {**spectral, 3: SpectralCandidate(0.40, _T(0.1, 0.0))}
+    assert nearest_of_place([0, 3], far, kf, 0.1) == [0, 3]
+    # a keyframe less than NEAREST_GAIN_M nearer is no reason to move
+    close = {0: seen_from(1, 0.40), 4: seen_from(4, 0.40)}
+    assert nearest_of_place([0, 4], close, {0: poses[1], 4: poses[4]}.__getitem__, 0.1) == [0, 4]
+    # a top-1 without a SpectralGV pose stays
+    assert nearest_of_place([5, 1], spectral, kf, 0.1) == [5, 1]
+    assert nearest_of_place([], spectral, kf, 0.1) == []
 
 
 def test_decide_orders_the_reasons() -> None:

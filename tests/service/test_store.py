@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import logging
 import shutil
 import sqlite3
@@ -12,6 +13,7 @@ import numpy as np
 import pytest
 from svc_helpers import feature_keyframes
 
+from sgvloc.core.config import LocalizerConfig
 from sgvloc.core.encoders import EncoderSpec
 from sgvloc.core.errors import ConflictError, InputError, NotFoundError
 from sgvloc.core.retrieval import FaissIndex
@@ -248,3 +250,31 @@ def test_schema_1_is_migrated_on_open(tmp_path: Path) -> None:
     m = _manager(tmp_path)
     assert "unknown schema version '99'" in m.failed["old"]
     m.close()
+
+
+def test_a_map_stored_before_a_setting_existed_keeps_its_answers(tmp_path: Path) -> None:
+    """A setting added since a map was stored takes the value that keeps the map
+    answering as it did, not the default of new maps; the next write stores it."""
+    m = _manager(tmp_path)
+    m.create("old", SPEC)
+    m.create("new", SPEC)
+    m.close()
+    db = tmp_path / "maps" / "old" / "map.sqlite"
+    with sqlite3.connect(db) as conn:  # as a release before sgv.tie_tolerance wrote it
+        (text,) = conn.execute("SELECT value FROM meta WHERE key = 'localizer_config'").fetchone()
+        stored = json.loads(text)
+        del stored["sgv"]["tie_tolerance"]
+        conn.execute(
+            "UPDATE meta SET value = ? WHERE key = 'localizer_config'", (json.dumps(stored),)
+        )
+
+    m = _manager(tmp_path)
+    assert m.failed == {}
+    assert m.get("old").record.localizer_config.sgv.tie_tolerance == 0.0
+    fresh = LocalizerConfig().sgv.tie_tolerance
+    assert m.get("new").record.localizer_config.sgv.tie_tolerance == fresh > 0
+    m.update_settings("old", {"top_k": 7})  # written back whole, the old value with it
+    m.close()
+    with sqlite3.connect(db) as conn:
+        (text,) = conn.execute("SELECT value FROM meta WHERE key = 'localizer_config'").fetchone()
+    assert json.loads(text)["sgv"]["tie_tolerance"] == 0.0 and json.loads(text)["top_k"] == 7

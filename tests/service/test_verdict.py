@@ -221,5 +221,13 @@ def test_a_map_on_small_gicps_icp_moves_to_the_default_by_patch(
     assert r.status_code == 422 and error_of(r)["field"] == "localizer.pose.icp_backend"
     r = client.post("/v1/maps", json={"name": "icp-new"})
     assert r.status_code == 201 and r.json()["localizer"]["pose"]["icp_backend"] == "numba"
+    # the re-ranking's tie tolerance: changeable, bounded, and on for new maps
+    assert r.json()["localizer"]["sgv"]["tie_tolerance"] == pytest.approx(0.1)
+    for bad in (-0.1, 1.0, "x"):
+        r = client.patch("/v1/maps/icp-move", json={"localizer": {"sgv": {"tie_tolerance": bad}}})
+        assert r.status_code == 422 and error_of(r)["field"] == "localizer.sgv.tie_tolerance"
+    r = client.patch("/v1/maps/icp-move", json={"localizer": {"sgv": {"tie_tolerance": 0.0}}})
+    assert r.status_code == 200 and r.json()["localizer"]["sgv"]["tie_tolerance"] == 0.0
+    assert _localize(client, "icp-move", body)["keyframe_id"] == after["keyframe_id"]
     for name in ("icp-move", "icp-new"):
         assert client.delete(f"/v1/maps/{name}").status_code in (200, 204)

@@ -5,7 +5,9 @@ Every stage reads its own section; the defaults are the ones docs/API.md documen
 
 from __future__ import annotations
 
-from typing import Literal
+import json
+from collections.abc import Mapping
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -80,6 +82,16 @@ class SGVConfig(_Section):
         "auto",
         description="kernel: 'numba' (fused CPU kernel), 'torch' (batched, CPU or CUDA); "
         "'auto' = numba on CPU when importable, torch on CUDA",
+    )
+    tie_tolerance: float = Field(
+        0.1,
+        ge=0.0,
+        lt=1.0,
+        description="after re-ranking, one of the next 5 candidates whose score is within "
+        "this fraction of the top-1's and whose SpectralGV pose puts the query at the same "
+        "place (2 m, 5 deg) but nearer to it takes the first place: the keyframe of that "
+        "place with the most overlap for the pose step (sgvloc.core.confidence."
+        "nearest_of_place); 0 keeps the scores' order, as maps made before this setting do",
     )
 
 
@@ -252,3 +264,20 @@ class LocalizerConfig(_Section):
     rerank: RerankMethod = "sgv"
     qe_k: int = Field(3, ge=1, le=100, description="query expansion: neighbours averaged")
     qe_alpha: float = Field(3.0, ge=0.0, le=100.0, description="alpha-QE weight exponent")
+
+    @classmethod
+    def stored(cls, data: str | bytes | Mapping[str, Any]) -> LocalizerConfig:
+        """The settings a map was stored with (JSON text or its parsed form). A setting
+        added since has the value that keeps the map answering as it did
+        (:data:`ADDED_SETTINGS`), not the default of new maps."""
+        d = json.loads(data) if isinstance(data, (str, bytes)) else json.loads(json.dumps(data))
+        if isinstance(d, dict):
+            for (section, key), value in ADDED_SETTINGS.items():
+                if isinstance(d.get(section), dict):
+                    d[section].setdefault(key, value)
+        return cls.model_validate(d)
+
+
+#: settings added after maps were first stored, with the value that keeps such a map's
+#: answers as they were
+ADDED_SETTINGS: dict[tuple[str, str], Any] = {("sgv", "tie_tolerance"): 0.0}

@@ -29,6 +29,7 @@ from .confidence import (
     Evidence,
     SpectralCandidate,
     assess,
+    nearest_of_place,
     shipped_calibration,
     spectral_candidates,
 )
@@ -530,6 +531,20 @@ class Localizer:
             whole.update(
                 self._whole([c.keyframe_id for c in out.candidates if c.keyframe_id not in whole])
             )
+            ranked = [c.keyframe_id for c in out.candidates]
+            spectral = None
+            if out.sgv is not None and cfg.sgv.tie_tolerance > 0:
+                spectral = self._spectral(query, retrieved, out, ranked, whole)
+                order = nearest_of_place(
+                    ranked,
+                    spectral,
+                    lambda i: self._keyframes[i].T_map_sensor,
+                    cfg.sgv.tie_tolerance,
+                )
+                if order != ranked:
+                    by_id = {c.keyframe_id: c for c in out.candidates}
+                    out.candidates = [by_id[i] for i in order]
+                    ranked = order
             timings["rerank"] = _ms(t)
 
             # 4. estimate the pose against the re-ranked top-1
@@ -554,11 +569,12 @@ class Localizer:
             t = time.perf_counter()
             T_kf = pose.T_target_source if has_estimate else None
             T_map = best.T_map_sensor @ T_kf if T_kf is not None else None
-            ranked = [c.keyframe_id for c in out.candidates]
             judged = assess(
                 self.calibration,
                 ranked,
-                self._spectral(query, retrieved, out, ranked, whole),
+                spectral
+                if spectral is not None
+                else self._spectral(query, retrieved, out, ranked, whole),
                 lambda i: self._keyframes[i].T_map_sensor,
                 query_keypoints=query.keypoints,
                 similarity=float(query.global_descriptor @ best.features.global_descriptor),
@@ -684,7 +700,9 @@ class Localizer:
             )
             scored = ranked
         kps = [whole[i].features.keypoints for i in scored]
-        wanted = set(ranked[: 1 + AGREEMENT_CANDIDATES])
+        # the top-1 may give way to one of the next candidates (nearest_of_place), whose
+        # agreement is then checked against one more
+        wanted = set(ranked[: 2 + AGREEMENT_CANDIDATES])
         return spectral_candidates(scored, query.keypoints, kps, res, poses_for=wanted)
 
     def _whole(self, ids: list[int]) -> dict[int, Keyframe]:

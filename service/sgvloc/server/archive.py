@@ -180,7 +180,7 @@ def _header(manifest: dict[str, Any]) -> ArchiveHeader:
         record = MapRecord(
             name=str(m["name"]),
             encoder_spec=EncoderSpec.model_validate(m["encoder_spec"]),
-            localizer_config=LocalizerConfig.model_validate(m["localizer_config"]),
+            localizer_config=LocalizerConfig.stored(m["localizer_config"]),
             encoder_fingerprint=str(m["encoder_fingerprint"]),
             keep_clouds=bool(m["keep_clouds"]),
             created_at=str(m["created_at"]),

@@ -168,7 +168,7 @@ def record_from_meta(m: dict[str, str], where: str) -> MapRecord:
         return MapRecord(
             name=m["name"],
             encoder_spec=EncoderSpec.model_validate_json(m["encoder_spec"]),
-            localizer_config=LocalizerConfig.model_validate_json(m["localizer_config"]),
+            localizer_config=LocalizerConfig.stored(m["localizer_config"]),
             encoder_fingerprint=m["encoder_fingerprint"],
             keep_clouds=bool(json.loads(m["keep_clouds"])),
             created_at=m["created_at"],

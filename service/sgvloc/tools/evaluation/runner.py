@@ -200,6 +200,7 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
     from sgvloc.core.confidence import (
         Calibration,
         assess,
+        nearest_of_place,
         shipped_calibration,
         spectral_candidates,
     )
@@ -436,6 +437,10 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
                 if method == "sgv" and k == k_scores:
                     sgv_out = out
                 ids = [c.keyframe_id for c in out.candidates]
+                if method == "sgv":  # as the localizer: the nearest keyframe of the place
+                    ids = nearest_of_place(
+                        ids, spectral, lambda i: poses[i], loc_cfg.sgv.tie_tolerance
+                    )
                 rec: dict[str, Any] = {
                     "query": q,
                     "ms": ms,
