@@ -133,6 +133,9 @@ def test_tracking_section_through_the_cli(tmp_path: Path) -> None:
         assert s["samples"] == 7 * res["repeats"]
         assert s["tracked_share"] == 1.0  # every seeded scan of the fixture was tracked
         assert s["global_p50_ms"] > 0 and s["tracked_p50_ms"] > 0
+    rates = res["in_process"]["tracked_per_s"]  # one thread and the service's two workers
+    assert set(rates) == {"1", "2"} and all(r > 0 for r in rates.values())
+    assert "tracked scans per second in process: 1 thread(s)" in run.output
 
 
 def test_cluster_section_through_the_cli(tmp_path: Path, postgres) -> None:

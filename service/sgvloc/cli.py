@@ -795,7 +795,8 @@ def _tracking_registration() -> dict[str, object]:
         "stop_m",
         "stop_deg",
     )
-    return {k: getattr(t, k) for k in keys}
+    # the registration's code as well: its Hessian gives two of the features
+    return {**{k: getattr(t, k) for k in keys}, "implementation": "sgvloc.core.gicp_numba"}
 
 
 @app.command("calibrate-track", epilog=ONE_THREAD)

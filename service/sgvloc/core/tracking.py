@@ -1,8 +1,9 @@
 """Tracking: localize a scan by registering it against the map around a seed pose.
 
 A vehicle that localized a moment ago knows roughly where it is. Instead of a global
-search (encode, retrieve, re-rank, RANSAC), the scan is registered (``small_gicp``; VGICP
-against the submap's Gaussian voxels by default, or GICP against its points) against a
+search (encode, retrieve, re-rank, RANSAC), the scan is registered (VGICP against the
+submap's coarse Gaussian voxels, then GICP against its points or VGICP against finer
+voxels; :mod:`sgvloc.core.gicp_numba`, without the interpreter lock) against a
 *submap*: the stored clouds of the keyframes within ``submap_radius_m`` of the seed, put
 into map coordinates, downsampled, indexed and voxelised once and cached per map cell.
 The fit is trusted only if enough scan points lie on the submap (``min_fitness``),
@@ -25,13 +26,9 @@ from sgvloc.about import PACKAGE_DIR
 
 from .config import TrackingConfig
 from .errors import InputError
-from .pose import check_rigid, nearest_squared_distances, rotation_angle_deg
+from .gicp_numba import Cloud, GaussianVoxels, voxel_centroids
+from .pose import check_rigid, rotation_angle_deg
 from .preprocess import as_points
-
-try:  # the service extra installs it; the engine still imports without it
-    import small_gicp
-except ImportError:  # pragma: no cover - reported at the first seeded localize
-    small_gicp = None
 
 
 @dataclass(frozen=True)
@@ -58,12 +55,11 @@ class Submap:
     """The map around a cell: keyframe clouds in map coordinates, ready for GICP and
     (``voxels``, when the settings ask for VGICP) for VGICP."""
 
-    cloud: Any  # small_gicp.PointCloud with covariances
-    tree: Any  # small_gicp.KdTree (GICP, and the fitness of either)
+    cloud: Cloud  # points, KD-tree and covariances (GICP, and the fitness of either)
     keyframe_ids: list[int]
     points: int
-    voxels: Any = None  # small_gicp.GaussianVoxelMap
-    coarse: Any = None  # small_gicp.GaussianVoxelMap of vgicp_coarse_voxel_m
+    voxels: GaussianVoxels | None = None  # of vgicp_voxel_m
+    coarse: GaussianVoxels | None = None  # of vgicp_coarse_voxel_m
 
 
 @dataclass
@@ -108,6 +104,8 @@ class TrackResult:
 
 
 FINE_M = 0.2  # the "fine" fitness: scan points this close to the map
+#: neighbours of a submap point's covariance
+SUBMAP_NEIGHBOURS = 10
 
 #: what a tracking confidence model may use, from a fit's :meth:`TrackResult.to_dict`;
 #: oriented so that larger means more likely correct (the fit's weights are >= 0)
@@ -196,36 +194,23 @@ def tracked_confidence(r: TrackResult, model: TrackConfidence | None = None) -> 
     return (model or shipped_track_confidence()).predict(r.to_dict())
 
 
-def _require_small_gicp() -> None:
-    if small_gicp is None:
-        raise InputError(
-            "seeded localization needs the small_gicp package (pip install small_gicp; it "
-            "is part of the service extra)"
-        )
-
-
 def build_submap(
     clouds: list[tuple[int, np.ndarray, np.ndarray]], cfg: TrackingConfig
 ) -> Submap | None:
     """A submap from ``(keyframe id, T_map_sensor, cloud in the sensor frame)``; None
     when there are fewer than ``min_submap_keyframes`` clouds."""
-    _require_small_gicp()
     if len(clouds) < cfg.min_submap_keyframes:
         return None
     pts = np.concatenate(
         [c.astype(np.float64) @ T[:3, :3].T + T[:3, 3] for _, T, c in clouds if len(c)]
     )
-    cloud, tree = small_gicp.preprocess_points(
-        pts, downsampling_resolution=cfg.submap_voxel_m, num_threads=1
-    )
+    cloud = Cloud.of(voxel_centroids(pts, cfg.submap_voxel_m), SUBMAP_NEIGHBOURS)
     voxels = coarse = None
     if cfg.registration == "vgicp":
-        voxels = small_gicp.GaussianVoxelMap(cfg.vgicp_voxel_m)
-        voxels.insert(cloud)
+        voxels = GaussianVoxels.of(cloud, cfg.vgicp_voxel_m)
     if cfg.vgicp_coarse_voxel_m > 0:
-        coarse = small_gicp.GaussianVoxelMap(cfg.vgicp_coarse_voxel_m)
-        coarse.insert(cloud)
-    return Submap(cloud, tree, [i for i, _, _ in clouds], int(cloud.size()), voxels, coarse)
+        coarse = GaussianVoxels.of(cloud, cfg.vgicp_coarse_voxel_m)
+    return Submap(cloud, [i for i, _, _ in clouds], len(cloud), voxels, coarse)
 
 
 def scan_cloud(points: np.ndarray, cfg: TrackingConfig) -> np.ndarray:
@@ -239,47 +224,27 @@ def scan_cloud(points: np.ndarray, cfg: TrackingConfig) -> np.ndarray:
     return pts
 
 
-def scan_source(points: np.ndarray, cfg: TrackingConfig) -> Any:
+def scan_source(points: np.ndarray, cfg: TrackingConfig) -> Cloud:
     """The scan ready for registration: downsampled to ``scan_voxel_m``, with each point's
     covariance from its ``scan_neighbors`` nearest neighbours."""
-    source = small_gicp.voxelgrid_sampling(scan_cloud(points, cfg), cfg.scan_voxel_m, num_threads=1)
-    tree = small_gicp.KdTree(source, num_threads=1)
-    small_gicp.estimate_covariances(source, tree, num_neighbors=cfg.scan_neighbors, num_threads=1)
-    return source
+    return Cloud.of(voxel_centroids(scan_cloud(points, cfg), cfg.scan_voxel_m), cfg.scan_neighbors)
 
 
 def register(points: np.ndarray, seed: Seed, submap: Submap, cfg: TrackingConfig) -> TrackResult:
     """VGICP (or GICP) of the scan against the submap from the seed, and the checks."""
-    _require_small_gicp()
     source = scan_source(points, cfg)
-    common = {
-        "init_T_target_source": seed.T_map_sensor,
-        "max_correspondence_distance": cfg.max_correspondence_m,
-        "max_iterations": cfg.max_iterations,
-        "translation_epsilon": cfg.stop_m,
-        "rotation_epsilon": math.radians(cfg.stop_deg),
-        "num_threads": 1,
-    }
+    stop = (cfg.max_iterations, cfg.stop_m, math.radians(cfg.stop_deg))
+    T = seed.T_map_sensor
     if submap.coarse is not None:  # a rough fit against large voxels first
-        rough = small_gicp.align(
-            submap.coarse,
-            source,
-            **{**common, "max_correspondence_distance": 2 * cfg.max_correspondence_m},
-        )
-        common["init_T_target_source"] = np.asarray(rough.T_target_source, dtype=np.float64)
-    if cfg.registration == "vgicp" and submap.voxels is not None:
-        res = small_gicp.align(submap.voxels, source, **common)
-    else:
-        res = small_gicp.align(
-            submap.cloud, source, submap.tree, registration_type="GICP", **common
-        )
-    T = np.asarray(res.T_target_source, dtype=np.float64)
-    sq = nearest_squared_distances(submap.tree, source.points()[:, :3], T)
+        T, *_ = submap.coarse.align(source, T, 2 * cfg.max_correspondence_m, *stop)
+    target = submap.voxels if cfg.registration == "vgicp" and submap.voxels else submap.cloud
+    T, iterations, H, used = target.align(source, T, cfg.max_correspondence_m, *stop)
+    sq = submap.cloud.nearest_squared(source.points, T)
     inl = sq <= cfg.inlier_distance_m**2
     fitness = float(inl.mean()) if len(sq) else 0.0
     fine = float((sq <= FINE_M**2).mean()) if len(sq) else 0.0
     rmse = float(np.sqrt(sq[inl].mean())) if inl.any() else float("inf")
-    eig = np.linalg.eigvalsh(np.asarray(res.H, dtype=np.float64)[3:, 3:])  # translation block
+    eig = np.linalg.eigvalsh(H[3:, 3:])  # the translation block
     low, high = max(float(eig[0]), 1e-12), max(float(eig[-1]), 1e-12)
     offset = float(np.linalg.norm(T[:3, 3] - seed.T_map_sensor[:3, 3]))
     dyaw = rotation_angle_deg(seed.T_map_sensor[:3, :3].T @ T[:3, :3])  # heading and tilt
@@ -291,11 +256,11 @@ def register(points: np.ndarray, seed: Seed, submap: Submap, cfg: TrackingConfig
         fitness_fine=fine,
         rmse_m=rmse,
         conditioning=math.log10(low / high),
-        information=math.log10(low / max(int(res.num_inliers), 1)),
-        iterations=int(res.iterations),
+        information=math.log10(low / max(int(used), 1)),
+        iterations=int(iterations),
         submap_keyframes=len(submap.keyframe_ids),
         submap_points=submap.points,
-        scan_points=int(source.size()),
+        scan_points=len(source),
         seed_offset_m=offset,
         seed_offset_deg=dyaw,
     )

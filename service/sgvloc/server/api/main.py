@@ -83,14 +83,15 @@ def _warm_up() -> None:
             log.warning("cannot import %s: %s", module, exc)
             continue
         log.debug("imported %s in %.1f s", module, time.perf_counter() - t0)
-    # compile (or load from numba's cache) the CPU SGV and ICP kernels: ~10 s each on
-    # first use
-    from sgvloc.core import icp_numba, sgv
+    # compile (or load from numba's cache) the CPU SGV, ICP and tracking (GICP) kernels:
+    # ~10 s each on first use
+    from sgvloc.core import gicp_numba, icp_numba, sgv
 
     log.debug("SGV kernels ready in %.1f s", sgv.warm_up())
-    t0 = time.perf_counter()
-    icp_numba.warm_up()
-    log.debug("ICP kernels ready in %.1f s", time.perf_counter() - t0)
+    for name, module in (("ICP", icp_numba), ("GICP", gicp_numba)):
+        t0 = time.perf_counter()
+        module.warm_up()
+        log.debug("%s kernels ready in %.1f s", name, time.perf_counter() - t0)
 
 
 def _load_maps(manager: MapManager) -> None:

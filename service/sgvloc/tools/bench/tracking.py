@@ -7,12 +7,15 @@ retrieve, re-rank, RANSAC, ICP) and once with a seed (its ground-truth pose move
 0.3 m and 3 degrees, sigmas 1 m and 5 degrees), first in process through the map manager
 (the code the routes call), then over HTTP with MessagePack to a started service
 (``sgvloc serve --dev``, one client, sequential). Medians, and the ratio global/tracked
-measured on the same scans.
+measured on the same scans. In process also the throughput of tracked scans from one
+thread and from ``workers`` threads at once (the same scans, split between them), which
+says whether concurrent tracked scans run in parallel or wait for each other.
 """
 
 from __future__ import annotations
 
 import tempfile
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -90,10 +93,18 @@ def bench_tracking(
                         times["global"].append((t1 - t0) * 1e3)
                         times["tracked"].append((t2 - t1) * 1e3)
                         modes.append(r.mode)
+            jobs = [
+                (scans[i], Seed(s["T_map_sensor"], s["sigma_m"], s["sigma_yaw_deg"]))
+                for _ in range(repeats)
+                for i, s in seeds.items()
+            ]
+            rates = {n: _tracked_per_s(manager, jobs, n) for n in sorted({1, workers})}
         finally:
             manager.close()
     result["in_process"] = _summary(times, modes)
+    result["in_process"]["tracked_per_s"] = rates
     echo(f"  in process: {_line(result['in_process'])}")
+    echo("  tracked scans/s: " + ", ".join(f"{n} thread(s) {r:.1f}" for n, r in rates.items()))
 
     # over HTTP, MessagePack both ways
     with temporary_service(None, "track", workers, {}) as srv:
@@ -132,6 +143,22 @@ def bench_tracking(
     return result
 
 
+def _tracked_per_s(manager: Any, jobs: list[tuple[np.ndarray, Any]], threads: int) -> float:
+    """Tracked scans per second with ``threads`` threads sharing ``jobs`` (scan, seed)."""
+
+    def work(share: list[tuple[np.ndarray, Any]]) -> None:
+        for scan, seed in share:
+            manager.localize("track", points=scan, seed=seed)
+
+    pool = [threading.Thread(target=work, args=(jobs[k::threads],)) for k in range(threads)]
+    t0 = time.perf_counter()
+    for t in pool:
+        t.start()
+    for t in pool:
+        t.join()
+    return len(jobs) / (time.perf_counter() - t0)
+
+
 def _summary(times: dict[str, list[float]], modes: list[str]) -> dict[str, Any]:
     g, t = float(np.median(times["global"])), float(np.median(times["tracked"]))
     return {
@@ -164,6 +191,15 @@ def format_tracking(res: dict[str, Any]) -> str:
             f"| {name} | {s['global_p50_ms']:.1f} | {s['tracked_p50_ms']:.1f} | "
             f"{s['tracked_p90_ms']:.1f} | {s['ratio']:.1f}x |"
         )
+    rates = res["in_process"]["tracked_per_s"]
+    one = rates.get(1) or rates.get("1")
+    rows.append(
+        "\ntracked scans per second in process: "
+        + ", ".join(
+            f"{n} thread(s) {r:.1f}" + (f" ({r / one:.2f}x)" if one and str(n) != "1" else "")
+            for n, r in rates.items()
+        )
+    )
     rows.append(
         f"\n{res['queries']} query scans x {res['repeats']} rounds, map of "
         f"{res['map_keyframes']} keyframes ({res['data']})"

@@ -1,0 +1,465 @@
+"""GICP and VGICP of a scan against a submap, compiled with numba and run without the GIL.
+
+Tracking (:mod:`sgvloc.core.tracking`) registers every streamed scan against the map
+around its seed. small_gicp's Python binding holds the interpreter lock for the whole of
+a registration, so concurrent tracked scans waited for each other; the same computation
+here releases it.
+
+- :func:`voxel_centroids`: the centroid of each occupied voxel (a voxel grid filter),
+  in the order of the voxels' packed keys.
+- :func:`covariances`: per point, the covariance of its ``k`` nearest neighbours,
+  regularised to a plane (eigenvalues ``EPS, 1, 1`` on its eigenvectors, as GICP does):
+  ``I - (1 - EPS) n n^T`` with ``n`` the direction of least spread.
+- :class:`GaussianVoxels`: a cloud's Gaussian voxels (the mean of the points in each
+  voxel and the mean of their covariances), looked up by the voxel a point falls in.
+- :func:`align_points` / :func:`align_voxels`: Gauss-Newton on the GICP cost
+  ``sum r^T (C_q + R C_p R^T)^-1 r`` with ``r = T p - q``, the target point ``q`` the
+  nearest submap point within the correspondence distance (GICP) or the mean of the
+  voxel ``T p`` falls in, if that mean is within it (VGICP); a step is
+  ``T <- Exp(delta) T`` and the loop stops once a step moves less than ``stop_m`` and
+  turns less than ``stop_rad``, or after ``max_iterations``. Each returns the pose, the
+  iterations, the Hessian of the last linearisation (rotation first, then translation)
+  and its number of correspondences.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from .icp_numba import _STACK, _compose, _exp_rotation, _nearest, build_tree
+
+#: the smallest eigenvalue of a regularised covariance (the others are 1)
+EPS = 1e-3
+#: a point needs this many neighbours for a covariance of its own (else the identity)
+MIN_NEIGHBOURS = 5
+_OFFSET = 1 << 20  # voxel indices in (-2^20, 2^20) per axis, 21 bits each in a key
+
+
+@njit(cache=True, nogil=True)
+def _key(ix, iy, iz):  # pragma: no cover - compiled
+    return ((ix + _OFFSET) << 42) | ((iy + _OFFSET) << 21) | (iz + _OFFSET)
+
+
+@njit(cache=True, nogil=True)
+def _keys(pts, res):  # pragma: no cover - compiled
+    keys = np.empty(pts.shape[0], np.int64)
+    for i in range(pts.shape[0]):
+        ix = np.int64(np.floor(pts[i, 0] / res))
+        iy = np.int64(np.floor(pts[i, 1] / res))
+        iz = np.int64(np.floor(pts[i, 2] / res))
+        keys[i] = _key(ix, iy, iz)
+    return keys
+
+
+@njit(cache=True, nogil=True)
+def voxel_centroids(pts, res):  # pragma: no cover - compiled
+    """The centroids ``[V, 3]`` of the points ``pts`` ``[N, 3]`` float64 in each voxel of
+    size ``res``, in the order of the voxels' keys (the same cloud gives the same array)."""
+    keys = _keys(pts, res)
+    order = np.argsort(keys, kind="mergesort")
+    out = np.empty((pts.shape[0], 3))
+    v, i, n = 0, 0, pts.shape[0]
+    while i < n:
+        j, sx, sy, sz = i, 0.0, 0.0, 0.0
+        while j < n and keys[order[j]] == keys[order[i]]:
+            p = order[j]
+            sx += pts[p, 0]
+            sy += pts[p, 1]
+            sz += pts[p, 2]
+            j += 1
+        c = j - i
+        out[v, 0], out[v, 1], out[v, 2] = sx / c, sy / c, sz / c
+        v += 1
+        i = j
+    return out[:v].copy()
+
+
+@njit(cache=True, nogil=True)
+def _knn(tp, lo, hi, axis, split, left, right, x, y, z, bi, bd, stack, gaps):  # pragma: no cover
+    """The ``len(bi)`` tree points nearest to ``(x, y, z)``, nearest first, into ``bi``
+    (indices into ``tp``) and ``bd`` (squared distances); returns how many were found."""
+    k = bi.shape[0]
+    for a in range(k):
+        bi[a], bd[a] = -1, np.inf
+    found = 0
+    stack[0], gaps[0] = 0, 0.0
+    top = 1
+    while top > 0:
+        top -= 1
+        node, gap = stack[top], gaps[top]
+        if gap >= bd[k - 1]:
+            continue
+        d = axis[node]
+        if d < 0:
+            for i in range(lo[node], hi[node]):
+                dx, dy, dz = tp[i, 0] - x, tp[i, 1] - y, tp[i, 2] - z
+                s = dx * dx + dy * dy + dz * dz
+                if s < bd[k - 1]:
+                    a = k - 1
+                    while a > 0 and bd[a - 1] > s:
+                        bd[a], bi[a] = bd[a - 1], bi[a - 1]
+                        a -= 1
+                    bd[a], bi[a] = s, i
+                    found = min(found + 1, k)
+            continue
+        q = x if d == 0 else (y if d == 1 else z)
+        diff = q - split[node]
+        near, far = (left[node], right[node]) if diff <= 0.0 else (right[node], left[node])
+        stack[top], gaps[top] = far, max(gap, diff * diff)
+        stack[top + 1], gaps[top + 1] = near, gap
+        top += 2
+    return found
+
+
+@njit(cache=True, nogil=True)
+def _least_spread(a00, a01, a02, a11, a12, a22):  # pragma: no cover - compiled
+    """Unit eigenvector of the smallest eigenvalue of a symmetric 3x3 matrix (closed
+    form; ``eigh`` when the closed form is ill-conditioned)."""
+    p1 = a01 * a01 + a02 * a02 + a12 * a12
+    q = (a00 + a11 + a22) / 3.0
+    p2 = (a00 - q) ** 2 + (a11 - q) ** 2 + (a22 - q) ** 2 + 2.0 * p1
+    if p2 <= 1e-30:  # a multiple of the identity: any direction
+        return 0.0, 0.0, 1.0
+    p = np.sqrt(p2 / 6.0)
+    b00, b11, b22 = (a00 - q) / p, (a11 - q) / p, (a22 - q) / p
+    b01, b02, b12 = a01 / p, a02 / p, a12 / p
+    det = b00 * (b11 * b22 - b12 * b12) - b01 * (b01 * b22 - b12 * b02)
+    r = 0.5 * (det + b02 * (b01 * b12 - b11 * b02))
+    r = min(1.0, max(-1.0, r))
+    lam = q + 2.0 * p * np.cos(np.arccos(r) / 3.0 + 2.0 * np.pi / 3.0)  # the smallest
+    # the null direction of A - lam I: the longest cross product of two of its rows
+    r0 = (a00 - lam, a01, a02)
+    r1 = (a01, a11 - lam, a12)
+    r2 = (a02, a12, a22 - lam)
+    best, n0, n1, n2 = -1.0, 0.0, 0.0, 1.0
+    for u, v in ((r0, r1), (r0, r2), (r1, r2)):
+        c0 = u[1] * v[2] - u[2] * v[1]
+        c1 = u[2] * v[0] - u[0] * v[2]
+        c2 = u[0] * v[1] - u[1] * v[0]
+        s = c0 * c0 + c1 * c1 + c2 * c2
+        if s > best:
+            best, n0, n1, n2 = s, c0, c1, c2
+    if best <= 1e-12 * p2 * p2:  # two smallest eigenvalues (nearly) equal
+        w, vec = np.linalg.eigh(
+            np.array([[a00, a01, a02], [a01, a11, a12], [a02, a12, a22]], dtype=np.float64)
+        )
+        return vec[0, 0], vec[1, 0], vec[2, 0]
+    s = np.sqrt(best)
+    return n0 / s, n1 / s, n2 / s
+
+
+@njit(cache=True, nogil=True)
+def covariances(tp, lo, hi, axis, split, left, right, k):  # pragma: no cover - compiled
+    """Plane-regularised covariance ``[M, 3, 3]`` of each point of ``tp`` (tree order)
+    from its ``k`` nearest neighbours (itself included); the identity for a point with
+    fewer than :data:`MIN_NEIGHBOURS`."""
+    m = tp.shape[0]
+    out = np.empty((m, 3, 3))
+    bi = np.empty(k, np.int64)
+    bd = np.empty(k, np.float64)
+    stack, gaps = np.empty(_STACK, np.int64), np.empty(_STACK, np.float64)
+    for i in range(m):
+        x, y, z = tp[i, 0], tp[i, 1], tp[i, 2]
+        n = _knn(tp, lo, hi, axis, split, left, right, x, y, z, bi, bd, stack, gaps)
+        if n < MIN_NEIGHBOURS:
+            out[i] = np.eye(3)
+            continue
+        mx, my, mz = 0.0, 0.0, 0.0
+        for a in range(n):
+            j = bi[a]
+            mx += tp[j, 0]
+            my += tp[j, 1]
+            mz += tp[j, 2]
+        mx, my, mz = mx / n, my / n, mz / n
+        c00 = c01 = c02 = c11 = c12 = c22 = 0.0
+        for a in range(n):
+            j = bi[a]
+            dx, dy, dz = tp[j, 0] - mx, tp[j, 1] - my, tp[j, 2] - mz
+            c00 += dx * dx
+            c01 += dx * dy
+            c02 += dx * dz
+            c11 += dy * dy
+            c12 += dy * dz
+            c22 += dz * dz
+        u0, u1, u2 = _least_spread(c00 / n, c01 / n, c02 / n, c11 / n, c12 / n, c22 / n)
+        f = 1.0 - EPS
+        out[i, 0, 0], out[i, 1, 1], out[i, 2, 2] = 1 - f * u0 * u0, 1 - f * u1 * u1, 1 - f * u2 * u2
+        out[i, 0, 1] = out[i, 1, 0] = -f * u0 * u1
+        out[i, 0, 2] = out[i, 2, 0] = -f * u0 * u2
+        out[i, 1, 2] = out[i, 2, 1] = -f * u1 * u2
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _gaussian_voxels(pts, covs, res):  # pragma: no cover - compiled
+    """(sorted keys [V], means [V, 3], mean covariances [V, 3, 3]) of the points' voxels."""
+    keys = _keys(pts, res)
+    order = np.argsort(keys, kind="mergesort")
+    n = pts.shape[0]
+    ukeys = np.empty(n, np.int64)
+    means = np.empty((n, 3))
+    vcovs = np.empty((n, 3, 3))
+    v, i = 0, 0
+    while i < n:
+        j = i
+        s = np.zeros(3)
+        c = np.zeros((3, 3))
+        while j < n and keys[order[j]] == keys[order[i]]:
+            p = order[j]
+            s += pts[p]
+            c += covs[p]
+            j += 1
+        ukeys[v] = keys[order[i]]
+        means[v] = s / (j - i)
+        vcovs[v] = c / (j - i)
+        v += 1
+        i = j
+    return ukeys[:v].copy(), means[:v].copy(), vcovs[:v].copy()
+
+
+@njit(cache=True, nogil=True)
+def _accumulate(H, g, x, y, z, rx, ry, rz, Cq, RT, Cp, M, A):  # pragma: no cover - compiled
+    """Add the GICP term of one correspondence to ``H`` and ``g``: the moved point
+    ``(x, y, z)``, residual ``r``, the target's covariance ``Cq`` and the source point's
+    ``Cp`` turned by ``R`` (``RT`` = R transposed); ``M`` [3, 3] and ``A`` [3, 6] are
+    scratch space."""
+    # M = R Cp
+    for a in range(3):
+        for b in range(3):
+            M[a, b] = RT[0, a] * Cp[0, b] + RT[1, a] * Cp[1, b] + RT[2, a] * Cp[2, b]
+    # S = Cq + M R^T (symmetric), then its inverse Om (cofactors)
+    s00 = Cq[0, 0] + M[0, 0] * RT[0, 0] + M[0, 1] * RT[1, 0] + M[0, 2] * RT[2, 0]
+    s01 = Cq[0, 1] + M[0, 0] * RT[0, 1] + M[0, 1] * RT[1, 1] + M[0, 2] * RT[2, 1]
+    s02 = Cq[0, 2] + M[0, 0] * RT[0, 2] + M[0, 1] * RT[1, 2] + M[0, 2] * RT[2, 2]
+    s11 = Cq[1, 1] + M[1, 0] * RT[0, 1] + M[1, 1] * RT[1, 1] + M[1, 2] * RT[2, 1]
+    s12 = Cq[1, 2] + M[1, 0] * RT[0, 2] + M[1, 1] * RT[1, 2] + M[1, 2] * RT[2, 2]
+    s22 = Cq[2, 2] + M[2, 0] * RT[0, 2] + M[2, 1] * RT[1, 2] + M[2, 2] * RT[2, 2]
+    i00 = s11 * s22 - s12 * s12
+    i01 = s02 * s12 - s01 * s22
+    i02 = s01 * s12 - s02 * s11
+    i11 = s00 * s22 - s02 * s02
+    i12 = s01 * s02 - s00 * s12
+    i22 = s00 * s11 - s01 * s01
+    det = s00 * i00 + s01 * i01 + s02 * i02
+    if not det > 1e-300:
+        return False
+    o00, o01, o02 = i00 / det, i01 / det, i02 / det
+    o11, o12, o22 = i11 / det, i12 / det, i22 / det
+    # J = [-[v]x | I] with v = (x, y, z): rows (0, z, -y | 1 0 0), (-z, 0, x | 0 1 0),
+    # (y, -x, 0 | 0 0 1); A = Om J
+    A[0, 0] = -o01 * z + o02 * y
+    A[0, 1] = o00 * z - o02 * x
+    A[0, 2] = -o00 * y + o01 * x
+    A[1, 0] = -o11 * z + o12 * y
+    A[1, 1] = o01 * z - o12 * x
+    A[1, 2] = -o01 * y + o11 * x
+    A[2, 0] = -o12 * z + o22 * y
+    A[2, 1] = o02 * z - o22 * x
+    A[2, 2] = -o02 * y + o12 * x
+    A[0, 3], A[0, 4], A[0, 5] = o00, o01, o02
+    A[1, 3], A[1, 4], A[1, 5] = o01, o11, o12
+    A[2, 3], A[2, 4], A[2, 5] = o02, o12, o22
+    # H += J^T A, g += A^T r
+    for b in range(6):
+        a0, a1, a2 = A[0, b], A[1, b], A[2, b]
+        H[0, b] += y * a2 - z * a1
+        H[1, b] += z * a0 - x * a2
+        H[2, b] += x * a1 - y * a0
+        H[3, b] += a0
+        H[4, b] += a1
+        H[5, b] += a2
+        g[b] += a0 * rx + a1 * ry + a2 * rz
+    return True
+
+
+@njit(cache=True, nogil=True)
+def _solve_step(H, g, T):  # pragma: no cover - compiled
+    """Apply the Gauss-Newton step of ``H delta = -g``: ``(T', moved m, turned rad)``."""
+    Hd = H.copy()
+    for a in range(6):
+        Hd[a, a] += 1e-9  # keeps a degenerate system solvable
+    delta = -np.linalg.solve(Hd, g)
+    R = _exp_rotation(delta[0], delta[1], delta[2])
+    moved = np.sqrt(delta[3] ** 2 + delta[4] ** 2 + delta[5] ** 2)
+    turned = np.sqrt(delta[0] ** 2 + delta[1] ** 2 + delta[2] ** 2)
+    return _compose(R, delta[3], delta[4], delta[5], T), moved, turned
+
+
+@njit(cache=True, nogil=True)
+def align_points(
+    tp, tc, lo, hi, axis, split, left, right, src, sc, T0, r2, max_iterations, stop_m, stop_rad
+):  # pragma: no cover - compiled
+    """GICP of ``src`` ``[N, 3]`` (covariances ``sc``) onto the tree points ``tp``
+    (covariances ``tc``, tree order) from ``T0``: ``(T, iterations, H, correspondences)``."""
+    T = T0.copy()
+    H = np.zeros((6, 6))
+    used, iterations = 0, 0
+    stack, gaps = np.empty(_STACK, np.int64), np.empty(_STACK, np.float64)
+    M, A = np.empty((3, 3)), np.empty((3, 6))
+    for _ in range(max_iterations):
+        iterations += 1
+        H = np.zeros((6, 6))
+        g = np.zeros(6)
+        used = 0
+        RT = np.ascontiguousarray(T[:3, :3].T)
+        for i in range(src.shape[0]):
+            p0, p1, p2 = src[i, 0], src[i, 1], src[i, 2]
+            x = T[0, 0] * p0 + T[0, 1] * p1 + T[0, 2] * p2 + T[0, 3]
+            y = T[1, 0] * p0 + T[1, 1] * p1 + T[1, 2] * p2 + T[1, 3]
+            z = T[2, 0] * p0 + T[2, 1] * p1 + T[2, 2] * p2 + T[2, 3]
+            j, _s = _nearest(tp, lo, hi, axis, split, left, right, x, y, z, r2, stack, gaps)
+            if j < 0:
+                continue
+            rx, ry, rz = x - tp[j, 0], y - tp[j, 1], z - tp[j, 2]
+            used += _accumulate(H, g, x, y, z, rx, ry, rz, tc[j], RT, sc[i], M, A)
+        if used == 0:
+            break
+        T, moved, turned = _solve_step(H, g, T)
+        if moved < stop_m and turned < stop_rad:
+            break
+    return T, iterations, H, used
+
+
+@njit(cache=True, nogil=True)
+def align_voxels(
+    keys, means, vcovs, res, src, sc, T0, r2, max_iterations, stop_m, stop_rad
+):  # pragma: no cover - compiled
+    """VGICP of ``src`` (covariances ``sc``) onto Gaussian voxels of size ``res`` (sorted
+    ``keys``, ``means``, ``vcovs``) from ``T0``: ``(T, iterations, H, correspondences)``."""
+    T = T0.copy()
+    H = np.zeros((6, 6))
+    used, iterations = 0, 0
+    nv = keys.shape[0]
+    M, A = np.empty((3, 3)), np.empty((3, 6))
+    for _ in range(max_iterations):
+        iterations += 1
+        H = np.zeros((6, 6))
+        g = np.zeros(6)
+        used = 0
+        RT = np.ascontiguousarray(T[:3, :3].T)
+        for i in range(src.shape[0]):
+            p0, p1, p2 = src[i, 0], src[i, 1], src[i, 2]
+            x = T[0, 0] * p0 + T[0, 1] * p1 + T[0, 2] * p2 + T[0, 3]
+            y = T[1, 0] * p0 + T[1, 1] * p1 + T[1, 2] * p2 + T[1, 3]
+            z = T[2, 0] * p0 + T[2, 1] * p1 + T[2, 2] * p2 + T[2, 3]
+            ix, iy = np.int64(np.floor(x / res)), np.int64(np.floor(y / res))
+            key = _key(ix, iy, np.int64(np.floor(z / res)))
+            v = np.searchsorted(keys, key)
+            if v >= nv or keys[v] != key:
+                continue
+            rx, ry, rz = x - means[v, 0], y - means[v, 1], z - means[v, 2]
+            if rx * rx + ry * ry + rz * rz > r2:
+                continue
+            used += _accumulate(H, g, x, y, z, rx, ry, rz, vcovs[v], RT, sc[i], M, A)
+        if used == 0:
+            break
+        T, moved, turned = _solve_step(H, g, T)
+        if moved < stop_m and turned < stop_rad:
+            break
+    return T, iterations, H, used
+
+
+@njit(cache=True, nogil=True)
+def nearest_squared(tp, lo, hi, axis, split, left, right, src, T):  # pragma: no cover
+    """Squared distance ``[N]`` from each point of ``src`` moved by ``T`` to its nearest
+    tree point."""
+    out = np.empty(src.shape[0])
+    stack, gaps = np.empty(_STACK, np.int64), np.empty(_STACK, np.float64)
+    for i in range(src.shape[0]):
+        p0, p1, p2 = src[i, 0], src[i, 1], src[i, 2]
+        x = T[0, 0] * p0 + T[0, 1] * p1 + T[0, 2] * p2 + T[0, 3]
+        y = T[1, 0] * p0 + T[1, 1] * p1 + T[1, 2] * p2 + T[1, 3]
+        z = T[2, 0] * p0 + T[2, 1] * p1 + T[2, 2] * p2 + T[2, 3]
+        _j, s = _nearest(tp, lo, hi, axis, split, left, right, x, y, z, np.inf, stack, gaps)
+        out[i] = s
+    return out
+
+
+@dataclass
+class Cloud:
+    """Points in KD-tree order with their tree and GICP covariances."""
+
+    points: np.ndarray  # [M, 3] float64, tree order
+    nodes: tuple  # the tree's arrays (icp_numba.build_tree)
+    covs: np.ndarray  # [M, 3, 3]
+
+    @classmethod
+    def of(cls, pts: np.ndarray, neighbours: int) -> Cloud:
+        pts = np.ascontiguousarray(pts, dtype=np.float64).reshape(-1, 3)
+        order, *nodes = build_tree(pts)
+        tp = np.ascontiguousarray(pts[order])
+        return cls(tp, tuple(nodes), covariances(tp, *nodes, int(neighbours)))
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+    def align(self, src: Cloud, T0, max_distance, max_iterations, stop_m, stop_rad):
+        """GICP of ``src`` onto this cloud: ``(T, iterations, H, correspondences)``."""
+        return align_points(
+            self.points,
+            self.covs,
+            *self.nodes,
+            src.points,
+            src.covs,
+            np.ascontiguousarray(T0, dtype=np.float64),
+            float(max_distance) ** 2,
+            int(max_iterations),
+            float(stop_m),
+            float(stop_rad),
+        )
+
+    def nearest_squared(self, pts: np.ndarray, T: np.ndarray) -> np.ndarray:
+        """Squared distance of each of ``pts`` moved by ``T`` to its nearest point here."""
+        return nearest_squared(
+            self.points,
+            *self.nodes,
+            np.ascontiguousarray(pts, dtype=np.float64),
+            np.ascontiguousarray(T, dtype=np.float64),
+        )
+
+
+@dataclass
+class GaussianVoxels:
+    """A cloud's Gaussian voxels of size ``res`` (VGICP's target)."""
+
+    res: float
+    keys: np.ndarray
+    means: np.ndarray
+    covs: np.ndarray
+
+    @classmethod
+    def of(cls, cloud: Cloud, res: float) -> GaussianVoxels:
+        return cls(float(res), *_gaussian_voxels(cloud.points, cloud.covs, float(res)))
+
+    def __len__(self) -> int:
+        return len(self.keys)
+
+    def align(self, src: Cloud, T0, max_distance, max_iterations, stop_m, stop_rad):
+        """VGICP of ``src`` onto these voxels: ``(T, iterations, H, correspondences)``."""
+        return align_voxels(
+            self.keys,
+            self.means,
+            self.covs,
+            self.res,
+            src.points,
+            src.covs,
+            np.ascontiguousarray(T0, dtype=np.float64),
+            float(max_distance) ** 2,
+            int(max_iterations),
+            float(stop_m),
+            float(stop_rad),
+        )
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's cache) every kernel on a tiny cloud."""
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-3.0, 3.0, size=(60, 3))
+    cloud = Cloud.of(voxel_centroids(pts, 0.1), 10)
+    voxels = GaussianVoxels.of(cloud, 2.0)
+    cloud.align(cloud, np.eye(4), 1.0, 2, 1e-3, 1e-3)
+    voxels.align(cloud, np.eye(4), 1.0, 2, 1e-3, 1e-3)
+    cloud.nearest_squared(cloud.points, np.eye(4))
