@@ -4,12 +4,10 @@ same every time, and other Python threads running while it registers."""
 
 from __future__ import annotations
 
-import threading
-
 import numpy as np
 import pytest
 import small_gicp
-from pose_helpers import planar_pose
+from pose_helpers import assert_other_threads_run_during, planar_pose
 
 from sgvloc.core import gicp_numba
 from sgvloc.core.gicp_numba import Cloud, GaussianVoxels, voxel_centroids
@@ -121,18 +119,4 @@ def test_other_threads_run_while_it_registers() -> None:
         "gicp": lambda: submap.align(src, np.eye(4), 1.0, 30, 0.0, 0.0),  # 30 iterations
         "vgicp": lambda: [voxels.align(src, np.eye(4), 1.0, 30, 0.0, 0.0) for _ in range(5)],
     }
-    for name, call in calls.items():
-        started, state = threading.Event(), {"done": False}
-
-        def work(call=call, started=started, state=state) -> None:
-            started.set()
-            call()
-            state["done"] = True
-
-        worker = threading.Thread(target=work)
-        worker.start()
-        started.wait()
-        threading.Event().wait(0.02)  # give the worker time to enter the kernel
-        running_meanwhile = not state["done"]  # this line needs the lock
-        worker.join()
-        assert state["done"] and running_meanwhile, name
+    assert_other_threads_run_during(calls)

@@ -4,11 +4,9 @@ time, and other Python threads running while it works."""
 
 from __future__ import annotations
 
-import threading
-
 import numpy as np
 import pytest
-from pose_helpers import planar_pose
+from pose_helpers import assert_other_threads_run_during, planar_pose
 
 from sgvloc.core import icp_numba
 from sgvloc.core.pose import IcpTarget, _fit_quality
@@ -94,18 +92,4 @@ def test_other_threads_run_while_it_aligns() -> None:
         "align": lambda: tree.align(source, np.eye(4), 1.0, 30, 0.0, 0.0),  # 30 iterations
         "fit_quality": lambda: tree.fit_quality(np.tile(source, (16, 1)), np.eye(4), 1.0),
     }
-    for name, call in calls.items():
-        started, state = threading.Event(), {"done": False}
-
-        def work(call=call, started=started, state=state) -> None:
-            started.set()
-            call()
-            state["done"] = True
-
-        worker = threading.Thread(target=work)
-        worker.start()
-        started.wait()
-        threading.Event().wait(0.02)  # give the worker time to enter the kernel
-        running_meanwhile = not state["done"]  # this line needs the lock
-        worker.join()
-        assert state["done"] and running_meanwhile, name
+    assert_other_threads_run_during(calls)

@@ -12,10 +12,10 @@ here releases it.
   ``I - (1 - EPS) n n^T`` with ``n`` the direction of least spread.
 - :class:`GaussianVoxels`: a cloud's Gaussian voxels (the mean of the points in each
   voxel and the mean of their covariances), looked up by the voxel a point falls in.
-- :func:`align_points` / :func:`align_voxels`: Gauss-Newton on the GICP cost
-  ``sum r^T (C_q + R C_p R^T)^-1 r`` with ``r = T p - q``, the target point ``q`` the
-  nearest submap point within the correspondence distance (GICP) or the mean of the
-  voxel ``T p`` falls in, if that mean is within it (VGICP); a step is
+- :meth:`Cloud.align` / :meth:`GaussianVoxels.align` (:func:`_register`): Gauss-Newton
+  on the GICP cost ``sum r^T (C_q + R C_p R^T)^-1 r`` with ``r = T p - q``, the target
+  point ``q`` the nearest submap point within the correspondence distance (GICP) or the
+  mean of the voxel ``T p`` falls in, if that mean is within it (VGICP); a step is
   ``T <- Exp(delta) T`` and the loop stops once a step moves less than ``stop_m`` and
   turns less than ``stop_rad``, or after ``max_iterations``. Each returns the pose, the
   iterations, the Hessian of the last linearisation (rotation first, then translation)
@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from .icp_numba import _STACK, _compose, _exp_rotation, _nearest, build_tree
+from .icp_numba import _STACK, _nearest, _step, build_tree
 
 #: the smallest eigenvalue of a regularised covariance (the others are 1)
 EPS = 1e-3
@@ -276,24 +276,32 @@ def _accumulate(H, g, x, y, z, rx, ry, rz, Cq, RT, Cp, M, A):  # pragma: no cove
 
 
 @njit(cache=True, nogil=True)
-def _solve_step(H, g, T):  # pragma: no cover - compiled
-    """Apply the Gauss-Newton step of ``H delta = -g``: ``(T', moved m, turned rad)``."""
-    Hd = H.copy()
-    for a in range(6):
-        Hd[a, a] += 1e-9  # keeps a degenerate system solvable
-    delta = -np.linalg.solve(Hd, g)
-    R = _exp_rotation(delta[0], delta[1], delta[2])
-    moved = np.sqrt(delta[3] ** 2 + delta[4] ** 2 + delta[5] ** 2)
-    turned = np.sqrt(delta[0] ** 2 + delta[1] ** 2 + delta[2] ** 2)
-    return _compose(R, delta[3], delta[4], delta[5], T), moved, turned
-
-
-@njit(cache=True, nogil=True)
-def align_points(
-    tp, tc, lo, hi, axis, split, left, right, src, sc, T0, r2, max_iterations, stop_m, stop_rad
+def _register(
+    voxels,
+    tp,
+    tc,
+    lo,
+    hi,
+    axis,
+    split,
+    left,
+    right,
+    keys,
+    means,
+    vcovs,
+    res,
+    src,
+    sc,
+    T0,
+    r2,
+    max_iterations,
+    stop_m,
+    stop_rad,
 ):  # pragma: no cover - compiled
-    """GICP of ``src`` ``[N, 3]`` (covariances ``sc``) onto the tree points ``tp``
-    (covariances ``tc``, tree order) from ``T0``: ``(T, iterations, H, correspondences)``."""
+    """GICP of ``src`` ``[N, 3]`` (covariances ``sc``) from ``T0`` onto the tree points
+    ``tp`` (covariances ``tc``, tree order) or, with ``voxels``, VGICP onto Gaussian
+    voxels of size ``res`` (sorted ``keys``, ``means``, ``vcovs``); the other target's
+    arrays are not read. ``(T, iterations, H, correspondences)``."""
     T = T0.copy()
     H = np.zeros((6, 6))
     used, iterations = 0, 0
@@ -310,6 +318,17 @@ def align_points(
             x = T[0, 0] * p0 + T[0, 1] * p1 + T[0, 2] * p2 + T[0, 3]
             y = T[1, 0] * p0 + T[1, 1] * p1 + T[1, 2] * p2 + T[1, 3]
             z = T[2, 0] * p0 + T[2, 1] * p1 + T[2, 2] * p2 + T[2, 3]
+            if voxels:  # the mean of the voxel the point falls in, if near enough
+                ix, iy = np.int64(np.floor(x / res)), np.int64(np.floor(y / res))
+                key = _key(ix, iy, np.int64(np.floor(z / res)))
+                v = np.searchsorted(keys, key)
+                if v >= keys.shape[0] or keys[v] != key:
+                    continue
+                rx, ry, rz = x - means[v, 0], y - means[v, 1], z - means[v, 2]
+                if rx * rx + ry * ry + rz * rz > r2:
+                    continue
+                used += _accumulate(H, g, x, y, z, rx, ry, rz, vcovs[v], RT, sc[i], M, A)
+                continue
             j, _s = _nearest(tp, lo, hi, axis, split, left, right, x, y, z, r2, stack, gaps)
             if j < 0:
                 continue
@@ -317,46 +336,7 @@ def align_points(
             used += _accumulate(H, g, x, y, z, rx, ry, rz, tc[j], RT, sc[i], M, A)
         if used == 0:
             break
-        T, moved, turned = _solve_step(H, g, T)
-        if moved < stop_m and turned < stop_rad:
-            break
-    return T, iterations, H, used
-
-
-@njit(cache=True, nogil=True)
-def align_voxels(
-    keys, means, vcovs, res, src, sc, T0, r2, max_iterations, stop_m, stop_rad
-):  # pragma: no cover - compiled
-    """VGICP of ``src`` (covariances ``sc``) onto Gaussian voxels of size ``res`` (sorted
-    ``keys``, ``means``, ``vcovs``) from ``T0``: ``(T, iterations, H, correspondences)``."""
-    T = T0.copy()
-    H = np.zeros((6, 6))
-    used, iterations = 0, 0
-    nv = keys.shape[0]
-    M, A = np.empty((3, 3)), np.empty((3, 6))
-    for _ in range(max_iterations):
-        iterations += 1
-        H = np.zeros((6, 6))
-        g = np.zeros(6)
-        used = 0
-        RT = np.ascontiguousarray(T[:3, :3].T)
-        for i in range(src.shape[0]):
-            p0, p1, p2 = src[i, 0], src[i, 1], src[i, 2]
-            x = T[0, 0] * p0 + T[0, 1] * p1 + T[0, 2] * p2 + T[0, 3]
-            y = T[1, 0] * p0 + T[1, 1] * p1 + T[1, 2] * p2 + T[1, 3]
-            z = T[2, 0] * p0 + T[2, 1] * p1 + T[2, 2] * p2 + T[2, 3]
-            ix, iy = np.int64(np.floor(x / res)), np.int64(np.floor(y / res))
-            key = _key(ix, iy, np.int64(np.floor(z / res)))
-            v = np.searchsorted(keys, key)
-            if v >= nv or keys[v] != key:
-                continue
-            rx, ry, rz = x - means[v, 0], y - means[v, 1], z - means[v, 2]
-            if rx * rx + ry * ry + rz * rz > r2:
-                continue
-            used += _accumulate(H, g, x, y, z, rx, ry, rz, vcovs[v], RT, sc[i], M, A)
-        if used == 0:
-            break
-        T, moved, turned = _solve_step(H, g, T)
+        T, moved, turned = _step(H.copy(), g, T)
         if moved < stop_m and turned < stop_rad:
             break
     return T, iterations, H, used
@@ -376,6 +356,25 @@ def nearest_squared(tp, lo, hi, axis, split, left, right, src, T):  # pragma: no
         _j, s = _nearest(tp, lo, hi, axis, split, left, right, x, y, z, np.inf, stack, gaps)
         out[i] = s
     return out
+
+
+#: the unused target's arrays of a registration (:func:`_register`)
+_NO_VOXELS = (np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3, 3)), 1.0)
+_NO_POINTS = (
+    np.zeros((0, 3)),
+    np.zeros((0, 3, 3)),
+    *(np.zeros(1, np.int64),) * 3,
+    np.zeros(1),
+    *(np.zeros(1, np.int64),) * 2,
+)
+
+
+def _run(src, T0, max_distance, max_iterations, stop_m, stop_rad) -> tuple:
+    """The arguments of a registration kernel after its target's: the source and the
+    loop's settings, typed for the compiled code."""
+    T0 = np.ascontiguousarray(T0, dtype=np.float64)
+    stop = (int(max_iterations), float(stop_m), float(stop_rad))
+    return (src.points, src.covs, T0, float(max_distance) ** 2, *stop)
 
 
 @dataclass
@@ -398,18 +397,8 @@ class Cloud:
 
     def align(self, src: Cloud, T0, max_distance, max_iterations, stop_m, stop_rad):
         """GICP of ``src`` onto this cloud: ``(T, iterations, H, correspondences)``."""
-        return align_points(
-            self.points,
-            self.covs,
-            *self.nodes,
-            src.points,
-            src.covs,
-            np.ascontiguousarray(T0, dtype=np.float64),
-            float(max_distance) ** 2,
-            int(max_iterations),
-            float(stop_m),
-            float(stop_rad),
-        )
+        run = _run(src, T0, max_distance, max_iterations, stop_m, stop_rad)
+        return _register(False, self.points, self.covs, *self.nodes, *_NO_VOXELS, *run)
 
     def nearest_squared(self, pts: np.ndarray, T: np.ndarray) -> np.ndarray:
         """Squared distance of each of ``pts`` moved by ``T`` to its nearest point here."""
@@ -439,19 +428,9 @@ class GaussianVoxels:
 
     def align(self, src: Cloud, T0, max_distance, max_iterations, stop_m, stop_rad):
         """VGICP of ``src`` onto these voxels: ``(T, iterations, H, correspondences)``."""
-        return align_voxels(
-            self.keys,
-            self.means,
-            self.covs,
-            self.res,
-            src.points,
-            src.covs,
-            np.ascontiguousarray(T0, dtype=np.float64),
-            float(max_distance) ** 2,
-            int(max_iterations),
-            float(stop_m),
-            float(stop_rad),
-        )
+        run = _run(src, T0, max_distance, max_iterations, stop_m, stop_rad)
+        target = (self.keys, self.means, self.covs, self.res)
+        return _register(True, *_NO_POINTS, *target, *run)
 
 
 def warm_up() -> None:
