@@ -247,3 +247,31 @@ def test_eval_crops_every_scan_to_a_field_of_view(balm_mini_dir, tmp_path, first
     assert split["coverage_heading_deg"] == 35.0
     res = CliRunner().invoke(app, [*args[:-4], "--fov", "400", "--out", str(tmp_path / "x")])
     assert res.exit_code == 2 and "--fov" in res.output
+
+
+def test_scans_the_encoder_cannot_describe_are_left_out_not_fatal(balm_mini_dir, tmp_path):
+    """A scan too sparse for the encoder (here flat ground only: no column of the BEV
+    image holds two voxels) neither stops the run nor enters the database; as a query it
+    is an answer without an estimate."""
+    import shutil
+
+    data = tmp_path / "seq"
+    shutil.copytree(balm_mini_dir, data)
+    rng = np.random.default_rng(0)
+    ground = np.c_[rng.uniform(-10, 10, (300, 2)), np.full(300, -1.5), np.ones(300)]
+    for i in (1, 12):  # a database scan and the first revisit query (scan 125)
+        ground.astype(np.float32).tofile(data / "velodyne" / f"{i:06d}.bin")
+    out = tmp_path / "out"
+    args = ["eval", "--data", str(data), "--min-gap", "30", "--topk", "3", "--sweep", "3"]
+    args += ["--methods", "none,sgv", "--no-progress", "--cache-dir", str(tmp_path / "c")]
+    res = CliRunner().invoke(app, [*args, "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    report = json.loads((out / "eval.json").read_text())
+    assert any(n.startswith("2 scans could not be encoded") for n in report["notes"])
+    for key, recs in report["per_query"].items():
+        by_query = {q["query"]: q for q in recs}
+        assert all(1 not in q["ranked"] for q in recs), key
+        empty = by_query[12]
+        assert empty["ranked"] == [] and empty["rank@5m"] is None, key
+        assert empty["verdict"] == "no_features" and not empty["accepted"], key
+        assert by_query[13]["ranked"], key  # the other revisits are answered

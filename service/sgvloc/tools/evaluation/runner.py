@@ -50,6 +50,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from sgvloc.core.config import LocalizerConfig
 from sgvloc.core.encoders import EncoderSpec
 from sgvloc.core.errors import InputError
+from sgvloc.core.features import Features
 from sgvloc.core.rerank import METHODS
 
 from .diagnostics import score_separation, summarise_pairs
@@ -267,14 +268,29 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
     ]
     sources = [seq, *foreign]
     t0 = time.perf_counter()
-    feats = {
-        i: cache.get(seq.paths[i])
+    unencodable: dict[str, str] = {}  # scan file -> why the encoder refused it
+
+    def encoded(path: str) -> Features | None:
+        """The scan's features, or None when the encoder finds nothing to describe (a scan
+        too sparse for it): such a scan stays out of the database and, as a query, is an
+        answer without an estimate, as the service answers it with a 422."""
+        try:
+            return cache.get(path)
+        except InputError as exc:
+            unencodable[str(path)] = str(exc)
+            return None
+
+    everything = {
+        i: encoded(seq.paths[i])
         for i in _progress(needed, progress, desc="features", unit="scan")
     }
-    qfeats = {key: feats[key[1]] for key in qkeys if key[0] == 0}
+    feats = {i: f for i, f in everything.items() if f is not None}
+    qfeats = {key: everything[key[1]] for key in qkeys if key[0] == 0}
     for key in _progress([k for k in qkeys if k[0]], progress, desc="foreign", unit="scan"):
-        qfeats[key] = cache.get(sources[key[0]].paths[key[1]])
+        qfeats[key] = encoded(sources[key[0]].paths[key[1]])
     t_features = time.perf_counter() - t0
+    if not feats:
+        raise InputError(f"{cfg.data}: the encoder found nothing to describe in any scan")
     planar = is_planar(*(f.keypoints for f in feats.values()))
     # BEV images: the pose is x, y and yaw, so errors are measured in the plane
     in_plane = seq.kind == "bev-images"
@@ -407,6 +423,8 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
     for qk in _progress(qkeys, progress, desc="queries", unit="query"):
         src, q = qk
         visible = split.database_for(q) if src == 0 else split.database
+        if unencodable:
+            visible = visible[[int(i) in feats for i in visible]]
         new = [i for i in visible.tolist() if i not in in_index]
         if new:
             index.add(
@@ -423,6 +441,18 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
             prior = Prior(tuple(noisy), cfg.prior_radius)
             among = visible[prior.distance(poses[visible, :3, 3]) <= cfg.prior_radius]
         fq = qfeats[qk]
+        if fq is None:  # nothing to describe: no answer for any method
+            for (_method, k), rs in recs.items():
+                rec = {"query": q, "ms": 0.0, "ranked": [], "candidates": 0}
+                rec.update({"top1_changed": False, "in_coverage": covered})
+                if src:
+                    rec["foreign"] = cfg.foreign[src - 1]
+                rec.update({f"rank@{thr:g}m": None for thr in cfg.thresholds})
+                if k in table_ks:
+                    rec.update(verdict_record(qk, [], gt, src == 0, {}, None, visible))
+                    rec["verdict"] = "no_features"
+                rs.append(rec)
+            continue
         candidates = _retrieval(index, fq.global_descriptor, kmax, blocks, among)
         retrieved = candidates(kmax)
         spectral: dict[int, Any] = {}
@@ -539,6 +569,15 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
         ),
         "R@5 with top-k < 5 counts the k candidates there are; k is capped by the database "
         "size visible to a query",
+        *(
+            [
+                f"{len(unencodable)} scans could not be encoded (e.g. "
+                f"{next(iter(unencodable.values()))}): left out of the database; as queries "
+                "they count as not localized (verdict no_features)"
+            ]
+            if unencodable
+            else []
+        ),
         f"out-of-coverage queries (no database scan within {split.threshold:g} m): "
         f"{len(split.dropped)}"
         + (
