@@ -469,6 +469,12 @@ def build_map_command(
         f"{result.existing} already present; {result.keyframes} keyframes, "
         f"version {result.map_version}"
     )
+    if result.skipped:
+        shown = ", ".join(result.skipped[:5]) + (", ..." if len(result.skipped) > 5 else "")
+        typer.echo(
+            f"{len(result.skipped)} scans skipped: the map's encoder found nothing to "
+            f"describe in them (too sparse for it; try another encoder): {shown}"
+        )
 
 
 def _encoder_self_test(

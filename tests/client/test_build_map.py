@@ -338,3 +338,40 @@ def test_self_test_of_a_served_map(service_url: str, balm_mini_dir: Path) -> Non
             c.self_test_map("st", gap_s=1000)  # the drive lasts 88 s: no revisit
         assert err.value.status == 422 and "no keyframe has a revisit" in str(err.value)
         c.delete_map("st")
+
+
+def test_scans_the_encoder_cannot_describe_are_skipped(
+    service_url: str, balm_mini_dir: Path, tmp_path: Path
+) -> None:
+    """A scan in which the map's encoder finds nothing (flat ground only: no BEV column
+    holds two voxels) is a 422 ``empty_scan`` naming it; build-map leaves it out, says
+    which, and inserts the rest, into a service and into a data directory alike."""
+    import shutil
+
+    import httpx
+
+    data = tmp_path / "seq"
+    shutil.copytree(balm_mini_dir, data)
+    rng = np.random.default_rng(0)
+    ground = np.c_[rng.uniform(-10, 10, (300, 2)), np.full(300, -1.5), np.ones(300)]
+    for i in (1, 4):
+        ground.astype(np.float32).tofile(data / "velodyne" / f"{i:06d}.bin")
+    r = httpx.post(f"{service_url}/v1/maps", json={"name": "sparse"})
+    assert r.status_code == 201, r.text
+    r = httpx.post(
+        f"{service_url}/v1/maps/sparse/localize", json={"points": ground.tolist()}, timeout=60
+    )
+    assert r.status_code == 422, r.text
+    assert r.json()["error"]["code"] == "empty_scan"
+    assert r.json()["error"]["field"] == "points"
+
+    args = ["build-map", str(data), "--map", "sparse", "--limit", "6", "--batch-size", "4"]
+    for target in (["--url", service_url], ["--data-dir", str(tmp_path / "dd")]):
+        out = CliRunner().invoke(app, [*args, *target, "--no-progress"])
+        assert out.exit_code == 0, out.output
+        assert "6 scans sent, 4 new keyframes" in out.output
+        assert "2 scans skipped" in out.output and "seq/000001, seq/000004" in out.output
+    with Client(service_url) as c:
+        keys = [kf.key for kf in c.list_keyframes("sparse").keyframes]
+        assert sorted(keys) == [f"seq/{i:06d}" for i in (0, 2, 3, 5)]
+        c.delete_map("sparse")

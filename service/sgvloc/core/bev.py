@@ -38,7 +38,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from .errors import InputError
+from .errors import EmptyScanError, InputError
 from .preprocess import all_columns, as_points, finite, in_azimuth_window, voxel_downsample
 
 
@@ -100,7 +100,7 @@ def prepare_points(points: np.ndarray, config: BEVRasterConfig = KITTI_BEV) -> n
     pts = crop_box(finite(pts), config.extent)
     pts = voxel_downsample(pts, config.resolution)
     if len(pts) == 0:
-        raise InputError(
+        raise EmptyScanError(
             f"scan has no finite point with |x|, |y|, |z| < {config.extent} m; nothing to rasterise"
         )
     return pts

@@ -3,7 +3,8 @@
 All derive from :class:`SgvlocError`. The HTTP layer maps them to status codes:
 
 - :class:`InputError` (bad data from the caller: wrong shape, NaN, empty scan, malformed
-  file) -> 422 / 400;
+  file) -> 422 / 400; :class:`EmptyScanError`, a valid scan in which the map's encoder
+  finds nothing to describe, -> 422 ``empty_scan``;
 - :class:`EncoderMismatchError` (features from another encoder than the map's) -> 409;
 - :class:`NotFoundError` (unknown keyframe or map) -> 404;
 - :class:`ConflictError` (duplicate name or key) -> 409;
@@ -18,6 +19,11 @@ class SgvlocError(Exception):
 
 class InputError(SgvlocError, ValueError):
     """The caller's data is malformed; the message names the field and the problem."""
+
+
+class EmptyScanError(InputError):
+    """The encoder found nothing to describe in a scan (too sparse for it, or nothing
+    but ground): a well-formed scan that this encoder cannot use."""
 
 
 class ScanFormatError(InputError):

@@ -27,6 +27,7 @@ import json
 import logging
 import math
 import os
+import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -35,7 +36,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 from tqdm import tqdm
 
-from sgvloc.core.errors import ConflictError, InputError, NotFoundError
+from sgvloc.core.errors import ConflictError, EmptyScanError, InputError, NotFoundError
 from sgvloc.core.sequence import KittiSequence
 from sgvloc_client import Client, Conflict, NotFound
 from sgvloc_client import KeyframeIn as ClientKeyframeIn
@@ -52,7 +53,8 @@ class BuildMapResult:
 
     ``scans``: scans sent; ``created``: keyframes newly stored; ``existing``: scans whose
     key was already in the map (a resumed or repeated run); ``keyframes`` and
-    ``map_version``: the map's state afterwards.
+    ``map_version``: the map's state afterwards; ``skipped``: the keys of scans in which
+    the map's encoder found nothing to describe (too sparse for it), left out.
     """
 
     map: str
@@ -61,6 +63,7 @@ class BuildMapResult:
     existing: int
     keyframes: int
     map_version: int
+    skipped: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -301,6 +304,37 @@ class DataDirSink:
 # -- the build -----------------------------------------------------------------------------
 
 
+_EMPTY_SCAN_FIELD = re.compile(r"keyframes\[(\d+)\]\.points")
+
+
+def _empty_scan(exc: Exception, batch: list[ScanKeyframe]) -> int | None:
+    """The batch index of the scan an insert refused as having nothing to describe (the
+    engine's :class:`EmptyScanError`, or the service's 422 ``empty_scan``), else None."""
+    if not (isinstance(exc, EmptyScanError) or getattr(exc, "code", None) == "empty_scan"):
+        return None
+    m = _EMPTY_SCAN_FIELD.fullmatch(str(getattr(exc, "field", "") or ""))
+    return int(m.group(1)) if m and int(m.group(1)) < len(batch) else None
+
+
+def _insert(
+    sink: KeyframeSink, name: str, batch: list[ScanKeyframe], skipped: list[str]
+) -> tuple[int, list[ScanKeyframe]]:
+    """Insert ``batch`` (all-or-nothing per call); a scan in which the map's encoder finds
+    nothing to describe is left out, its key appended to ``skipped``, and the rest sent
+    again. ``(keyframes new, the batch as inserted)``."""
+    while batch:
+        try:
+            return sink.insert(name, batch), batch
+        except Exception as exc:
+            i = _empty_scan(exc, batch)
+            if i is None:
+                raise
+            log.warning("skipping %s: %s", batch[i].key, getattr(exc, "raw_message", exc))
+            skipped.append(batch[i].key)
+            batch = batch[:i] + batch[i + 1 :]
+    return 0, batch
+
+
 def build_map(
     source: Path | str,
     target: str | Client | os.PathLike[str],
@@ -356,6 +390,7 @@ def build_map(
         DataDirSink(Path(target)) if isinstance(target, os.PathLike) else ClientSink(target)
     )
     created = existing = 0
+    skipped: list[str] = []
     try:
         sink.ensure_map(map_name, create, spec, self_test)
         with tqdm(
@@ -376,11 +411,11 @@ def build_map(
                             metadata=metadata,
                         )
                     )
-                new = sink.insert(map_name, batch)
+                bar.update(len(batch))
+                new, batch = _insert(sink, map_name, batch, skipped)
                 created += new
                 existing += len(batch) - new
-                bar.update(len(batch))
-                bar.set_postfix(new=created, existing=existing)
+                bar.set_postfix(new=created, existing=existing, skipped=len(skipped))
         keyframes, version = sink.state(map_name)
     finally:
         sink.close()
@@ -399,4 +434,5 @@ def build_map(
         existing=existing,
         keyframes=keyframes,
         map_version=version,
+        skipped=tuple(skipped),
     )

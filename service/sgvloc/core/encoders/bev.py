@@ -34,7 +34,7 @@ from ..bev import (
     prepare_points,
     rasterize_cloud,
 )
-from ..errors import InputError
+from ..errors import EmptyScanError, InputError
 from ..features import EncoderIdentity, Features
 from .base import Encoder
 from .handcrafted import yaw_invariant_descriptor
@@ -217,7 +217,7 @@ class BEVEncoder(Encoder):
         c = self.config
         g = self.global_descriptor(image)
         if not np.any(g):
-            raise InputError(
+            raise EmptyScanError(
                 "BEV image is empty (no column with two or more occupied 0.4 m voxels); "
                 "nothing to describe"
             )

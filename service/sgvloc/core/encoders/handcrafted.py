@@ -42,7 +42,7 @@ import logging
 import numpy as np
 
 from ..config import HandcraftedEncoderConfig, PreprocessConfig
-from ..errors import InputError
+from ..errors import EmptyScanError
 from ..features import EncoderIdentity, Features
 from .base import Encoder
 
@@ -258,7 +258,7 @@ class HandcraftedEncoder(Encoder):
         # 2. global descriptor
         g = yaw_invariant_descriptor(polar_grid(pts, c.rings, c.sectors, c.max_radius))
         if not np.any(g):
-            raise InputError(
+            raise EmptyScanError(
                 f"scan has no points within max_radius={c.max_radius} m of the sensor "
                 "(xy plane) after preprocessing; nothing to describe"
             )

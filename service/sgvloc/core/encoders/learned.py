@@ -59,7 +59,7 @@ from ..bev import (
     prepare_points,
     rasterize_cloud,
 )
-from ..errors import InputError
+from ..errors import EmptyScanError, InputError
 from ..features import EncoderIdentity, Features
 from .base import Encoder
 from .bev import polar_fft_descriptor
@@ -371,7 +371,7 @@ class LearnedEncoder(Encoder):
 
         image = cut_faint(image, self.min_grey)
         if not image.any():
-            raise InputError(
+            raise EmptyScanError(
                 "BEV image is empty (no column with two or more occupied 0.4 m voxels"
                 + (f", none at grey level {self.min_grey} or above" if self.min_grey else "")
                 + "); nothing to describe"

@@ -22,6 +22,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from sgvloc.core.errors import (
     ConflictError,
     DeadlineExceeded,
+    EmptyScanError,
     EncoderMismatchError,
     InputError,
     NotFoundError,
@@ -112,6 +113,7 @@ _ENGINE_CODES: list[tuple[type[SgvlocError], int, str, bool]] = [
     (EncoderMismatchError, 409, "encoder_mismatch", False),
     (NotFoundError, 404, "not_found", False),
     (ConflictError, 409, "conflict", False),
+    (EmptyScanError, 422, "empty_scan", False),
     (InputError, 422, "invalid_input", False),
 ]
 

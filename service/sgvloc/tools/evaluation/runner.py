@@ -49,7 +49,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from sgvloc.core.config import LocalizerConfig
 from sgvloc.core.encoders import EncoderSpec
-from sgvloc.core.errors import InputError
+from sgvloc.core.errors import EmptyScanError, InputError
 from sgvloc.core.features import Features
 from sgvloc.core.rerank import METHODS
 
@@ -276,13 +276,12 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
         answer without an estimate, as the service answers it with a 422."""
         try:
             return cache.get(path)
-        except InputError as exc:
+        except EmptyScanError as exc:
             unencodable[str(path)] = str(exc)
             return None
 
     everything = {
-        i: encoded(seq.paths[i])
-        for i in _progress(needed, progress, desc="features", unit="scan")
+        i: encoded(seq.paths[i]) for i in _progress(needed, progress, desc="features", unit="scan")
     }
     feats = {i: f for i, f in everything.items() if f is not None}
     qfeats = {key: everything[key[1]] for key in qkeys if key[0] == 0}
