@@ -89,9 +89,10 @@ class SGVConfig(_Section):
         lt=1.0,
         description="after re-ranking, one of the next 5 candidates whose score is within "
         "this fraction of the top-1's and whose SpectralGV pose puts the query at the same "
-        "place (2 m, 5 deg) but nearer to it takes the first place: the keyframe of that "
-        "place with the most overlap for the pose step (sgvloc.core.confidence."
-        "nearest_of_place); 0 keeps the scores' order, as maps made before this setting do",
+        "place (2 m, 5 deg) but at least 1 m nearer to it takes the first place: the "
+        "keyframe of that place with the most overlap for the pose step (sgvloc.core."
+        "confidence.nearest_of_place); 0 keeps the scores' order, as maps made before this "
+        "setting do",
     )
 
 
@@ -273,7 +274,7 @@ class LocalizerConfig(_Section):
         d = json.loads(data) if isinstance(data, (str, bytes)) else json.loads(json.dumps(data))
         if isinstance(d, dict):
             for (section, key), value in ADDED_SETTINGS.items():
-                if isinstance(d.get(section), dict):
+                if isinstance(d.setdefault(section, {}), dict):
                     d[section].setdefault(key, value)
         return cls.model_validate(d)
 
