@@ -4,17 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from pose_helpers import planar_pose as _T
 
 from sgvloc.core.errors import InputError
 from sgvloc.core.prior import PositionGrid, Prior, yaw_deg
-
-
-def _T(x: float, y: float, yaw: float = 0.0, z: float = 0.0) -> np.ndarray:
-    a = np.radians(yaw)
-    T = np.eye(4)
-    T[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
-    T[:3, 3] = x, y, z
-    return T
 
 
 def test_grid_finds_exactly_the_keyframes_inside_the_radius() -> None:
