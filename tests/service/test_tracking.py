@@ -172,6 +172,29 @@ def test_eval_track_on_the_fixture(balm_mini_dir: Path, tmp_path: Path) -> None:
     assert any("availability" in line for line in report_lines(r))
 
 
+def test_eval_track_counts_scans_the_encoder_cannot_describe(
+    balm_mini_dir: Path, tmp_path: Path
+) -> None:
+    """A map scan with nothing for the encoder (flat ground only) is left out of the map,
+    a streamed one is a scan not localized; the run goes on."""
+    import shutil
+
+    from sgvloc.tools.eval_track import eval_track, report_lines
+
+    data = tmp_path / "seq"
+    shutil.copytree(balm_mini_dir, data)
+    rng = np.random.default_rng(0)
+    ground = np.c_[rng.uniform(-10, 10, (300, 2)), np.full(300, -1.5), np.ones(300)]
+    for i in (2, 0):  # a map scan, and the first streamed scan (a global localize)
+        ground.astype(np.float32).tofile(data / "velodyne" / f"{i:06d}.bin")
+    r = eval_track(data, tmp_path / "out", map_every=2, max_scans=8)
+    assert r.map_scans == 2 and r.map_scans_skipped == 2  # 4 and 6 stay; 0 and 2 left out
+    first = r.scans[0]
+    assert first.index == 0 and first.mode == "empty_scan" and not first.localized
+    assert first.why.startswith("empty_scan: ") and r.streamed == 8
+    assert "2 map scans left out" in report_lines(r)[0]
+
+
 def test_the_readme_tracking_example_runs(server) -> None:
     import re
     import subprocess

@@ -28,8 +28,9 @@ import logging
 import math
 import os
 import re
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -307,26 +308,26 @@ class DataDirSink:
 _EMPTY_SCAN_FIELD = re.compile(r"keyframes\[(\d+)\]\.points")
 
 
-def _empty_scan(exc: Exception, batch: list[ScanKeyframe]) -> int | None:
+def _empty_scan(exc: Exception, size: int) -> int | None:
     """The batch index of the scan an insert refused as having nothing to describe (the
     engine's :class:`EmptyScanError`, or the service's 422 ``empty_scan``), else None."""
     if not (isinstance(exc, EmptyScanError) or getattr(exc, "code", None) == "empty_scan"):
         return None
     m = _EMPTY_SCAN_FIELD.fullmatch(str(getattr(exc, "field", "") or ""))
-    return int(m.group(1)) if m and int(m.group(1)) < len(batch) else None
+    return int(m.group(1)) if m and int(m.group(1)) < size else None
 
 
-def _insert(
-    sink: KeyframeSink, name: str, batch: list[ScanKeyframe], skipped: list[str]
-) -> tuple[int, list[ScanKeyframe]]:
-    """Insert ``batch`` (all-or-nothing per call); a scan in which the map's encoder finds
-    nothing to describe is left out, its key appended to ``skipped``, and the rest sent
-    again. ``(keyframes new, the batch as inserted)``."""
+def insert_skipping_empty(
+    insert: Callable[[list[Any]], int], batch: list[Any], skipped: list[str]
+) -> tuple[int, list[Any]]:
+    """``insert(batch)`` (all-or-nothing per call, returning how many were new); a scan in
+    which the map's encoder finds nothing to describe is left out, its ``key`` appended to
+    ``skipped``, and the rest inserted again. ``(keyframes new, the batch as inserted)``."""
     while batch:
         try:
-            return sink.insert(name, batch), batch
+            return insert(batch), batch
         except Exception as exc:
-            i = _empty_scan(exc, batch)
+            i = _empty_scan(exc, len(batch))
             if i is None:
                 raise
             log.warning("skipping %s: %s", batch[i].key, getattr(exc, "raw_message", exc))
@@ -412,7 +413,8 @@ def build_map(
                         )
                     )
                 bar.update(len(batch))
-                new, batch = _insert(sink, map_name, batch, skipped)
+                insert = partial(sink.insert, map_name)
+                new, batch = insert_skipping_empty(insert, batch, skipped)
                 created += new
                 existing += len(batch) - new
                 bar.set_postfix(new=created, existing=existing, skipped=len(skipped))

@@ -15,11 +15,13 @@ trajectory plot (ground truth and fixes coloured by mode) goes next to the JSON.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import tempfile
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -28,11 +30,13 @@ import numpy as np
 from sgvloc.core.confidence import CORRECT_DEG, CORRECT_M  # a fix beyond either is wrong
 from sgvloc.core.config import LocalizerConfig
 from sgvloc.core.encoders import EncoderSpec
+from sgvloc.core.errors import EmptyScanError
 from sgvloc.core.sequence import KittiSequence
 from sgvloc.core.tracking import Seed
 from sgvloc.server.maps import KeyframeIn, MapManager
 from sgvloc_client.tracking import MotionModel
 
+from .build_map import insert_skipping_empty
 from .evaluation.metrics import rre, rte
 
 
@@ -71,6 +75,19 @@ class TrackReport:
     scans_by_mode: dict[str, int]
     kidnaps: list[dict[str, Any]] = field(default_factory=list)
     scans: list[ScanRecord] = field(default_factory=list)
+    map_scans_skipped: int = 0  # map scans the encoder found nothing to describe in
+
+
+@dataclass
+class _NotLocalized:
+    """The answer recorded for a streamed scan the service refused (a 422 ``empty_scan``:
+    nothing for the map's encoder to describe), as the SDK's tracker would count it."""
+
+    reason: str
+    localized: bool = False
+    mode: str = "empty_scan"
+    T_map_sensor: None = None
+    tracking: None = None
 
 
 def _errors(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
@@ -130,24 +147,29 @@ def eval_track(
         manager.load_all()
         try:
             manager.create("track", encoder, LocalizerConfig(tracking=tracking or {}))
+            skipped: list[str] = []  # map scans the encoder found nothing to describe in
             for start in range(0, len(map_ids), 20):
-                batch = map_ids[start : start + 20]
-                manager.insert(
-                    "track",
-                    [
-                        KeyframeIn(seq[i].T_world_sensor, points=seq[i].scan().xyzi(), key=str(i))
-                        for i in batch
-                    ],
-                )
+                batch = [
+                    KeyframeIn(seq[i].T_world_sensor, points=seq[i].scan().xyzi(), key=str(i))
+                    for i in map_ids[start : start + 20]
+                ]
+                insert = partial(_inserted, manager)
+                insert_skipping_empty(insert, batch, skipped)
                 say(f"map: {min(start + 20, len(map_ids))}/{len(map_ids)} keyframes")
+            map_ids = [i for i in map_ids if str(i) not in set(skipped)]
             order = stream_order(n, kidnaps or [], first_scan)
             report = _stream(seq, order, map_ids, manager, kidnaps or [], coverage_m, motion, say)
+            report.map_scans_skipped = len(skipped)
         finally:
             manager.close()
     report.data = str(data)
     (out / "track.json").write_text(json.dumps(asdict(report), indent=1))
     plot_trajectory(report, seq, map_ids, out / "trajectory.png")
     return report
+
+
+def _inserted(manager: MapManager, batch: list[KeyframeIn]) -> int:
+    return len(manager.insert("track", batch).ids)
 
 
 def _stream(
@@ -168,7 +190,8 @@ def _stream(
     steps = np.diff([t for t in times if t is not None])
     period = float(np.median(steps)) if len(steps) else 0.1  # the sensor's scan period
     # one untimed global localize first: libraries load and kernels compile once per process
-    manager.localize("track", points=seq[order[0]].scan().xyzi())
+    with contextlib.suppress(EmptyScanError):
+        manager.localize("track", points=seq[order[0]].scan().xyzi())
     for k, i in enumerate(order):
         frame = seq[i]
         T_true = frame.T_world_sensor
@@ -178,7 +201,10 @@ def _stream(
         if seed is None and model.pose is not None:
             relocalizations += 1
         t0 = time.perf_counter()
-        result = manager.localize("track", points=frame.scan().xyzi(), seed=seed)
+        try:
+            result = manager.localize("track", points=frame.scan().xyzi(), seed=seed)
+        except EmptyScanError as exc:  # nothing for the encoder: a scan not localized
+            result = _NotLocalized(reason=f"empty_scan: {exc}")
         ms = (time.perf_counter() - t0) * 1e3
         model.observe(result, stamp)
         err = _errors(result.T_map_sensor, T_true) if result.localized else (None, None)
@@ -317,8 +343,14 @@ def report_lines(r: TrackReport) -> list[str]:
         return "-" if v is None else f"{v:.{digits}f} {unit}"
 
     lines = [
-        f"map: {r.map_scans} keyframes; streamed {r.streamed} scans, {r.in_coverage} within "
-        f"coverage; localized {r.localized}",
+        f"map: {r.map_scans} keyframes"
+        + (
+            f" ({r.map_scans_skipped} map scans left out: nothing to describe)"
+            if r.map_scans_skipped
+            else ""
+        )
+        + f"; streamed {r.streamed} scans, {r.in_coverage} within coverage; localized "
+        f"{r.localized}",
         f"availability {r.availability:.1%}; position error median {f(r.median_error_m, 'm')}, "
         f"p95 {f(r.p95_error_m, 'm')}, ATE {f(r.ate_m, 'm')}; rotation p95 "
         f"{f(r.p95_error_deg, 'deg', 2)}",
