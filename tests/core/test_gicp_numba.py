@@ -31,7 +31,7 @@ def _motion(yaw_deg: float, t: list[float]) -> np.ndarray:
     return T
 
 
-def test_voxel_grid_and_covariances_are_small_gicps() -> None:
+def test_voxel_grid_covariances_and_normals_are_small_gicps() -> None:
     rng = np.random.default_rng(0)
     pts = _scene(rng)
     ours = voxel_centroids(pts, 0.5)
@@ -49,6 +49,11 @@ def test_voxel_grid_and_covariances_are_small_gicps() -> None:
     # plane-regularised: eigenvalues (EPS, 1, 1)
     w = np.linalg.eigvalsh(cloud.covs)
     np.testing.assert_allclose(w, np.tile([gicp_numba.EPS, 1.0, 1.0], (len(w), 1)), atol=1e-9)
+    # normals (point-to-plane ICP's targets): small_gicp's, facing the sensor at the origin
+    small_gicp.estimate_normals(ref, small_gicp.KdTree(ref), num_neighbors=10)
+    ours = gicp_numba.normals(cloud.points, *cloud.nodes, 10)
+    np.testing.assert_allclose(ours, np.asarray(ref.normals())[:, :3], rtol=0, atol=1e-7)
+    assert (np.einsum("ij,ij->i", ours, cloud.points) <= 0).all()
 
 
 @pytest.mark.parametrize("m", [3, 5, 33, 700])

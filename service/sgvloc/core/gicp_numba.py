@@ -7,6 +7,8 @@ here releases it.
 
 - :func:`voxel_centroids`: the centroid of each occupied voxel (a voxel grid filter),
   in the order of the voxels' packed keys.
+- :func:`normals`: per point, the direction of least spread of its ``k`` nearest
+  neighbours, facing the sensor (the normals of point-to-plane ICP's targets).
 - :func:`covariances`: per point, the covariance of its ``k`` nearest neighbours,
   regularised to a plane (eigenvalues ``EPS, 1, 1`` on its eigenvectors, as GICP does):
   ``I - (1 - EPS) n n^T`` with ``n`` the direction of least spread.
@@ -167,30 +169,60 @@ def covariances(tp, lo, hi, axis, split, left, right, k):  # pragma: no cover - 
         if n < MIN_NEIGHBOURS:
             out[i] = np.eye(3)
             continue
-        mx, my, mz = 0.0, 0.0, 0.0
-        for a in range(n):
-            j = bi[a]
-            mx += tp[j, 0]
-            my += tp[j, 1]
-            mz += tp[j, 2]
-        mx, my, mz = mx / n, my / n, mz / n
-        c00 = c01 = c02 = c11 = c12 = c22 = 0.0
-        for a in range(n):
-            j = bi[a]
-            dx, dy, dz = tp[j, 0] - mx, tp[j, 1] - my, tp[j, 2] - mz
-            c00 += dx * dx
-            c01 += dx * dy
-            c02 += dx * dz
-            c11 += dy * dy
-            c12 += dy * dz
-            c22 += dz * dz
-        u0, u1, u2 = _least_spread(c00 / n, c01 / n, c02 / n, c11 / n, c12 / n, c22 / n)
+        u0, u1, u2 = _least_spread(*_spread(tp, bi, n))
         f = 1.0 - EPS
         out[i, 0, 0], out[i, 1, 1], out[i, 2, 2] = 1 - f * u0 * u0, 1 - f * u1 * u1, 1 - f * u2 * u2
         out[i, 0, 1] = out[i, 1, 0] = -f * u0 * u1
         out[i, 0, 2] = out[i, 2, 0] = -f * u0 * u2
         out[i, 1, 2] = out[i, 2, 1] = -f * u1 * u2
     return out
+
+
+@njit(cache=True, nogil=True)
+def normals(tp, lo, hi, axis, split, left, right, k):  # pragma: no cover - compiled
+    """Unit normal ``[M, 3]`` of each point of ``tp`` (tree order, in its sensor's frame):
+    the direction of least spread of its ``k`` nearest neighbours (itself included),
+    turned to face the sensor at the origin; zero for a point with fewer than
+    :data:`MIN_NEIGHBOURS` (small_gicp's normal estimation)."""
+    m = tp.shape[0]
+    out = np.zeros((m, 3))
+    bi = np.empty(k, np.int64)
+    bd = np.empty(k, np.float64)
+    stack, gaps = np.empty(_STACK, np.int64), np.empty(_STACK, np.float64)
+    for i in range(m):
+        x, y, z = tp[i, 0], tp[i, 1], tp[i, 2]
+        n = _knn(tp, lo, hi, axis, split, left, right, x, y, z, bi, bd, stack, gaps)
+        if n < MIN_NEIGHBOURS:
+            continue
+        c00, c01, c02, c11, c12, c22 = _spread(tp, bi, n)
+        u0, u1, u2 = _least_spread(c00, c01, c02, c11, c12, c22)
+        if x * u0 + y * u1 + z * u2 > 0.0:
+            u0, u1, u2 = -u0, -u1, -u2
+        out[i, 0], out[i, 1], out[i, 2] = u0, u1, u2
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _spread(tp, bi, n):  # pragma: no cover - compiled
+    """The covariance (upper triangle) of the points ``tp[bi[:n]]``."""
+    mx, my, mz = 0.0, 0.0, 0.0
+    for a in range(n):
+        j = bi[a]
+        mx += tp[j, 0]
+        my += tp[j, 1]
+        mz += tp[j, 2]
+    mx, my, mz = mx / n, my / n, mz / n
+    c00 = c01 = c02 = c11 = c12 = c22 = 0.0
+    for a in range(n):
+        j = bi[a]
+        dx, dy, dz = tp[j, 0] - mx, tp[j, 1] - my, tp[j, 2] - mz
+        c00 += dx * dx
+        c01 += dx * dy
+        c02 += dx * dz
+        c11 += dy * dy
+        c12 += dy * dz
+        c22 += dz * dz
+    return c00 / n, c01 / n, c02 / n, c11 / n, c12 / n, c22 / n
 
 
 @njit(cache=True, nogil=True)

@@ -335,25 +335,30 @@ NORMAL_NEIGHBOURS = 10
 
 class IcpTarget:
     """A keyframe cloud ready for :func:`refine_icp`, built once and reused by every
-    localization against that keyframe: its normals (small_gicp, from
-    :data:`NORMAL_NEIGHBOURS` neighbours) and the index ``backend`` searches: small_gicp's
-    KD-tree (about 0.3 MB for 5k points), or for ``"numba"`` the tree of
-    :mod:`sgvloc.core.icp_numba` with the normals in its order (about 0.25 MB)."""
+    localization against that keyframe: its normals (from :data:`NORMAL_NEIGHBOURS`
+    neighbours) and the index ``backend`` searches: small_gicp's KD-tree and normals
+    (about 0.3 MB for 5k points), or for ``"numba"`` the tree of
+    :mod:`sgvloc.core.icp_numba` with the normals of :func:`sgvloc.core.gicp_numba.normals`
+    (the same to 1e-9) in its order (about 0.25 MB), built without the interpreter lock."""
 
     def __init__(self, cloud: np.ndarray, backend: str = "small_gicp") -> None:
+        self.source = cloud  # kept alive: the localizer caches targets by its id()
+        self.numba: icp_numba.Tree | None = None
+        self.cloud = self.tree = None
+        if backend == "numba":  # the numba tree answers every search
+            from .gicp_numba import normals
+
+            tree = icp_numba.Tree(cloud)
+            tree.normals = normals(tree.points, *tree.nodes, NORMAL_NEIGHBOURS)
+            self.numba = tree
+            return
         import small_gicp
 
-        self.source = cloud  # kept alive: the localizer caches targets by its id()
         self.cloud = small_gicp.PointCloud(np.asarray(cloud, dtype=np.float64))
         self.tree = small_gicp.KdTree(self.cloud, num_threads=1)
         small_gicp.estimate_normals(
             self.cloud, self.tree, num_neighbors=NORMAL_NEIGHBOURS, num_threads=1
         )
-        self.numba: icp_numba.Tree | None = None
-        if backend == "numba":
-            normals = np.asarray(self.cloud.normals())[:, :3]
-            self.numba = icp_numba.Tree(self.cloud.points()[:, :3], normals)
-            self.cloud = self.tree = None  # the numba tree answers every search
 
 
 def nearest_squared_distances(tree: Any, pts: np.ndarray, T: np.ndarray) -> np.ndarray:

@@ -137,20 +137,17 @@ _last_thinned = threading.local()
 
 
 def voxel_centroids(cloud: np.ndarray, voxel_m: float) -> np.ndarray:
-    """The centroids of ``cloud``'s voxels of ``voxel_m`` ``[M, 3]`` float64 (small_gicp's
-    voxel grid). The calling thread's last answer is kept with the array it came from, so
-    that the ICP source and the free-space check, which thin the same query cloud at the
-    same size within one localization, share one pass."""
+    """The centroids of ``cloud``'s voxels of ``voxel_m`` ``[M, 3]`` float64, in the order
+    of the voxels' keys (:func:`sgvloc.core.gicp_numba.voxel_centroids`, without the
+    interpreter lock). The calling thread's last answer is kept with the array it came
+    from, so that the ICP source and the free-space check, which thin the same query cloud
+    at the same size within one localization, share one pass."""
     last = getattr(_last_thinned, "entry", None)
     if last is not None and last[0] is cloud and last[1] == voxel_m:
         return last[2]
-    import small_gicp
+    from .gicp_numba import voxel_centroids as centroids
 
-    pts = np.asarray(cloud, dtype=np.float64).reshape(-1, 3)
-    if len(pts) == 0:
-        out = pts
-    else:
-        out = np.asarray(small_gicp.voxelgrid_sampling(pts, voxel_m, num_threads=1).points())
-        out = np.ascontiguousarray(out[:, :3])
+    pts = np.ascontiguousarray(np.asarray(cloud, dtype=np.float64).reshape(-1, 3))
+    out = pts if len(pts) == 0 else centroids(pts, float(voxel_m))
     _last_thinned.entry = (cloud, voxel_m, out)
     return out
