@@ -75,6 +75,24 @@ def test_a_seed_30m_off_falls_back_to_the_global_path(client, track_map) -> None
     assert pose_error(np.array(out["T_map_sensor"]), T)[0] < 0.3
 
 
+def test_a_failed_fit_of_a_scan_the_encoder_cannot_describe_is_answered(client, track_map) -> None:
+    """Flat ground alone: the fit from a seed 30 m off fails and the global fallback has
+    nothing to describe, so the answer is the failed fit (200, not localized, saying
+    why), not a 422 for a request tracking could have answered; without a seed the same
+    scan is a 422 ``empty_scan``."""
+    rng = np.random.default_rng(0)
+    ground = np.c_[rng.uniform(-10, 10, (300, 2)), np.full(300, -1.5), np.ones(300)]
+    T = track_map[7].T_world_sensor
+    body = {"points": ground, "seed": _seed(T, 30.0, 0.0)}
+    r = post_msgpack(client, "/v1/maps/track/localize", body)
+    assert r.status_code == 200, r.text
+    out = r.json()
+    assert not out["localized"] and out["verdict"] == "tracking_failed", out
+    assert "no global fallback" in out["reason"] and "nothing to describe" in out["reason"]
+    r = post_msgpack(client, "/v1/maps/track/localize", {"points": ground})
+    assert r.status_code == 422 and error_of(r)["code"] == "empty_scan", r.text
+
+
 @pytest.mark.parametrize(
     ("seed", "field"),
     [

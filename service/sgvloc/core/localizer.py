@@ -36,7 +36,7 @@ from .confidence import (
 from .config import LocalizerConfig
 from .deadline import check as check_deadline
 from .encoders import Encoder
-from .errors import ConflictError, InputError, NotFoundError
+from .errors import ConflictError, EmptyScanError, InputError, NotFoundError
 from .features import Features
 from .freespace import RADIUS_M, RangeImage, thin, views_near, violation
 from .pose import IcpTarget, PoseResult, check_rigid, ransac_pose, refine_icp
@@ -426,14 +426,18 @@ class Localizer:
                     yaw_deg=yaw_deg(seed.T_map_sensor),
                     yaw_tolerance_deg=min(180.0, max(k * seed.sigma_yaw_deg, 30.0)),
                 )
-            result = self.localize(
-                scan,
-                top_k=top_k,
-                rerank_method=rerank_method,
-                refine=refine,
-                prior=prior,
-                min_confidence=min_confidence,
-            )
+            try:
+                result = self.localize(
+                    scan,
+                    top_k=top_k,
+                    rerank_method=rerank_method,
+                    refine=refine,
+                    prior=prior,
+                    min_confidence=min_confidence,
+                )
+            except EmptyScanError as exc:  # the fit's answer stands, with why no fallback
+                tracked.why += f"; no global fallback: {exc}"
+                return self._tracked_answer(tracked, t_start, threshold)
             result.mode, result.tracking = "relocalized", tracked.to_dict()
             result.timings_ms["track"] = tracked.timings_ms["track"]
             result.timings_ms["total"] = _ms(t_start)
@@ -649,7 +653,8 @@ class Localizer:
         self, tracked: TrackResult, t_start: float, min_confidence: float
     ) -> LocalizationResult:
         """The answer of a seeded fit: accepted (``tracked.ok``, its confidence at least
-        ``min_confidence``) or, with ``fallback: none``, not."""
+        ``min_confidence``) or, with ``fallback: none`` or a scan the global fallback cannot
+        describe, not."""
         T = tracked.T_map_sensor
         T_kf = None
         if T is not None and tracked.nearest_keyframe is not None:
