@@ -154,27 +154,40 @@ def _least_spread(a00, a01, a02, a11, a12, a22):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def covariances(tp, lo, hi, axis, split, left, right, k):  # pragma: no cover - compiled
-    """Plane-regularised covariance ``[M, 3, 3]`` of each point of ``tp`` (tree order)
-    from its ``k`` nearest neighbours (itself included); the identity for a point with
-    fewer than :data:`MIN_NEIGHBOURS`."""
+def _least_spread_of_neighbours(tp, lo, hi, axis, split, left, right, k):  # pragma: no cover
+    """Per point of ``tp`` (tree order) the unit direction of least spread of its ``k``
+    nearest neighbours (itself included) ``[M, 3]``, and whether it had
+    :data:`MIN_NEIGHBOURS` of them ``[M]``."""
     m = tp.shape[0]
-    out = np.empty((m, 3, 3))
+    out = np.zeros((m, 3))
+    ok = np.zeros(m, np.bool_)
     bi = np.empty(k, np.int64)
     bd = np.empty(k, np.float64)
     stack, gaps = np.empty(_STACK, np.int64), np.empty(_STACK, np.float64)
     for i in range(m):
         x, y, z = tp[i, 0], tp[i, 1], tp[i, 2]
         n = _knn(tp, lo, hi, axis, split, left, right, x, y, z, bi, bd, stack, gaps)
-        if n < MIN_NEIGHBOURS:
+        if n >= MIN_NEIGHBOURS:
+            out[i, 0], out[i, 1], out[i, 2] = _least_spread(*_spread(tp, bi, n))
+            ok[i] = True
+    return out, ok
+
+
+@njit(cache=True, nogil=True)
+def covariances(tp, lo, hi, axis, split, left, right, k):  # pragma: no cover - compiled
+    """Plane-regularised covariance ``[M, 3, 3]`` of each point of ``tp`` (tree order)
+    from its ``k`` nearest neighbours (itself included); the identity for a point with
+    fewer than :data:`MIN_NEIGHBOURS`."""
+    u, ok = _least_spread_of_neighbours(tp, lo, hi, axis, split, left, right, k)
+    out = np.empty((tp.shape[0], 3, 3))
+    f = 1.0 - EPS
+    for i in range(tp.shape[0]):
+        if not ok[i]:
             out[i] = np.eye(3)
             continue
-        u0, u1, u2 = _least_spread(*_spread(tp, bi, n))
-        f = 1.0 - EPS
-        out[i, 0, 0], out[i, 1, 1], out[i, 2, 2] = 1 - f * u0 * u0, 1 - f * u1 * u1, 1 - f * u2 * u2
-        out[i, 0, 1] = out[i, 1, 0] = -f * u0 * u1
-        out[i, 0, 2] = out[i, 2, 0] = -f * u0 * u2
-        out[i, 1, 2] = out[i, 2, 1] = -f * u1 * u2
+        for a in range(3):
+            for b in range(3):
+                out[i, a, b] = (1.0 if a == b else 0.0) - f * u[i, a] * u[i, b]
     return out
 
 
@@ -184,22 +197,11 @@ def normals(tp, lo, hi, axis, split, left, right, k):  # pragma: no cover - comp
     the direction of least spread of its ``k`` nearest neighbours (itself included),
     turned to face the sensor at the origin; zero for a point with fewer than
     :data:`MIN_NEIGHBOURS` (small_gicp's normal estimation)."""
-    m = tp.shape[0]
-    out = np.zeros((m, 3))
-    bi = np.empty(k, np.int64)
-    bd = np.empty(k, np.float64)
-    stack, gaps = np.empty(_STACK, np.int64), np.empty(_STACK, np.float64)
-    for i in range(m):
-        x, y, z = tp[i, 0], tp[i, 1], tp[i, 2]
-        n = _knn(tp, lo, hi, axis, split, left, right, x, y, z, bi, bd, stack, gaps)
-        if n < MIN_NEIGHBOURS:
-            continue
-        c00, c01, c02, c11, c12, c22 = _spread(tp, bi, n)
-        u0, u1, u2 = _least_spread(c00, c01, c02, c11, c12, c22)
-        if x * u0 + y * u1 + z * u2 > 0.0:
-            u0, u1, u2 = -u0, -u1, -u2
-        out[i, 0], out[i, 1], out[i, 2] = u0, u1, u2
-    return out
+    u, _ok = _least_spread_of_neighbours(tp, lo, hi, axis, split, left, right, k)
+    for i in range(tp.shape[0]):
+        if tp[i, 0] * u[i, 0] + tp[i, 1] * u[i, 1] + tp[i, 2] * u[i, 2] > 0.0:
+            u[i, 0], u[i, 1], u[i, 2] = -u[i, 0], -u[i, 1], -u[i, 2]
+    return u
 
 
 @njit(cache=True, nogil=True)
