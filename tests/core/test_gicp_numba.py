@@ -111,6 +111,34 @@ def test_a_known_motion_is_recovered_the_same_every_time(target: str) -> None:
     assert np.mean(sq <= 0.3**2) > 0.9
 
 
+def test_map_coordinates_far_from_the_origin_change_nothing() -> None:
+    """A map in UTM-like coordinates (millions of metres) is voxelised and registered as
+    the same map at the origin: voxel keys count from the cloud's own lowest voxel, so
+    they neither collide nor run out of bits."""
+    rng = np.random.default_rng(4)
+    world = _scene(rng, 30_000)
+    far = np.array([500_000.0, 4_000_000.0, 0.0])  # a whole number of 0.5 m and 3 m voxels
+    near_vox, far_vox = voxel_centroids(world, 0.5), voxel_centroids(world + far, 0.5)
+    assert len(far_vox) == len(near_vox)
+    np.testing.assert_allclose(far_vox - far, near_vox, rtol=0, atol=1e-6)
+    T_true = _motion(3.0, [0.5, -0.3, 0.05])
+    scan = (world - T_true[:3, 3]) @ T_true[:3, :3]
+    src = Cloud.of(voxel_centroids(scan, 0.5), 10)
+    poses = []
+    for shift in (np.zeros(3), far):
+        submap = Cloud.of(voxel_centroids(world + shift, 0.2), 10)
+        T0 = np.eye(4)
+        T0[:3, 3] = shift
+        for target in (GaussianVoxels.of(submap, 3.0), submap):
+            T, *_ = target.align(src, T0, 1.5, 50, 1e-4, 1e-5)
+            T0 = T
+        T[:3, 3] -= shift
+        poses.append(T)
+    for T in poses:
+        assert np.linalg.norm((np.linalg.inv(T_true) @ T)[:3, 3]) < 0.05
+    assert np.linalg.norm(poses[1][:3, 3] - poses[0][:3, 3]) < 1e-3  # the same within 1 mm
+
+
 def test_other_threads_run_while_it_registers() -> None:
     """The kernels release the interpreter lock: while a long registration runs on one
     thread, another thread runs Python and finds it still running (small_gicp's binding

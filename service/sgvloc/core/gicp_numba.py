@@ -37,30 +37,44 @@ from .icp_numba import _STACK, _nearest, _step, build_tree
 EPS = 1e-3
 #: a point needs this many neighbours for a covariance of its own (else the identity)
 MIN_NEIGHBOURS = 5
-_OFFSET = 1 << 20  # voxel indices in (-2^20, 2^20) per axis, 21 bits each in a key
+#: a key packs a voxel's three indices, counted from the cloud's lowest voxel, in 21 bits
+#: each: a cloud may span up to 2^21 voxels per axis (629 km at 0.3 m), wherever it lies
+_SPAN = 1 << 21
 
 
 @njit(cache=True, nogil=True)
-def _key(ix, iy, iz):  # pragma: no cover - compiled
-    return ((ix + _OFFSET) << 42) | ((iy + _OFFSET) << 21) | (iz + _OFFSET)
+def _key(ix, iy, iz, origin):  # pragma: no cover - compiled
+    """The key of voxel ``(ix, iy, iz)`` counted from ``origin`` [3]; -1 outside the span."""
+    dx, dy, dz = ix - origin[0], iy - origin[1], iz - origin[2]
+    if dx < 0 or dy < 0 or dz < 0 or dx >= _SPAN or dy >= _SPAN or dz >= _SPAN:
+        return np.int64(-1)
+    return (dx << 42) | (dy << 21) | dz
 
 
 @njit(cache=True, nogil=True)
 def _keys(pts, res):  # pragma: no cover - compiled
-    keys = np.empty(pts.shape[0], np.int64)
-    for i in range(pts.shape[0]):
-        ix = np.int64(np.floor(pts[i, 0] / res))
-        iy = np.int64(np.floor(pts[i, 1] / res))
-        iz = np.int64(np.floor(pts[i, 2] / res))
-        keys[i] = _key(ix, iy, iz)
-    return keys
+    """(keys [N], origin [3]: the lowest voxel index per axis) of the points' voxels."""
+    n = pts.shape[0]
+    cells = np.empty((n, 3), np.int64)
+    origin = np.zeros(3, np.int64)
+    for i in range(n):
+        for a in range(3):
+            cells[i, a] = np.int64(np.floor(pts[i, a] / res))
+            if i == 0 or cells[i, a] < origin[a]:
+                origin[a] = cells[i, a]
+    keys = np.empty(n, np.int64)
+    for i in range(n):
+        keys[i] = _key(cells[i, 0], cells[i, 1], cells[i, 2], origin)
+        if keys[i] < 0:
+            raise ValueError("the cloud spans more than 2^21 voxels along an axis")
+    return keys, origin
 
 
 @njit(cache=True, nogil=True)
 def voxel_centroids(pts, res):  # pragma: no cover - compiled
     """The centroids ``[V, 3]`` of the points ``pts`` ``[N, 3]`` float64 in each voxel of
     size ``res``, in the order of the voxels' keys (the same cloud gives the same array)."""
-    keys = _keys(pts, res)
+    keys, _origin = _keys(pts, res)
     order = np.argsort(keys, kind="mergesort")
     out = np.empty((pts.shape[0], 3))
     v, i, n = 0, 0, pts.shape[0]
@@ -229,8 +243,9 @@ def _spread(tp, bi, n):  # pragma: no cover - compiled
 
 @njit(cache=True, nogil=True)
 def _gaussian_voxels(pts, covs, res):  # pragma: no cover - compiled
-    """(sorted keys [V], means [V, 3], mean covariances [V, 3, 3]) of the points' voxels."""
-    keys = _keys(pts, res)
+    """(sorted keys [V], their origin [3] (:func:`_keys`), means [V, 3], mean covariances
+    [V, 3, 3]) of the points' voxels."""
+    keys, origin = _keys(pts, res)
     order = np.argsort(keys, kind="mergesort")
     n = pts.shape[0]
     ukeys = np.empty(n, np.int64)
@@ -251,26 +266,32 @@ def _gaussian_voxels(pts, covs, res):  # pragma: no cover - compiled
         vcovs[v] = c / (j - i)
         v += 1
         i = j
-    return ukeys[:v].copy(), means[:v].copy(), vcovs[:v].copy()
+    return ukeys[:v].copy(), origin, means[:v].copy(), vcovs[:v].copy()
 
 
 @njit(cache=True, nogil=True)
-def _accumulate(H, g, x, y, z, rx, ry, rz, Cq, RT, Cp, M, A):  # pragma: no cover - compiled
-    """Add the GICP term of one correspondence to ``H`` and ``g``: the moved point
-    ``(x, y, z)``, residual ``r``, the target's covariance ``Cq`` and the source point's
-    ``Cp`` turned by ``R`` (``RT`` = R transposed); ``M`` [3, 3] and ``A`` [3, 6] are
-    scratch space."""
-    # M = R Cp
+def _accumulate(H, g, T, x, y, z, rx, ry, rz, Cp, Cq, M, A):  # pragma: no cover - compiled
+    """Add the GICP term of one correspondence to ``H`` and ``g``, in the source's frame
+    (the step is ``T <- T Exp(delta)``, so that map coordinates far from the origin do
+    not reach the normal equations): the source point ``(x, y, z)`` with covariance
+    ``Cp``, the world residual ``r = T p - q`` and the target's covariance ``Cq``;
+    ``M`` [3, 3] and ``A`` [3, 6] are scratch space. Returns False for a singular term."""
+    # the residual in the source's frame: R^T r
+    ux = T[0, 0] * rx + T[1, 0] * ry + T[2, 0] * rz
+    uy = T[0, 1] * rx + T[1, 1] * ry + T[2, 1] * rz
+    uz = T[0, 2] * rx + T[1, 2] * ry + T[2, 2] * rz
+    rx, ry, rz = ux, uy, uz
+    # M = R^T Cq
     for a in range(3):
         for b in range(3):
-            M[a, b] = RT[0, a] * Cp[0, b] + RT[1, a] * Cp[1, b] + RT[2, a] * Cp[2, b]
-    # S = Cq + M R^T (symmetric), then its inverse Om (cofactors)
-    s00 = Cq[0, 0] + M[0, 0] * RT[0, 0] + M[0, 1] * RT[1, 0] + M[0, 2] * RT[2, 0]
-    s01 = Cq[0, 1] + M[0, 0] * RT[0, 1] + M[0, 1] * RT[1, 1] + M[0, 2] * RT[2, 1]
-    s02 = Cq[0, 2] + M[0, 0] * RT[0, 2] + M[0, 1] * RT[1, 2] + M[0, 2] * RT[2, 2]
-    s11 = Cq[1, 1] + M[1, 0] * RT[0, 1] + M[1, 1] * RT[1, 1] + M[1, 2] * RT[2, 1]
-    s12 = Cq[1, 2] + M[1, 0] * RT[0, 2] + M[1, 1] * RT[1, 2] + M[1, 2] * RT[2, 2]
-    s22 = Cq[2, 2] + M[2, 0] * RT[0, 2] + M[2, 1] * RT[1, 2] + M[2, 2] * RT[2, 2]
+            M[a, b] = T[0, a] * Cq[0, b] + T[1, a] * Cq[1, b] + T[2, a] * Cq[2, b]
+    # S = Cp + M R (symmetric), then its inverse Om (cofactors)
+    s00 = Cp[0, 0] + M[0, 0] * T[0, 0] + M[0, 1] * T[1, 0] + M[0, 2] * T[2, 0]
+    s01 = Cp[0, 1] + M[0, 0] * T[0, 1] + M[0, 1] * T[1, 1] + M[0, 2] * T[2, 1]
+    s02 = Cp[0, 2] + M[0, 0] * T[0, 2] + M[0, 1] * T[1, 2] + M[0, 2] * T[2, 2]
+    s11 = Cp[1, 1] + M[1, 0] * T[0, 1] + M[1, 1] * T[1, 1] + M[1, 2] * T[2, 1]
+    s12 = Cp[1, 2] + M[1, 0] * T[0, 2] + M[1, 1] * T[1, 2] + M[1, 2] * T[2, 2]
+    s22 = Cp[2, 2] + M[2, 0] * T[0, 2] + M[2, 1] * T[1, 2] + M[2, 2] * T[2, 2]
     i00 = s11 * s22 - s12 * s12
     i01 = s02 * s12 - s01 * s22
     i02 = s01 * s12 - s02 * s11
@@ -282,8 +303,8 @@ def _accumulate(H, g, x, y, z, rx, ry, rz, Cq, RT, Cp, M, A):  # pragma: no cove
         return False
     o00, o01, o02 = i00 / det, i01 / det, i02 / det
     o11, o12, o22 = i11 / det, i12 / det, i22 / det
-    # J = [-[v]x | I] with v = (x, y, z): rows (0, z, -y | 1 0 0), (-z, 0, x | 0 1 0),
-    # (y, -x, 0 | 0 0 1); A = Om J
+    # J = [-[p]x | I] with p = (x, y, z), the source point: rows (0, z, -y | 1 0 0),
+    # (-z, 0, x | 0 1 0), (y, -x, 0 | 0 0 1); A = Om J
     A[0, 0] = -o01 * z + o02 * y
     A[0, 1] = o00 * z - o02 * x
     A[0, 2] = -o00 * y + o01 * x
@@ -321,6 +342,7 @@ def _register(
     left,
     right,
     keys,
+    origin,
     means,
     vcovs,
     res,
@@ -334,7 +356,8 @@ def _register(
 ):  # pragma: no cover - compiled
     """GICP of ``src`` ``[N, 3]`` (covariances ``sc``) from ``T0`` onto the tree points
     ``tp`` (covariances ``tc``, tree order) or, with ``voxels``, VGICP onto Gaussian
-    voxels of size ``res`` (sorted ``keys``, ``means``, ``vcovs``); the other target's
+    voxels of size ``res`` (sorted ``keys`` counted from ``origin``, ``means``,
+    ``vcovs``); the other target's
     arrays are not read. ``(T, iterations, H, correspondences)``."""
     T = T0.copy()
     H = np.zeros((6, 6))
@@ -346,7 +369,6 @@ def _register(
         H = np.zeros((6, 6))
         g = np.zeros(6)
         used = 0
-        RT = np.ascontiguousarray(T[:3, :3].T)
         for i in range(src.shape[0]):
             p0, p1, p2 = src[i, 0], src[i, 1], src[i, 2]
             x = T[0, 0] * p0 + T[0, 1] * p1 + T[0, 2] * p2 + T[0, 3]
@@ -354,23 +376,23 @@ def _register(
             z = T[2, 0] * p0 + T[2, 1] * p1 + T[2, 2] * p2 + T[2, 3]
             if voxels:  # the mean of the voxel the point falls in, if near enough
                 ix, iy = np.int64(np.floor(x / res)), np.int64(np.floor(y / res))
-                key = _key(ix, iy, np.int64(np.floor(z / res)))
+                key = _key(ix, iy, np.int64(np.floor(z / res)), origin)
                 v = np.searchsorted(keys, key)
-                if v >= keys.shape[0] or keys[v] != key:
+                if key < 0 or v >= keys.shape[0] or keys[v] != key:
                     continue
                 rx, ry, rz = x - means[v, 0], y - means[v, 1], z - means[v, 2]
                 if rx * rx + ry * ry + rz * rz > r2:
                     continue
-                used += _accumulate(H, g, x, y, z, rx, ry, rz, vcovs[v], RT, sc[i], M, A)
+                used += _accumulate(H, g, T, p0, p1, p2, rx, ry, rz, sc[i], vcovs[v], M, A)
                 continue
             j, _s = _nearest(tp, lo, hi, axis, split, left, right, x, y, z, r2, stack, gaps)
             if j < 0:
                 continue
             rx, ry, rz = x - tp[j, 0], y - tp[j, 1], z - tp[j, 2]
-            used += _accumulate(H, g, x, y, z, rx, ry, rz, tc[j], RT, sc[i], M, A)
+            used += _accumulate(H, g, T, p0, p1, p2, rx, ry, rz, sc[i], tc[j], M, A)
         if used == 0:
             break
-        T, moved, turned = _step(H.copy(), g, T)
+        T, moved, turned = _step(H.copy(), g, T, True)
         if moved < stop_m and turned < stop_rad:
             break
     return T, iterations, H, used
@@ -393,7 +415,13 @@ def nearest_squared(tp, lo, hi, axis, split, left, right, src, T):  # pragma: no
 
 
 #: the unused target's arrays of a registration (:func:`_register`)
-_NO_VOXELS = (np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3, 3)), 1.0)
+_NO_VOXELS = (
+    np.zeros(0, np.int64),
+    np.zeros(3, np.int64),
+    np.zeros((0, 3)),
+    np.zeros((0, 3, 3)),
+    1.0,
+)
 _NO_POINTS = (
     np.zeros((0, 3)),
     np.zeros((0, 3, 3)),
@@ -449,7 +477,8 @@ class GaussianVoxels:
     """A cloud's Gaussian voxels of size ``res`` (VGICP's target)."""
 
     res: float
-    keys: np.ndarray
+    keys: np.ndarray  # sorted (:func:`_keys`)
+    origin: np.ndarray  # [3] the lowest voxel index per axis, which keys count from
     means: np.ndarray
     covs: np.ndarray
 
@@ -463,7 +492,7 @@ class GaussianVoxels:
     def align(self, src: Cloud, T0, max_distance, max_iterations, stop_m, stop_rad):
         """VGICP of ``src`` onto these voxels: ``(T, iterations, H, correspondences)``."""
         run = _run(src, T0, max_distance, max_iterations, stop_m, stop_rad)
-        target = (self.keys, self.means, self.covs, self.res)
+        target = (self.keys, self.origin, self.means, self.covs, self.res)
         return _register(True, *_NO_POINTS, *target, *run)
 
 

@@ -230,9 +230,10 @@ def _normal_equations(
 
 
 @njit(cache=True, nogil=True)
-def _step(H, g, T):  # pragma: no cover - compiled
+def _step(H, g, T, right=False):  # pragma: no cover - compiled
     """Solve the step of the summed normal equations and apply it: ``(T', moved m,
-    turned rad)``."""
+    turned rad)``; ``T <- Exp(delta) T``, or with ``right`` ``T <- T Exp(delta)`` (a step
+    in the source's frame)."""
     for a in range(6):
         for b in range(a):
             H[a, b] = H[b, a]
@@ -241,6 +242,9 @@ def _step(H, g, T):  # pragma: no cover - compiled
     R = _exp_rotation(delta[0], delta[1], delta[2])
     moved = np.sqrt(delta[3] ** 2 + delta[4] ** 2 + delta[5] ** 2)
     turned = np.sqrt(delta[0] ** 2 + delta[1] ** 2 + delta[2] ** 2)
+    if right:  # T [R | t] = [T_R R | T_R t + T_t]
+        step = _compose(R, delta[3], delta[4], delta[5], np.eye(4))
+        return T @ step, moved, turned
     return _compose(R, delta[3], delta[4], delta[5], T), moved, turned
 
 
