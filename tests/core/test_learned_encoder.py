@@ -333,3 +333,38 @@ def test_a_sparse_scan_gives_fewer_keypoints_not_padded_ones(
     az = np.degrees(np.arctan2(sparse.keypoints[:, 1], sparse.keypoints[:, 0]))
     assert (np.abs(az) <= 20.0 + 5.0).all()
     assert sparse.local_features.shape == (sparse.num_keypoints, enc.local_dim)
+
+
+def test_a_query_is_also_described_about_displaced_centres(scans: list[np.ndarray]) -> None:
+    """``encode_query``: the polar block about each centre is what a sensor standing there
+    would describe (the scan moved by that offset, described about its own sensor: far
+    nearer than the plain descriptor, and nearest among the centres); the network block
+    and everything else is the plain encoding's."""
+    from sgvloc.core.config import RetrievalConfig
+
+    centres = RetrievalConfig(offset_m=4.0, offsets=8).centres()
+    assert centres.shape == (8, 2)
+    np.testing.assert_allclose(np.linalg.norm(centres, axis=1), 4.0)
+    np.testing.assert_allclose(centres[0], [4.0, 0.0])
+    assert RetrievalConfig(offset_m=0.0).centres() is None
+    both = make_encoder(
+        EncoderSpec(
+            kind="learned",
+            learned=LearnedEncoderConfig(global_descriptor="polar+network", level=False),
+        )
+    )
+    cloud = both.prepare(scans[4])
+    plain, query = both.encode_cloud(cloud), both.encode_query(cloud, centres)
+    assert plain.global_variants is None and both.encode_query(cloud).global_variants is None
+    np.testing.assert_array_equal(query.global_descriptor, plain.global_descriptor)
+    np.testing.assert_array_equal(query.local_features, plain.local_features)
+    v = query.global_variants
+    assert v.shape == (8, both.global_dim) and v.dtype == np.float32
+    np.testing.assert_allclose(np.linalg.norm(v, axis=1), 1.0, atol=1e-6)
+    np.testing.assert_array_equal(v[:, 620:], np.repeat(plain.global_descriptor[None, 620:], 8, 0))
+    for k in (0, 3):  # the sensor moved by the centre (a whole number of 0.4 m voxels)
+        moved = both.prepare(scans[4][:, :3] - np.array([*np.round(centres[k], 1), 0.0]))
+        there = both.encode_cloud(moved).global_descriptor[:620]
+        sims = v[:, :620] @ there / np.linalg.norm(v[:, :620], axis=1) / np.linalg.norm(there)
+        here = plain.global_descriptor[:620] @ there / np.linalg.norm(plain.global_descriptor[:620])
+        assert int(np.argmax(sims)) == k and sims[k] > here + 0.02 and sims[k] > 0.95

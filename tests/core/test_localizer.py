@@ -302,3 +302,27 @@ def test_the_free_space_check_uses_only_the_keyframes_searched(campus):
     )
     assert alone.evidence.free_space == pytest.approx(expected, rel=1e-12)
     assert alone.evidence.free_space != pytest.approx(whole.evidence.free_space, rel=1e-6)
+
+
+@pytest.mark.parametrize("offset_m", [4.0, 0.0])
+def test_a_query_4_m_beside_a_keyframe_retrieves_it(balm_mini_dir, offset_m):
+    """Each keyframe's own scan, seen from 4 m beside it (ahead, left, behind, right), as
+    a query with top_k 1 and the polar/FFT global descriptor: with the descriptor also
+    about centres 4 m away (``retrieval.offset_m``) retrieval finds that keyframe every
+    time; about the sensor only it mostly does not."""
+    frames = list(KittiSequence(balm_mini_dir))[:6]
+    config = LocalizerConfig(top_k=1)
+    config.retrieval.offset_m = offset_m
+    loc = Localizer(make_encoder(EncoderSpec(learned={"global_descriptor": "polar"})), config)
+    ids = {loc.add_keyframe(f.T_world_sensor, scan=f.scan().points): f for f in frames}
+    found = []
+    for kid, f in ids.items():
+        for deg in (0, 90, 180, 270):
+            a = np.radians(deg)
+            beside = f.scan().points[:, :3] - np.array([4.0 * np.cos(a), 4.0 * np.sin(a), 0.0])
+            res = loc.localize(beside, refine="none")
+            found.append([c.keyframe_id for c in res.retrieved] == [kid])
+    if offset_m:
+        assert all(found)
+    else:
+        assert sum(found) < len(found) / 2

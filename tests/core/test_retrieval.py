@@ -182,3 +182,52 @@ def test_merge_hits_orders_the_union_and_breaks_ties_by_id():
     assert [h.id for h in merge_hits([one, two], 2)] == [4, 2, 7]
     assert [h.id for h in merge_hits([one, two], 3)] == [4, 1, 2, 7, 9]
     assert merge_hits([[], []], 5) == []
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_variants_rank_each_keyframe_by_its_best_similarity(kind):
+    """A query's descriptor about displaced centres (variants of the first block only):
+    that block's candidates are the top-k of each keyframe's best similarity over the
+    query and its variants, each once; the other block's stay its own; the hits keep
+    the query descriptor's similarity."""
+    a, b, x = _two_blocks(300)
+    ids = np.arange(300)
+    index = _index(kind, dim=32)
+    index.add(ids, x)
+    qa, qb, q = _two_blocks(1, seed=7)
+    moved = _vectors(4, 12, seed=9)  # the first block about four other centres
+    variants = np.hstack([moved, np.repeat(qb, 4, axis=0)]) / np.sqrt(2)
+    for k in (1, 5, 20):
+        lists = index.search_blocks(q[0], k, (12, 20), variants=variants)
+        best = np.max(np.vstack([qa, moved]) @ a.T, axis=0)  # [300]
+        got_a = [h.id for h in lists[0]]
+        assert len(got_a) == len(set(got_a)) == k
+        if kind == "flat":
+            assert got_a == np.argsort(-best, kind="stable")[:k].tolist()
+            assert [h.id for h in lists[1]] == np.argsort(-(b @ qb[0]))[:k].tolist()
+        whole = x[got_a] @ q[0]
+        np.testing.assert_allclose([h.similarity for h in lists[0]], whole, atol=1e-5)
+        merged = retrieve(index, q[0], k, (12, 20), "merge", variants=variants)
+        assert len(merged) >= k and len({h.id for h in merged}) == len(merged)
+        if kind == "flat":
+            assert {h.id for h in merged} == set(got_a) | {h.id for h in lists[1]}
+    # variants equal to the query change nothing; neither do none at all
+    same = np.repeat(q, 3, axis=0)
+    for k in (1, 10):
+        plain = retrieve(index, q[0], k, (12, 20), "merge")
+        assert retrieve(index, q[0], k, (12, 20), "merge", variants=same) == plain
+        assert retrieve(index, q[0], k, (12, 20), "merge", variants=np.zeros((0, 32))) == plain
+
+
+def test_variants_of_a_one_block_descriptor_and_a_prior_selection():
+    x = _vectors(200)
+    index = _index("flat")
+    index.add(np.arange(200), x)
+    q, variants = _vectors(1, seed=3)[0], _vectors(8, seed=4)
+    best = np.max(np.vstack([q, variants]) @ x.T, axis=0)
+    hits = retrieve(index, q, 10, (32,), "merge", variants=variants)
+    assert [h.id for h in hits] == np.argsort(-best, kind="stable")[:10].tolist()
+    np.testing.assert_allclose([h.similarity for h in hits], x[[h.id for h in hits]] @ q, 1e-5)
+    among = np.arange(0, 200, 5)
+    hits = retrieve(index, q, 10, (32,), "concat", among=among, variants=variants)
+    assert [h.id for h in hits] == among[np.argsort(-best[among], kind="stable")[:10]].tolist()

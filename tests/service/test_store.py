@@ -260,10 +260,11 @@ def test_a_map_stored_before_a_setting_existed_keeps_its_answers(tmp_path: Path)
     m.create("new", SPEC)
     m.close()
     db = tmp_path / "maps" / "old" / "map.sqlite"
-    with sqlite3.connect(db) as conn:  # as a release before sgv.tie_tolerance wrote it
+    with sqlite3.connect(db) as conn:  # as a release before these settings wrote it
         (text,) = conn.execute("SELECT value FROM meta WHERE key = 'localizer_config'").fetchone()
         stored = json.loads(text)
         del stored["sgv"]["tie_tolerance"]
+        del stored["retrieval"]["offset_m"]
         conn.execute(
             "UPDATE meta SET value = ? WHERE key = 'localizer_config'", (json.dumps(stored),)
         )
@@ -273,8 +274,11 @@ def test_a_map_stored_before_a_setting_existed_keeps_its_answers(tmp_path: Path)
     assert m.get("old").record.localizer_config.sgv.tie_tolerance == 0.0
     fresh = LocalizerConfig().sgv.tie_tolerance
     assert m.get("new").record.localizer_config.sgv.tie_tolerance == fresh > 0
+    assert m.get("old").record.localizer_config.retrieval.offset_m == 0.0
+    assert m.get("new").record.localizer_config.retrieval.offset_m == 4.0
     m.update_settings("old", {"top_k": 7})  # written back whole, the old value with it
     m.close()
     with sqlite3.connect(db) as conn:
         (text,) = conn.execute("SELECT value FROM meta WHERE key = 'localizer_config'").fetchone()
     assert json.loads(text)["sgv"]["tie_tolerance"] == 0.0 and json.loads(text)["top_k"] == 7
+    assert json.loads(text)["retrieval"]["offset_m"] == 0.0

@@ -229,5 +229,14 @@ def test_a_map_on_small_gicps_icp_moves_to_the_default_by_patch(
     r = client.patch("/v1/maps/icp-move", json={"localizer": {"sgv": {"tie_tolerance": 0.0}}})
     assert r.status_code == 200 and r.json()["localizer"]["sgv"]["tie_tolerance"] == 0.0
     assert _localize(client, "icp-move", body)["keyframe_id"] == after["keyframe_id"]
+    # retrieval about displaced centres: the same, 4 m on for new maps
+    assert r.json()["localizer"]["retrieval"]["offset_m"] == 4.0
+    for field, bad in (("offset_m", -1.0), ("offset_m", 21.0), ("offsets", 0), ("offsets", 33)):
+        r = client.patch("/v1/maps/icp-move", json={"localizer": {"retrieval": {field: bad}}})
+        assert r.status_code == 422 and error_of(r)["field"] == f"localizer.retrieval.{field}"
+    r = client.patch("/v1/maps/icp-move", json={"localizer": {"retrieval": {"offset_m": 0.0}}})
+    assert r.status_code == 200, r.text
+    assert r.json()["localizer"]["retrieval"]["offset_m"] == 0.0
+    assert _localize(client, "icp-move", body)["keyframe_id"] == after["keyframe_id"]
     for name in ("icp-move", "icp-new"):
         assert client.delete(f"/v1/maps/{name}").status_code in (200, 204)

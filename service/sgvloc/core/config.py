@@ -9,6 +9,7 @@ import json
 from collections.abc import Mapping
 from typing import Any, Literal
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 
@@ -47,6 +48,10 @@ class HandcraftedEncoderConfig(_Section):
     seed: int = Field(0, ge=0, le=2**32 - 1)
 
 
+#: the retrieval settings the index is built with
+INDEX_SETTINGS = ("index", "nlist", "nprobe", "hnsw_m", "ef_search")
+
+
 class RetrievalConfig(_Section):
     """FAISS index over global descriptors (inner product on L2-normalised vectors)."""
 
@@ -63,6 +68,31 @@ class RetrievalConfig(_Section):
         "descriptor's similarity); 'concat' retrieves top_k by the whole descriptor's "
         "similarity (the mean of the blocks' cosines)",
     )
+    offset_m: float = Field(
+        4.0,
+        ge=0.0,
+        le=20.0,
+        description="a query's polar/FFT descriptor block (learned encoder) is "
+        "also computed about `offsets` points this far from its sensor, on a circle, and "
+        "each keyframe is retrieved by its best similarity over these centres: a revisit "
+        "that passes a few metres to the side, or in the opposite direction, is still "
+        "among the candidates; 0 = about the sensor only, as maps made before this "
+        "setting do",
+    )
+    offsets: int = Field(8, ge=1, le=32, description="how many centres on the circle of `offset_m`")
+
+    def index_settings(self) -> dict[str, Any]:
+        """The settings the FAISS index is built with (:data:`INDEX_SETTINGS`); the others
+        shape each query's search and may change on a stored map."""
+        return {k: getattr(self, k) for k in INDEX_SETTINGS}
+
+    def centres(self) -> np.ndarray | None:
+        """The displaced centres ``[offsets, 2]`` (metres; the first straight ahead,
+        then counter-clockwise), or None when ``offset_m`` is 0."""
+        if self.offset_m <= 0.0:
+            return None
+        a = np.arange(self.offsets) * (2.0 * np.pi / self.offsets)
+        return self.offset_m * np.column_stack([np.cos(a), np.sin(a)])
 
 
 class SGVConfig(_Section):
@@ -281,4 +311,7 @@ class LocalizerConfig(_Section):
 
 #: settings added after maps were first stored, with the value that keeps such a map's
 #: answers as they were
-ADDED_SETTINGS: dict[tuple[str, str], Any] = {("sgv", "tie_tolerance"): 0.0}
+ADDED_SETTINGS: dict[tuple[str, str], Any] = {
+    ("sgv", "tie_tolerance"): 0.0,
+    ("retrieval", "offset_m"): 0.0,
+}

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -58,13 +58,18 @@ class Features:
     - ``global_descriptor``: ``[G]`` float32, L2-normalised (retrieval by inner product);
     - ``keypoints``: ``[N, 3]`` float32, metres, in the scan's sensor frame;
     - ``local_features``: ``[N, D]`` float32, one row per keypoint;
-    - ``encoder``: the identity of the encoder that produced them.
+    - ``encoder``: the identity of the encoder that produced them;
+    - ``global_variants``: ``[V, G]`` float32 or None, a query's global descriptor
+      computed about other centres than the sensor (:meth:`Encoder.encode_query`), each
+      row normalised as ``global_descriptor``; retrieval only, never stored with a
+      keyframe.
     """
 
     global_descriptor: np.ndarray
     keypoints: np.ndarray
     local_features: np.ndarray
     encoder: EncoderIdentity
+    global_variants: np.ndarray | None = None
 
     @classmethod
     def validated(
@@ -102,6 +107,22 @@ class Features:
         if norm == 0.0:
             raise InputError("global_descriptor is all zeros and cannot be normalised")
         return cls((g64 / norm).astype(np.float32), k, f, encoder)
+
+    def with_variants(self, start: int, blocks: np.ndarray | None) -> Features:
+        """These features with ``global_variants``: the global descriptor once per row of
+        ``blocks`` ``[V, B]``, its block ``[start, start + B)`` replaced by that row scaled
+        to the block's length in the descriptor (every other value left as it is); none
+        or an empty array: None."""
+        if blocks is None or len(blocks) == 0:
+            return replace(self, global_variants=None)
+        b = np.asarray(blocks, dtype=np.float64).reshape(len(blocks), -1)
+        end = start + b.shape[1]
+        g = self.global_descriptor
+        norm = np.linalg.norm(b, axis=1, keepdims=True)
+        rows = np.repeat(g[None], len(b), axis=0)
+        length = float(np.linalg.norm(g[start:end].astype(np.float64)))
+        rows[:, start:end] = b / np.where(norm > 0, norm, 1.0) * length
+        return replace(self, global_variants=rows.astype(np.float32))
 
     @property
     def num_keypoints(self) -> int:

@@ -352,10 +352,10 @@ class Localizer:
             self.version = int(version)
 
     def update_settings(self, config: LocalizerConfig, calibration: Calibration) -> None:
-        """Swap in new settings and calibration between localizations (the retrieval
-        settings must stay as they are: the index was built with them)."""
-        if config.retrieval != self.config.retrieval:
-            raise InputError("retrieval settings cannot change on a built index")
+        """Swap in new settings and calibration between localizations (the index's
+        retrieval settings must stay as they are: it was built with them)."""
+        if config.retrieval.index_settings() != self.config.retrieval.index_settings():
+            raise InputError("the index's retrieval settings cannot change on a built index")
         with self._lock.write():
             self.config = config
             self.calibration = calibration
@@ -472,7 +472,7 @@ class Localizer:
         query_cloud = cloud
         if features is None:
             query_cloud = self.encoder.prepare(scan)
-            query = self.encoder.encode_cloud(query_cloud)
+            query = self.encoder.encode_query(query_cloud, cfg.retrieval.centres())
         else:
             self.encoder.check(features)
             query = features
@@ -496,6 +496,7 @@ class Localizer:
                 self.encoder.blocks,
                 cfg.retrieval.combine,
                 among=among,
+                variants=query.global_variants,
             )
             retrieved = [Candidate(h.id, h.similarity, r, h.similarity) for r, h in enumerate(hits)]
             timings["retrieve"] = _ms(t)

@@ -247,11 +247,17 @@ class FaissIndex:
         k: int,
         blocks: tuple[int, ...],
         among: np.ndarray | None = None,
+        variants: np.ndarray | None = None,
     ) -> list[list[SearchHit]]:
         """One query's top-k by each block of its descriptor on its own (the other
         blocks zeroed; stored vectors are normalised per block, so this ranks by that
         block's cosine similarity). ``blocks`` are the block lengths (summing to ``dim``).
-        Every hit's similarity is the whole descriptor's (:meth:`search`'s)."""
+
+        ``variants`` ``[V, dim]``: the same query's descriptor computed otherwise (about
+        displaced centres, ``Features.global_variants``); a block whose variants differ
+        from the query's ranks each keyframe by its best similarity over them all (the
+        top-k of that maximum: the union of each row's top-k holds it exactly). Every
+        hit's similarity is the whole query descriptor's (:meth:`search`'s)."""
         q = np.asarray(query, dtype=np.float32).reshape(-1)
         if sum(blocks) != self.dim or len(q) != self.dim or min(blocks, default=0) < 1:
             raise InputError(
@@ -259,16 +265,36 @@ class FaissIndex:
                 f"(query has {len(q)})"
             )
         whole = self._prepare(q)[0]
+        alt = np.zeros((0, self.dim), np.float32)
+        if variants is not None:
+            alt = np.asarray(variants, dtype=np.float32).reshape(-1, self.dim)
         ends = np.cumsum(blocks)
-        parts = np.zeros((len(blocks), self.dim), dtype=np.float32)  # one masked row per block
+        rows: list[np.ndarray] = []  # masked query rows, each serving one block
+        owner: list[int] = []
         for b, (start, end) in enumerate(zip(ends - blocks, ends, strict=True)):
-            parts[b, start:end] = q[start:end]
-        live = parts.any(axis=1)  # an empty block finds nothing
+            seen: list[np.ndarray] = []
+            for v in (q, *alt):
+                part = v[start:end]
+                if not part.any() or any(np.array_equal(part, p) for p in seen):
+                    continue  # an empty block finds nothing; an unchanged one adds nothing
+                seen.append(part)
+                row = np.zeros(self.dim, dtype=np.float32)
+                row[start:end] = part
+                rows.append(row)
+                owner.append(b)
+        found = self.search(np.stack(rows), k, among=among) if rows else []  # one call
         lists: list[list[SearchHit]] = [[] for _ in blocks]
-        if live.any():  # every block in one search call
-            found = self.search(parts[live], k, among=among)
-            for b, hits in zip(np.flatnonzero(live), found, strict=True):
-                lists[b] = hits
+        for b in range(len(blocks)):
+            mine = [hits for o, hits in zip(owner, found, strict=True) if o == b]
+            if len(mine) == 1:
+                lists[b] = mine[0]
+            elif mine:
+                best: dict[int, float] = {}
+                for hits in mine:
+                    for h in hits:
+                        best[h.id] = max(h.similarity, best.get(h.id, -np.inf))
+                ranked = sorted(best.items(), key=lambda kv: (-kv[1], kv[0]))[:k]
+                lists[b] = [SearchHit(i, s) for i, s in ranked]
         sims: dict[int, float] = {}
         with self._lock.read():
             for i in {h.id for hits in lists for h in hits}:
@@ -364,12 +390,17 @@ def retrieve(
     blocks: tuple[int, ...],
     combine: str = "merge",
     among: np.ndarray | None = None,
+    variants: np.ndarray | None = None,
 ) -> list[SearchHit]:
     """One descriptor's candidates: top-k of the whole descriptor, or with several
     ``blocks`` and ``combine="merge"`` the merged top-k of each block
-    (:meth:`FaissIndex.search_blocks`, :func:`merge_hits`)."""
+    (:meth:`FaissIndex.search_blocks`, :func:`merge_hits`); with ``variants`` (the
+    query's descriptor about displaced centres) by the best similarity over them."""
     if len(blocks) > 1 and combine == "merge":
-        return merge_hits(index.search_blocks(descriptor, k, blocks, among=among), k)
+        lists = index.search_blocks(descriptor, k, blocks, among=among, variants=variants)
+        return merge_hits(lists, k)
+    if variants is not None and len(variants):
+        return index.search_blocks(descriptor, k, (index.dim,), among=among, variants=variants)[0]
     return index.search(descriptor, k, among=among)[0]
 
 

@@ -40,7 +40,7 @@ from pydantic import ValidationError
 from sgvloc.core import leave_out
 from sgvloc.core.cache import FetchCache
 from sgvloc.core.confidence import Calibration, shipped_calibration
-from sgvloc.core.config import LocalizerConfig
+from sgvloc.core.config import INDEX_SETTINGS, LocalizerConfig
 from sgvloc.core.encoders import Encoder, EncoderSpec, make_encoder
 from sgvloc.core.errors import (
     ConflictError,
@@ -452,7 +452,10 @@ class MapManager:
             return None
         cfg = handle.record.localizer_config.retrieval
         snap_ids = index.ids().tolist()
-        if index.dim != handle.encoder.global_dim or index.config != cfg:
+        if (
+            index.dim != handle.encoder.global_dim
+            or index.config.index_settings() != cfg.index_settings()
+        ):
             why = "dimension or retrieval settings differ"
         elif snap_ids != ids:
             why = f"it holds {len(snap_ids)} ids, the store {len(ids)} (or different ones)"
@@ -871,9 +874,9 @@ class MapManager:
         """Change a map's localizer settings and/or calibration after creation.
 
         ``localizer`` is merged into the current settings (nested objects key by key)
-        and validated whole; retrieval settings cannot change (the index was built with
-        them). Stored in one transaction, then swapped into the running map; the
-        keyframe version is unchanged.
+        and validated whole; the index's retrieval settings cannot change (it was built
+        with them; the query's, ``combine`` and the offsets, can). Stored in one
+        transaction, then swapped into the running map; the keyframe version is unchanged.
         """
         handle = self.get(name)
         with handle.write_lock:
@@ -889,11 +892,12 @@ class MapManager:
                     err = exc.errors()[0]
                     where = ".".join(str(x) for x in err["loc"])
                     raise field_error(InputError(err["msg"]), f"localizer.{where}") from None
-                if config.retrieval != current.retrieval:
+                if config.retrieval.index_settings() != current.retrieval.index_settings():
                     raise field_error(
                         InputError(
-                            "retrieval settings cannot change after creation (the index "
-                            "was built with them): create a new map"
+                            "the index's retrieval settings cannot change after creation "
+                            f"({', '.join(INDEX_SETTINGS)}: the index was built with them): "
+                            "create a new map"
                         ),
                         "localizer.retrieval",
                     )

@@ -58,6 +58,10 @@ class Encoder(ABC):
         """:attr:`global_blocks`, or the whole descriptor as one block."""
         return tuple(self.global_blocks) or (int(self.global_dim),)
 
+    #: whether :meth:`encode_query` (and ``encode_image``, where there is one) describes
+    #: a query about displaced centres too
+    describes_displaced: bool = False
+
     #: the preprocessing the encoder applies to raw scans (None if it takes no scans);
     #: the localizer reuses it to keep clouds for ICP refinement
     preprocess_config: PreprocessConfig | None = None
@@ -82,6 +86,14 @@ class Encoder(ABC):
     @abstractmethod
     def encode_cloud(self, cloud: np.ndarray) -> Features:
         """Encode a cloud already preprocessed by :meth:`prepare` ``[M, 3]``."""
+
+    def encode_query(self, cloud: np.ndarray, centres: np.ndarray | None = None) -> Features:
+        """:meth:`encode_cloud` for a scan to be localized. An encoder whose global
+        descriptor holds a polar/FFT block (``learned``) also computes it about each of
+        ``centres`` ``[C, 2]`` (metres from the sensor, in the ground plane) into
+        ``Features.global_variants``, which retrieval searches with too; the others
+        return plain features."""
+        return self.encode_cloud(cloud)
 
     def check(self, features: Features) -> None:
         """Refuse features from another encoder or with the wrong dimensions.

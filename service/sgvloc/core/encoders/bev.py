@@ -85,10 +85,33 @@ def polar_fft_descriptor(
     """Yaw-invariant global descriptor ``[rings * (sectors // 2 + 1)]`` float32 of a BEV
     density image (not normalised): the grey levels (/255) of its pixels on a polar grid
     around the sensor, then :func:`yaw_invariant_descriptor`."""
+    return polar_fft_descriptors(image, np.zeros((1, 2)), raster, rings, sectors)[0]
+
+
+def polar_fft_descriptors(
+    image: np.ndarray,
+    centres: np.ndarray,
+    raster: BEVRasterConfig = KITTI_BEV,
+    rings: int = 20,
+    sectors: int = 60,
+) -> np.ndarray:
+    """:func:`polar_fft_descriptor` with the polar grid about each of ``centres`` ``[C, 2]``
+    (metres from the sensor in the image plane) instead of the sensor: ``[C, D]`` float32.
+
+    About a centre ``c`` the descriptor is the one a sensor standing at ``c`` would have
+    had of the same surroundings (less what the scan did not reach), and yaw-invariant
+    as ever: retrieval with it finds a revisit that passed a few metres to the side or
+    in the opposite direction (``RetrievalConfig.offset_m``)."""
     rows, cols = np.nonzero(image)
     xy = pixel_to_metres(rows, cols, raster)  # [M, 2]
-    grid = weighted_polar_grid(xy, image[rows, cols] / 255.0, rings, sectors, raster.extent)
-    return yaw_invariant_descriptor(grid)
+    weights = image[rows, cols] / 255.0
+    out = [
+        yaw_invariant_descriptor(
+            weighted_polar_grid(xy - c, weights, rings, sectors, raster.extent)
+        )
+        for c in np.asarray(centres, dtype=np.float64).reshape(-1, 2)
+    ]
+    return np.stack(out) if out else np.zeros((0, rings * (sectors // 2 + 1)), np.float32)
 
 
 def orb_bits_to_float(desc: np.ndarray) -> np.ndarray:
@@ -236,4 +259,10 @@ class BEVEncoder(Encoder):
         )
 
 
-__all__ = ["BEVEncoder", "orb_bits_to_float", "polar_fft_descriptor", "weighted_polar_grid"]
+__all__ = [
+    "BEVEncoder",
+    "orb_bits_to_float",
+    "polar_fft_descriptor",
+    "polar_fft_descriptors",
+    "weighted_polar_grid",
+]

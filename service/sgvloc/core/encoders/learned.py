@@ -62,7 +62,7 @@ from ..bev import (
 from ..errors import EmptyScanError, InputError
 from ..features import EncoderIdentity, Features
 from .base import Encoder
-from .bev import polar_fft_descriptor
+from .bev import polar_fft_descriptor, polar_fft_descriptors
 from .torchscript import file_sha256
 
 log = logging.getLogger(__name__)
@@ -223,6 +223,7 @@ class LearnedEncoder(Encoder):
 
     NAME = "bevnet"
     VERSION = "1"
+    describes_displaced = True  # the polar block, where the global descriptor has one
 
     def __init__(
         self,
@@ -318,20 +319,27 @@ class LearnedEncoder(Encoder):
 
         Raises :class:`InputError` if the raster is empty (no column of two voxels).
         """
+        return self.encode_query(cloud, None)
+
+    def encode_query(self, cloud: np.ndarray, centres: np.ndarray | None = None) -> Features:
+        """:meth:`encode_cloud`, with the polar block about ``centres`` ``[C, 2]`` too (in
+        the levelled frame; a ring of them is the same in any frame) when the global
+        descriptor has one (:meth:`Encoder.encode_query`)."""
         cloud = np.asarray(cloud, dtype=np.float32)
         if not self.config.level:
             raster = rasterize_cloud(cloud, KITTI_BEV)
-            return self._encode(raster.image, raster)
+            return self._encode(raster.image, raster, centres)
         level, R = level_cloud(cloud, KITTI_BEV)
         raster = rasterize_cloud(level, KITTI_BEV)
-        f = self._encode(raster.image, raster)
+        f = self._encode(raster.image, raster, centres)
         kp = (f.keypoints.astype(np.float64) @ R).astype(np.float32)  # back to the sensor frame
-        return Features(f.global_descriptor, kp, f.local_features, f.encoder)
+        return Features(f.global_descriptor, kp, f.local_features, f.encoder, f.global_variants)
 
     # -- images ------------------------------------------------------------------------
 
-    def encode_image(self, image: np.ndarray) -> Features:
-        """Encode a kitti-bev density image ``[151, 151]`` uint8; keypoints at ``z = 0``.
+    def encode_image(self, image: np.ndarray, centres: np.ndarray | None = None) -> Features:
+        """Encode a kitti-bev density image ``[151, 151]`` uint8; keypoints at ``z = 0``
+        (``centres`` as for :meth:`encode_query`).
 
         Raises :class:`InputError` if the image has the wrong shape or dtype, or is empty.
         """
@@ -341,7 +349,7 @@ class LearnedEncoder(Encoder):
             raise InputError(
                 f"BEV image is {list(img.shape)} {img.dtype}; expected [{s}, {s}] uint8"
             )
-        return self._encode(img, None)
+        return self._encode(img, None, centres)
 
     # -- shared ------------------------------------------------------------------------
 
@@ -363,7 +371,9 @@ class LearnedEncoder(Encoder):
             g, local, sal = self.net(torch.cat(xs))
         return [(g[i : i + 1], local[i : i + 1], sal[i : i + 1]) for i in range(len(xs))]
 
-    def _encode(self, image: np.ndarray, raster: BEVRaster | None) -> Features:
+    def _encode(
+        self, image: np.ndarray, raster: BEVRaster | None, centres: np.ndarray | None = None
+    ) -> Features:
         import torch
         import torch.nn.functional as F
 
@@ -432,9 +442,14 @@ class LearnedEncoder(Encoder):
                     zc = np.nansum(blocks * w, axis=1) / w.sum(axis=1)
             z = np.where(np.isfinite(zc), zc, 0.0)
         kp = np.column_stack([xy, z]).reshape(-1, 3)
-        return Features.validated(
+        f = Features.validated(
             g_np, kp, feats, self.identity, global_dim=self.global_dim, local_dim=self.local_dim
         )
+        kinds = c.global_descriptor.split("+")
+        if centres is None or not len(centres) or "polar" not in kinds:
+            return f
+        polars = polar_fft_descriptors(image, centres, KITTI_BEV, POLAR_RINGS, POLAR_SECTORS)
+        return f.with_variants(sum(self.blocks[: kinds.index("polar")]), polars)
 
 
 def _concat_unit(parts: list[np.ndarray]) -> np.ndarray:

@@ -68,28 +68,39 @@ class FeatureCache:
         key = f"{p}|{st.st_size}|{st.st_mtime_ns}"
         return self.dir / (hashlib.sha256(key.encode()).hexdigest()[:24] + ".npz")
 
-    def get(self, scan_path: str | os.PathLike) -> Features:
-        """Features of a scan file: from the cache, or computed (and stored)."""
+    def get(self, scan_path: str | os.PathLike, centres: np.ndarray | None = None) -> Features:
+        """Features of a scan file: from the cache, or computed (and stored). With
+        ``centres`` ``[C, 2]`` as a query's (:meth:`Encoder.encode_query`): a file
+        stored without these centres' variants is computed again."""
         f = self.path_for(scan_path)
+        want = None if centres is None else np.asarray(centres, dtype=np.float64).reshape(-1, 2)
         if f.exists():
             try:
                 with np.load(f) as z:
+                    variants = None
+                    if want is not None:
+                        if "centres" not in z.files or not np.array_equal(z["centres"], want):
+                            raise LookupError
+                        variants = z["global_variants"]
                     feats = Features(
                         z["global_descriptor"],
                         z["keypoints"],
                         z["local_features"],
                         self.encoder.identity,
+                        variants if variants is not None and len(variants) else None,
                     )
                 self.hits += 1
                 return feats
+            except LookupError:  # stored without these centres
+                pass
             except (OSError, KeyError, ValueError) as exc:  # damaged file: recompute
                 log.warning("feature cache file %s unreadable (%s); recomputing", f, exc)
         self.misses += 1
-        feats, cloud = self._compute(Path(scan_path))
-        self._write(f, feats, cloud)
+        feats, cloud = self._compute(Path(scan_path), want)
+        self._write(f, feats, cloud, want)
         return feats
 
-    def _compute(self, path: Path) -> tuple[Features, np.ndarray]:
+    def _compute(self, path: Path, centres: np.ndarray | None) -> tuple[Features, np.ndarray]:
         if path.suffix.lower() == ".png":
             from sgvloc.core.bev import load_bev_image
 
@@ -104,6 +115,8 @@ class FeatureCache:
                 from sgvloc.core.bev import crop_image_azimuth
 
                 image = crop_image_azimuth(image, self.fov_deg)
+            if centres is not None and self.encoder.describes_displaced:
+                return encode_image(image, centres=centres), np.zeros((0, 3), np.float32)
             return encode_image(image), np.zeros((0, 3), np.float32)
         from sgvloc.core.io import read_scan
         from sgvloc.core.preprocess import crop_azimuth
@@ -112,7 +125,7 @@ class FeatureCache:
         if self.fov_deg:
             points = crop_azimuth(points, self.fov_deg)
         cloud = self.encoder.prepare(points)  # [M, 3]
-        return self.encoder.encode_cloud(cloud), cloud
+        return self.encoder.encode_query(cloud, centres), cloud
 
     def cloud(self, scan_path: str | os.PathLike) -> np.ndarray:
         """The preprocessed cloud ``[M, 3]`` of a scan (computed if not cached)."""
@@ -122,7 +135,18 @@ class FeatureCache:
         with np.load(f) as z:
             return np.asarray(z["cloud"], dtype=np.float32)
 
-    def _write(self, f: Path, feats: Features, cloud: np.ndarray) -> None:
+    def _write(
+        self, f: Path, feats: Features, cloud: np.ndarray, centres: np.ndarray | None
+    ) -> None:
+        extra = {}
+        if centres is not None:  # the centres asked for, and what they gave (maybe none)
+            g = feats.global_variants
+            extra = {
+                "centres": centres,
+                "global_variants": np.zeros((0, len(feats.global_descriptor)), np.float32)
+                if g is None
+                else g,
+            }
         fd, tmp = tempfile.mkstemp(dir=self.dir, suffix=".tmp")
         try:
             with os.fdopen(fd, "wb") as fh:
@@ -132,6 +156,7 @@ class FeatureCache:
                     keypoints=feats.keypoints,
                     local_features=feats.local_features,
                     cloud=np.asarray(cloud, dtype=np.float32),
+                    **extra,
                 )
             os.replace(tmp, f)
         except BaseException:

@@ -270,23 +270,28 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
     t0 = time.perf_counter()
     unencodable: dict[str, str] = {}  # scan file -> why the encoder refused it
 
-    def encoded(path: str) -> Features | None:
-        """The scan's features, or None when the encoder finds nothing to describe (a scan
-        too sparse for it): such a scan stays out of the database and, as a query, is an
+    centres = cfg.localizer.retrieval.centres()  # a query's displaced descriptor centres
+    as_query = set(evaluated.tolist())
+
+    def encoded(path: str, query: bool) -> Features | None:
+        """The scan's features (a query's with its global descriptor about the displaced
+        centres too), or None when the encoder finds nothing to describe (a scan too
+        sparse for it): such a scan stays out of the database and, as a query, is an
         answer without an estimate, as the service answers it with a 422."""
         try:
-            return cache.get(path)
+            return cache.get(path, centres if query else None)
         except EmptyScanError as exc:
             unencodable[str(path)] = str(exc)
             return None
 
     everything = {
-        i: encoded(seq.paths[i]) for i in _progress(needed, progress, desc="features", unit="scan")
+        i: encoded(seq.paths[i], i in as_query)
+        for i in _progress(needed, progress, desc="features", unit="scan")
     }
     feats = {i: f for i, f in everything.items() if f is not None}
     qfeats = {key: everything[key[1]] for key in qkeys if key[0] == 0}
     for key in _progress([k for k in qkeys if k[0]], progress, desc="foreign", unit="scan"):
-        qfeats[key] = encoded(sources[key[0]].paths[key[1]])
+        qfeats[key] = encoded(sources[key[0]].paths[key[1]], True)
     t_features = time.perf_counter() - t0
     if not feats:
         raise InputError(f"{cfg.data}: the encoder found nothing to describe in any scan")
@@ -452,7 +457,7 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
                     rec["verdict"] = "no_features"
                 rs.append(rec)
             continue
-        candidates = _retrieval(index, fq.global_descriptor, kmax, blocks, among)
+        candidates = _retrieval(index, fq, kmax, blocks, among)
         retrieved = candidates(kmax)
         spectral: dict[int, Any] = {}
         spectral_for(qk, [c.keyframe_id for c in retrieved], spectral)
@@ -544,6 +549,16 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
         else f"retrieval: top-{kmax} of each of the {len(blocks)} descriptor blocks once per "
         "query; each (method, k) re-ranks the merge of each block's first k hits (between k "
         "and blocks x k candidates, each keyframe once)",
+        *(
+            [
+                f"retrieval: each query's polar block also about {len(centres)} centres "
+                f"{cfg.localizer.retrieval.offset_m:g} m from its sensor, each database scan "
+                "ranked by its best similarity over them (retrieval.offset_m)"
+            ]
+            if centres is not None
+            and any(f is not None and f.global_variants is not None for f in qfeats.values())
+            else []
+        ),
         "pose: RANSAC on local features against the re-ranked top-1"
         + (", refined by ICP on the preprocessed clouds" if refine == "icp" else "")
         + "; the same estimator for every method",
@@ -653,19 +668,21 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
     return EvalResult(config, split_info, rows, sweep, per_query, timings, notes, matches, scores)
 
 
-def _retrieval(
-    index: Any, descriptor: np.ndarray, kmax: int, blocks: tuple[int, ...], among: Any
-) -> Any:
+def _retrieval(index: Any, query: Features, kmax: int, blocks: tuple[int, ...], among: Any) -> Any:
     """One query's retrieval, run once with ``kmax``: returns ``candidates(k)``, the
     candidate list for any ``k <= kmax`` (the first k hits; with several descriptor
-    blocks, the merge of each block's first k, as :func:`sgvloc.core.retrieval.retrieve`
+    blocks, the merge of each block's first k; with the descriptor about displaced
+    centres, by the best similarity over them: as :func:`sgvloc.core.retrieval.retrieve`
     gives it)."""
     from sgvloc.core.rerank import Candidate
     from sgvloc.core.retrieval import merge_hits
 
+    descriptor, variants = query.global_descriptor, query.global_variants
     k = min(kmax, len(index))
-    if len(blocks) > 1:
-        lists = index.search_blocks(descriptor, k, blocks, among=among) if k else []
+    if len(blocks) > 1 or variants is not None:
+        lists = (
+            index.search_blocks(descriptor, k, blocks, among=among, variants=variants) if k else []
+        )
 
         def hits_for(n: int) -> list[Any]:
             return merge_hits(lists, n)
