@@ -1,7 +1,8 @@
 """A map's leave-out self-test: its own keyframes localized against the others.
 
 Each sampled keyframe is a query: its stored features and cloud (what ``encoder.prepare``
-and ``encode_cloud`` made of its scan, the same as a live query's) are localized with
+and ``encode_cloud`` made of its scan, the same as a live query's, with its descriptor
+about the displaced centres computed again from the cloud) are localized with
 the map's settings against every keyframe except its own stretch of the drive: those
 closer than ``gap_s`` seconds to it (``metadata.timestamp``, as ``sgvloc build-map``
 records it) or, when not every keyframe has a timestamp, closer than ``gap_keyframes``

@@ -14,7 +14,7 @@ import itertools
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 from typing import Any
 
@@ -209,12 +209,18 @@ class Localizer:
     ) -> tuple[Keyframe, LocalizationResult]:
         """Localize keyframe ``keyframe_id``'s stored features and cloud against the
         keyframes ``among`` (the leave-out self-test); returns the keyframe and the
-        :class:`LocalizationResult`."""
+        :class:`LocalizationResult`. As a live query of its scan would, it searches with
+        its descriptor about the displaced centres too, computed again from its cloud
+        (``retrieval.offset_m``; a keyframe stored without a cloud searches without)."""
         with self._lock.read():
             if int(keyframe_id) not in self._keyframes:
                 raise ConflictError(f"keyframe {keyframe_id} was removed during the self-test")
             kf = self._whole([int(keyframe_id)])[int(keyframe_id)]
-        return kf, self.localize(features=kf.features, cloud=kf.cloud, among=among)
+        features, centres = kf.features, self.config.retrieval.centres()
+        if centres is not None and kf.cloud is not None and self.encoder.describes_displaced:
+            variants = self.encoder.encode_query(kf.cloud, centres).global_variants
+            features = replace(features, global_variants=variants)
+        return kf, self.localize(features=features, cloud=kf.cloud, among=among)
 
     def encode(self, scan: np.ndarray) -> Features:
         """Features of a raw scan ``[P, 3+]`` with this map's encoder."""
