@@ -699,12 +699,15 @@ def bench_encoding(
 def _bench_image_encoder(kind: str, raw: np.ndarray, repeats: int) -> dict[str, Any]:
     """Stages of a BEV image encoder (``bev``, ``learned``) on one scan: prepare (box crop,
     0.4 m voxels), raster (density image of the prepared cloud) and describe (the rest of
-    ``encode_cloud``: for the learned encoder its levelling, then keypoints, local and
-    global descriptors of the image)."""
+    ``encode_query`` as a new map's query runs it: for the learned encoder its levelling,
+    then keypoints, local and global descriptors of the image, the polar block about the
+    displaced centres too)."""
     from sgvloc.core.bev import rasterize_cloud
+    from sgvloc.core.config import RetrievalConfig
     from sgvloc.core.encoders import EncoderSpec, make_encoder
 
     enc = make_encoder(EncoderSpec(kind=kind))
+    centres = RetrievalConfig().centres()
     stages: dict[str, list[float]] = {k: [] for k in ("prepare", "raster", "describe", "total")}
     feats = None
     for rep in range(repeats + 1):
@@ -713,7 +716,7 @@ def _bench_image_encoder(kind: str, raw: np.ndarray, repeats: int) -> dict[str, 
         t1 = time.perf_counter()
         rasterize_cloud(cloud)
         t2 = time.perf_counter()
-        feats = enc.encode_cloud(cloud)  # rasterises again, then describes
+        feats = enc.encode_query(cloud, centres)  # rasterises again, then describes
         t3 = time.perf_counter()
         if rep == 0:
             continue  # warm-up
