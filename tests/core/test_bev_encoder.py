@@ -174,3 +174,27 @@ def test_empty_scan_is_refused() -> None:
         enc.encode(flat)  # ground only: every column is one voxel
     with pytest.raises(InputError):
         enc.encode(np.array([[100.0, 0.0, 0.0]]))
+
+
+def test_polar_descriptor_about_displaced_centres() -> None:
+    """About a centre c, the polar/FFT descriptor of an image is that of the image moved
+    so that c is the sensor (every centre at once, each as alone); about the sensor it is
+    the plain descriptor."""
+    from sgvloc.core.bev import KITTI_BEV
+    from sgvloc.core.encoders.bev import polar_fft_descriptor, polar_fft_descriptors
+
+    rng = np.random.default_rng(3)
+    image = np.zeros((KITTI_BEV.size, KITTI_BEV.size), np.uint8)
+    rows, cols = rng.integers(40, 111, size=(2, 600))  # within 14 m of the sensor
+    image[rows, cols] = rng.integers(30, 256, size=600)
+    shifts = [(10, 0), (0, -10), (-7, 7), (0, 0)]  # pixels: 4 m ahead, 4 m left, ...
+    centres = np.array(
+        [[dr * KITTI_BEV.resolution, dc * KITTI_BEV.resolution] for dr, dc in shifts]
+    )
+    got = polar_fft_descriptors(image, centres)
+    assert got.shape == (4, 620) and got.dtype == np.float32
+    for row, (dr, dc) in zip(got, shifts, strict=True):
+        moved = np.roll(image, (dr, dc), axis=(0, 1))  # nothing wraps: content is central
+        np.testing.assert_allclose(row, polar_fft_descriptor(moved), atol=1e-5)
+    np.testing.assert_array_equal(got[3], polar_fft_descriptor(image))
+    assert polar_fft_descriptors(image, np.zeros((0, 2))).shape == (0, 620)

@@ -56,13 +56,14 @@ def weighted_polar_grid(
 
     Same binning as :func:`~sgvloc.core.encoders.handcrafted.polar_grid` (bilinear in ring
     and circular sector), each point adding its weight. Points at ``max_radius`` or beyond
-    are ignored.
+    are ignored. ``xy`` ``[C, M, 2]`` (C sets of the same points moved, one ``weights``
+    ``[M]``) gives ``[C, rings, sectors]``, each grid as the set alone would.
     """
-    xy = np.asarray(xy, dtype=np.float64)  # [M, 2]
-    r = np.hypot(xy[:, 0], xy[:, 1])
+    xy = np.asarray(xy, dtype=np.float64)  # [M, 2] or [C, M, 2]
+    sets = xy if xy.ndim == 3 else xy[None]  # [C, M, 2]
+    r = np.hypot(sets[..., 0], sets[..., 1])  # [C, M]
     inside = r < max_radius
-    r, xy, w0 = r[inside], xy[inside], np.asarray(weights, dtype=np.float64)[inside]
-    theta = np.arctan2(xy[:, 1], xy[:, 0]) % (2.0 * np.pi)
+    theta = np.arctan2(sets[..., 1], sets[..., 0]) % (2.0 * np.pi)
     u = r * (rings / max_radius) - 0.5
     v = theta * (sectors / (2.0 * np.pi)) - 0.5
     i0f, j0f = np.floor(u), np.floor(v)
@@ -71,12 +72,18 @@ def weighted_polar_grid(
     i1 = np.clip(i0f.astype(np.int64) + 1, 0, rings - 1)
     j0 = j0f.astype(np.int64) % sectors
     j1 = (j0 + 1) % sectors
-    idx = np.concatenate(
-        [i0 * sectors + j0, i0 * sectors + j1, i1 * sectors + j0, i1 * sectors + j1]
+    cells = rings * sectors
+    base = (np.arange(len(sets)) * cells)[:, None, None]
+    # per set: its points' four corners one after another, in point order, as one set alone
+    idx = base + np.stack(
+        [i0 * sectors + j0, i0 * sectors + j1, i1 * sectors + j0, i1 * sectors + j1], 1
     )
-    w = np.concatenate([(1 - fu) * (1 - fv), (1 - fu) * fv, fu * (1 - fv), fu * fv])
-    w *= np.tile(w0, 4)
-    return np.bincount(idx, weights=w, minlength=rings * sectors).reshape(rings, sectors)
+    w = np.stack([(1 - fu) * (1 - fv), (1 - fu) * fv, fu * (1 - fv), fu * fv], 1)
+    w = w * np.asarray(weights, dtype=np.float64)[None, None]
+    keep = np.repeat(inside[:, None, :], 4, axis=1)  # [C, 4, M]
+    grids = np.bincount(idx[keep], weights=w[keep], minlength=len(sets) * cells)
+    grids = grids.reshape(len(sets), rings, sectors)
+    return grids if xy.ndim == 3 else grids[0]
 
 
 def polar_fft_descriptor(
@@ -85,7 +92,10 @@ def polar_fft_descriptor(
     """Yaw-invariant global descriptor ``[rings * (sectors // 2 + 1)]`` float32 of a BEV
     density image (not normalised): the grey levels (/255) of its pixels on a polar grid
     around the sensor, then :func:`yaw_invariant_descriptor`."""
-    return polar_fft_descriptors(image, np.zeros((1, 2)), raster, rings, sectors)[0]
+    rows, cols = np.nonzero(image)
+    xy = pixel_to_metres(rows, cols, raster)  # [M, 2]
+    grid = weighted_polar_grid(xy, image[rows, cols] / 255.0, rings, sectors, raster.extent)
+    return yaw_invariant_descriptor(grid)
 
 
 def polar_fft_descriptors(
@@ -102,16 +112,16 @@ def polar_fft_descriptors(
     had of the same surroundings (less what the scan did not reach), and yaw-invariant
     as ever: retrieval with it finds a revisit that passed a few metres to the side or
     in the opposite direction (``RetrievalConfig.offset_m``)."""
+    centres = np.asarray(centres, dtype=np.float64).reshape(-1, 2)
+    if len(centres) == 0:
+        return np.zeros((0, rings * (sectors // 2 + 1)), np.float32)
     rows, cols = np.nonzero(image)
-    xy = pixel_to_metres(rows, cols, raster)  # [M, 2]
-    weights = image[rows, cols] / 255.0
-    out = [
-        yaw_invariant_descriptor(
-            weighted_polar_grid(xy - c, weights, rings, sectors, raster.extent)
-        )
-        for c in np.asarray(centres, dtype=np.float64).reshape(-1, 2)
-    ]
-    return np.stack(out) if out else np.zeros((0, rings * (sectors // 2 + 1)), np.float32)
+    xy = pixel_to_metres(rows, cols, raster)[None] - centres[:, None]  # [C, M, 2]
+    grids = weighted_polar_grid(xy, image[rows, cols] / 255.0, rings, sectors, raster.extent)
+    g = np.sqrt(grids)  # [C, R, S], as yaw_invariant_descriptor, all centres at once
+    spectrum = np.abs(np.fft.rfft(g, axis=-1))[..., 1:] / sectors  # [C, R, S // 2]
+    flat = np.concatenate([spectrum.reshape(len(g), -1), g.mean(axis=-1)], axis=1)
+    return flat.astype(np.float32)
 
 
 def orb_bits_to_float(desc: np.ndarray) -> np.ndarray:
