@@ -198,3 +198,21 @@ def test_polar_descriptor_about_displaced_centres() -> None:
         np.testing.assert_allclose(row, polar_fft_descriptor(moved), atol=1e-5)
     np.testing.assert_array_equal(got[3], polar_fft_descriptor(image))
     assert polar_fft_descriptors(image, np.zeros((0, 2))).shape == (0, 620)
+
+
+def test_the_bev_encoder_describes_a_query_about_displaced_centres(scene: np.ndarray) -> None:
+    from sgvloc.core.config import RetrievalConfig
+    from sgvloc.core.encoders.bev import polar_fft_descriptors
+
+    enc = BEVEncoder()
+    cloud = enc.prepare(scene)
+    centres = RetrievalConfig().centres()
+    plain, query = enc.encode_cloud(cloud), enc.encode_query(cloud, centres)
+    assert plain.global_variants is None
+    np.testing.assert_array_equal(query.global_descriptor, plain.global_descriptor)
+    np.testing.assert_array_equal(query.local_features, plain.local_features)
+    image = enc.raster(scene).image
+    want = polar_fft_descriptors(image, centres)
+    want /= np.linalg.norm(want, axis=1, keepdims=True)
+    np.testing.assert_allclose(query.global_variants, want, atol=1e-6)
+    assert enc.encode_image(image, centres=centres).global_variants.shape == (8, enc.global_dim)

@@ -305,16 +305,20 @@ def test_the_free_space_check_uses_only_the_keyframes_searched(campus):
 
 
 @pytest.mark.parametrize("offset_m", [4.0, 0.0])
-def test_a_query_4_m_beside_a_keyframe_retrieves_it(balm_mini_dir, offset_m):
+@pytest.mark.parametrize(
+    "spec", [{"kind": "learned", "learned": {"global_descriptor": "polar"}}, {"kind": "bev"}]
+)
+def test_a_query_4_m_beside_a_keyframe_retrieves_it(balm_mini_dir, offset_m, spec):
     """Each keyframe's own scan, seen from 4 m beside it (ahead, left, behind, right), as
-    a query with top_k 1 and the polar/FFT global descriptor: with the descriptor also
+    a query with top_k 1 and a polar/FFT global descriptor (the learned encoder's, the bev
+    encoder's): with the descriptor also
     about centres 4 m away (``retrieval.offset_m``) retrieval finds that keyframe every
     time, and so does the self-test's query of such a scan stored as a keyframe; about
     the sensor only they mostly do not."""
     frames = list(KittiSequence(balm_mini_dir))[:6]
     config = LocalizerConfig(top_k=1)
     config.retrieval.offset_m = offset_m
-    loc = Localizer(make_encoder(EncoderSpec(learned={"global_descriptor": "polar"})), config)
+    loc = Localizer(make_encoder(EncoderSpec.model_validate(spec)), config)
     ids = {loc.add_keyframe(f.T_world_sensor, scan=f.scan().points): f for f in frames}
     found, beside_ids = [], {}
     for kid, f in ids.items():

@@ -72,7 +72,7 @@ class RetrievalConfig(_Section):
         4.0,
         ge=0.0,
         le=20.0,
-        description="a query's polar/FFT descriptor block (learned encoder) is "
+        description="a query's polar/FFT descriptor (learned and bev encoders) is "
         "also computed about `offsets` points this far from its sensor, on a circle, and "
         "each keyframe is retrieved by its best similarity over these centres: a revisit "
         "that passes a few metres to the side, or in the opposite direction, is still "

@@ -89,7 +89,7 @@ class Encoder(ABC):
 
     def encode_query(self, cloud: np.ndarray, centres: np.ndarray | None = None) -> Features:
         """:meth:`encode_cloud` for a scan to be localized. An encoder whose global
-        descriptor holds a polar/FFT block (``learned``) also computes it about each of
+        descriptor holds a polar/FFT block (``learned``, ``bev``) also computes it about each of
         ``centres`` ``[C, 2]`` (metres from the sensor, in the ground plane) into
         ``Features.global_variants``, which retrieval searches with too; the others
         return plain features."""

@@ -143,6 +143,7 @@ class BEVEncoder(Encoder):
 
     NAME = "bev"
     VERSION = "1"
+    describes_displaced = True  # its global descriptor is a polar/FFT one
 
     def __init__(self, config: BEVEncoderConfig | None = None) -> None:
         import cv2
@@ -178,8 +179,13 @@ class BEVEncoder(Encoder):
 
         Raises :class:`InputError` if the raster is empty (no column of two voxels).
         """
+        return self.encode_query(cloud, None)
+
+    def encode_query(self, cloud: np.ndarray, centres: np.ndarray | None = None) -> Features:
+        """:meth:`encode_cloud`, with the global descriptor about ``centres`` ``[C, 2]``
+        too (:meth:`Encoder.encode_query`)."""
         raster = rasterize_cloud(np.asarray(cloud, dtype=np.float32), self.config.raster)
-        return self._encode(raster.image, raster)
+        return self._encode(raster.image, raster, centres)
 
     def raster(self, points: np.ndarray) -> BEVRaster:
         """The BEV raster this encoder describes for a raw scan (for inspection)."""
@@ -187,8 +193,9 @@ class BEVEncoder(Encoder):
 
     # -- images ------------------------------------------------------------------------
 
-    def encode_image(self, image: np.ndarray) -> Features:
-        """Encode a BEV density image ``[S, S]`` uint8 (e.g. a kitti-bev PNG); ``z = 0``.
+    def encode_image(self, image: np.ndarray, centres: np.ndarray | None = None) -> Features:
+        """Encode a BEV density image ``[S, S]`` uint8 (e.g. a kitti-bev PNG); ``z = 0``
+        (``centres`` as for :meth:`encode_query`).
 
         Raises :class:`InputError` if the image has the wrong shape or dtype, or is empty.
         """
@@ -198,7 +205,7 @@ class BEVEncoder(Encoder):
             raise InputError(
                 f"BEV image is {list(img.shape)} {img.dtype}; expected [{s}, {s}] uint8"
             )
-        return self._encode(img, None)
+        return self._encode(img, None, centres)
 
     # -- shared ------------------------------------------------------------------------
 
@@ -246,7 +253,9 @@ class BEVEncoder(Encoder):
             feats = orb_bits_to_float(desc)
         return pts[:, 1], pts[:, 0], feats
 
-    def _encode(self, image: np.ndarray, raster: BEVRaster | None) -> Features:
+    def _encode(
+        self, image: np.ndarray, raster: BEVRaster | None, centres: np.ndarray | None = None
+    ) -> Features:
         c = self.config
         g = self.global_descriptor(image)
         if not np.any(g):
@@ -264,8 +273,13 @@ class BEVEncoder(Encoder):
             z = np.where(np.isfinite(zc), zc, 0.0)
         kp = np.column_stack([xy, z]).reshape(-1, 3)
         log.debug("BEV encoder: %d keypoints", len(kp))
-        return Features.validated(
+        f = Features.validated(
             g, kp, feats, self.identity, global_dim=self.global_dim, local_dim=self.local_dim
+        )
+        if centres is None or not len(centres):
+            return f
+        return f.with_variants(
+            0, polar_fft_descriptors(image, centres, c.raster, c.rings, c.sectors)
         )
 
 
