@@ -82,6 +82,8 @@ class FeatureCache:
                         if "centres" not in z.files or not np.array_equal(z["centres"], want):
                             raise LookupError
                         variants = z["global_variants"]
+                        if len(variants) != (len(want) if self.encoder.describes_displaced else 0):
+                            raise LookupError  # stored before the encoder described them
                     feats = Features(
                         z["global_descriptor"],
                         z["keypoints"],
@@ -91,7 +93,7 @@ class FeatureCache:
                     )
                 self.hits += 1
                 return feats
-            except LookupError:  # stored without these centres
+            except LookupError:  # stored without these centres' variants
                 pass
             except (OSError, KeyError, ValueError) as exc:  # damaged file: recompute
                 log.warning("feature cache file %s unreadable (%s); recomputing", f, exc)
