@@ -36,7 +36,8 @@ def test_variants_are_cached_with_their_centres(tmp_path: Path, balm_mini_dir: P
     again = cache.get(path, centres)
     assert cache.misses == 3
     np.testing.assert_array_equal(again.global_variants, first.global_variants)
-    # an encoder without displaced descriptors: stored empty, read back as none
-    plain = FeatureCache(tmp_path, make_encoder(EncoderSpec(kind="handcrafted")))
-    assert plain.get(path, centres).global_variants is None
-    assert plain.get(path, centres).global_variants is None and plain.hits == 1
+    # encoders without displaced descriptors: stored empty, read back as none
+    for spec in ({"kind": "handcrafted"}, {"learned": {"global_descriptor": "network"}}):
+        plain = FeatureCache(tmp_path, make_encoder(EncoderSpec.model_validate(spec)))
+        assert plain.get(path, centres).global_variants is None
+        assert plain.get(path, centres).global_variants is None and plain.hits == 1

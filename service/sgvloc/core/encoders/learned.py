@@ -223,7 +223,6 @@ class LearnedEncoder(Encoder):
 
     NAME = "bevnet"
     VERSION = "1"
-    describes_displaced = True  # the polar block, where the global descriptor has one
 
     def __init__(
         self,
@@ -277,6 +276,8 @@ class LearnedEncoder(Encoder):
             raise InputError("learned encoder: device 'cuda' requested but CUDA is absent")
         self.device = torch.device(device)
         self.config = config or LearnedEncoderConfig()
+        # a query's polar block about displaced centres, where the descriptor has one
+        self.describes_displaced = "polar" in self.config.global_descriptor.split("+")
         self.model = model.to(self.device).eval()
         onnx_file = _pick_runtime(runtime, device, weights, sha256)
         #: what runs the network: the torch model or an :class:`OnnxNet`
