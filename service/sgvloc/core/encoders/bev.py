@@ -92,10 +92,7 @@ def polar_fft_descriptor(
     """Yaw-invariant global descriptor ``[rings * (sectors // 2 + 1)]`` float32 of a BEV
     density image (not normalised): the grey levels (/255) of its pixels on a polar grid
     around the sensor, then :func:`yaw_invariant_descriptor`."""
-    rows, cols = np.nonzero(image)
-    xy = pixel_to_metres(rows, cols, raster)  # [M, 2]
-    grid = weighted_polar_grid(xy, image[rows, cols] / 255.0, rings, sectors, raster.extent)
-    return yaw_invariant_descriptor(grid)
+    return polar_fft_descriptors(image, np.zeros((1, 2)), raster, rings, sectors)[0]
 
 
 def polar_fft_descriptors(
@@ -118,10 +115,7 @@ def polar_fft_descriptors(
     rows, cols = np.nonzero(image)
     xy = pixel_to_metres(rows, cols, raster)[None] - centres[:, None]  # [C, M, 2]
     grids = weighted_polar_grid(xy, image[rows, cols] / 255.0, rings, sectors, raster.extent)
-    g = np.sqrt(grids)  # [C, R, S], as yaw_invariant_descriptor, all centres at once
-    spectrum = np.abs(np.fft.rfft(g, axis=-1))[..., 1:] / sectors  # [C, R, S // 2]
-    flat = np.concatenate([spectrum.reshape(len(g), -1), g.mean(axis=-1)], axis=1)
-    return flat.astype(np.float32)
+    return yaw_invariant_descriptor(grids)  # all centres at once
 
 
 def orb_bits_to_float(desc: np.ndarray) -> np.ndarray:

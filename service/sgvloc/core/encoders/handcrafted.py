@@ -91,7 +91,8 @@ def polar_grid(points: np.ndarray, rings: int, sectors: int, max_radius: float) 
 
 
 def yaw_invariant_descriptor(grid: np.ndarray) -> np.ndarray:
-    """Yaw-invariant descriptor of a polar grid ``[R, S]``: ``[R * (S // 2 + 1)]`` float32.
+    """Yaw-invariant descriptor of a polar grid ``[R, S]``: ``[R * (S // 2 + 1)]`` float32
+    (of a stack ``[C, R, S]``: ``[C, R * (S // 2 + 1)]``, each as alone).
 
     Counts are square-rooted (so a few dense cells do not dominate), then per ring the
     magnitudes of the DFT along the sector axis for frequencies ``1 .. S // 2`` (a
@@ -99,11 +100,13 @@ def yaw_invariant_descriptor(grid: np.ndarray) -> np.ndarray:
     (mean per ring, the DFT's zero frequency). Not normalised; all zeros for an empty
     grid.
     """
-    g = np.sqrt(grid)  # [R, S]
-    sectors = g.shape[1]
-    spectrum = np.abs(np.fft.rfft(g, axis=1))[:, 1:] / sectors  # [R, S // 2]
-    ring_key = g.mean(axis=1)  # [R]
-    return np.concatenate([spectrum.ravel(), ring_key]).astype(np.float32)
+    g = np.sqrt(grid)  # [..., R, S]
+    sectors = g.shape[-1]
+    spectrum = np.abs(np.fft.rfft(g, axis=-1))[..., 1:] / sectors  # [..., R, S // 2]
+    ring_key = g.mean(axis=-1)  # [..., R]
+    lead = g.shape[:-2]
+    flat = [spectrum.reshape(*lead, -1), ring_key.reshape(*lead, -1)]
+    return np.concatenate(flat, axis=-1).astype(np.float32)
 
 
 def select_keypoints(
