@@ -50,10 +50,18 @@ def test_fitness_and_rmse_match_small_gicps_search() -> None:
     query = cloud[rng.choice(len(cloud), 4000)] + rng.normal(0, 0.4, (4000, 3))
     T = _motion(3.0, [0.3, -0.2, 0.05])
     mine = icp_numba.Tree(cloud).fit_quality(query, T, 1.0)
+    assert mine[2] is None  # a tree without normals
     theirs = _fit_quality(IcpTarget(cloud).tree, query, T, 1.0)
     assert mine[0] == theirs[0]  # the same points within the distance
     assert mine[1] == pytest.approx(theirs[1], rel=1e-12)
-    assert icp_numba.Tree(cloud).fit_quality(query + 1000.0, T, 1.0) == (0.0, 0.0)
+    assert icp_numba.Tree(cloud).fit_quality(query + 1000.0, T, 1.0) == (0.0, 0.0, None)
+    # the matched normals' moment: the same normals (to 1e-9) at the same nearest points
+    small, numba = IcpTarget(cloud), IcpTarget(cloud, "numba")
+    assert numba.numba is not None
+    mine = numba.numba.fit_quality(query, T, 1.0)[2]
+    theirs = _fit_quality(small.tree, query, T, 1.0, small.cloud.normals())[2]
+    np.testing.assert_allclose(mine, theirs, atol=1e-6)
+    assert np.trace(mine) == pytest.approx(1.0)  # unit normals
 
 
 def test_align_recovers_a_known_motion_the_same_every_time() -> None:

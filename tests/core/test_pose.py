@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from pose_helpers import planar_pose
 
 from sgvloc.core.config import HandcraftedEncoderConfig, PoseConfig, PreprocessConfig
 from sgvloc.core.encoders import HandcraftedEncoder
@@ -10,6 +11,7 @@ from sgvloc.core.pose import (
     IcpTarget,
     PoseResult,
     check_rigid,
+    constraint,
     fgr_pose,
     is_rigid,
     ransac_pose,
@@ -126,8 +128,10 @@ def test_icp_backends_agree_on_the_fit(pair):
         fits[name] = refine_icp(res, src_cloud, dst_cloud, cfg).icp
     fitness = [f["fitness"] for f in fits.values()]
     rmse = [f["inlier_rmse"] for f in fits.values()]
+    pinned = [f["constraint"] for f in fits.values()]
     assert max(fitness) - min(fitness) < 0.01, fits
     assert max(rmse) - min(rmse) < 0.02, fits
+    assert max(pinned) - min(pinned) < 0.01 and min(pinned) > 0.1, fits  # a street corner
 
 
 @pytest.mark.parametrize("backend", ["small_gicp", "numba"])
@@ -239,3 +243,53 @@ def test_feature_matching_equals_a_kd_tree_search(pair, monkeypatch, block, mutu
     got = pose.feature_correspondences(a, b, mutual)
     assert np.array_equal(got, want) and len(got) > 50
     assert pose.feature_correspondences(a[:0], b, mutual).shape == (0, 2)
+
+
+def _corridor(rng: np.random.Generator, n: int = 6000, closed: bool = False) -> np.ndarray:
+    """Ground and two long walls along x, 6 m apart; ``closed``: a wall across the end
+    (x = 15 m) as well."""
+    k = n // 3
+    ground = np.c_[rng.uniform(-30, 30, k), rng.uniform(-3, 3, k), rng.normal(0, 0.01, k)]
+    left = np.c_[rng.uniform(-30, 30, k), np.full(k, 3.0), rng.uniform(0, 4, k)]
+    right = np.c_[rng.uniform(-30, 30, k), np.full(k, -3.0), rng.uniform(0, 4, k)]
+    parts = [ground, left, right]
+    if closed:
+        parts.append(np.c_[np.full(k, 15.0), rng.uniform(-3, 3, k), rng.uniform(0, 4, k)])
+    return np.vstack(parts)
+
+
+@pytest.mark.parametrize("backend", ["numba", "small_gicp", "open3d"])
+def test_a_fit_along_a_corridor_is_not_a_position(backend):
+    """Seen along a corridor, the scan fits as well 8 m further on: ICP's fitness is high
+    either way, the constraint on the free direction is near 0 and the pose step says
+    so; with a wall across the corridor the position is pinned down."""
+    rng = np.random.default_rng(7)
+    cfg = PoseConfig(icp_backend=backend)
+    for closed, start_m in ((False, 8.0), (True, 0.5)):  # the truth is the identity
+        world = _corridor(rng, closed=closed)
+        scan = world[np.abs(world[:, 0]) < 20]
+        scan = scan + rng.normal(0, 0.02, scan.shape)
+        res = PoseResult(planar_pose(start_m, 0.0, 0.0), 40, 12, 0.3, 0.2, "localized", "")
+        res = refine_icp(res, scan, world, cfg)
+        assert res.icp["fitness"] > 0.75, res.icp
+        if closed:
+            assert res.icp["constraint"] > 0.1, res.icp
+            assert res.localized, res.reason
+            assert translation_error(res.T_target_source, np.eye(4)) < 0.2
+            continue
+        assert res.icp["constraint"] < 0.02 < cfg.min_icp_constraint, res.icp
+        assert not res.localized and "min_icp_constraint" in res.reason
+        assert translation_error(res.T_target_source, np.eye(4)) > 5.0  # wrong, yet it fits
+        # the floor off: the fitness alone would have accepted it
+        res = PoseResult(planar_pose(start_m, 0.0, 0.0), 40, 12, 0.3, 0.2, "localized", "")
+        loose = PoseConfig(icp_backend=backend, min_icp_constraint=0.0)
+        assert refine_icp(res, scan, world, loose).localized
+
+
+def test_the_constraint_is_the_weakest_direction_of_the_normals():
+    assert constraint(None) is None
+    assert constraint(np.diag([0.5, 0.5, 0.0])) == 0.0  # nothing along z
+    assert constraint(np.eye(3) / 3.0) == pytest.approx(1.0 / 3.0)
+    # turned: the same spread in other axes
+    R = planar_pose(0.0, 0.0, 30.0)[:3, :3]
+    assert constraint(R @ np.diag([0.6, 0.3, 0.1]) @ R.T) == pytest.approx(0.1)

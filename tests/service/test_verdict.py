@@ -238,5 +238,24 @@ def test_a_map_on_small_gicps_icp_moves_to_the_default_by_patch(
     assert r.status_code == 200, r.text
     assert r.json()["localizer"]["retrieval"]["offset_m"] == 0.0
     assert _localize(client, "icp-move", body)["keyframe_id"] == after["keyframe_id"]
-    for name in ("icp-move", "icp-new"):
+    # the ICP constraint floor: reported, changeable, bounded; above every real fit it
+    # rejects the answer as a pose check and nothing else changes
+    assert after["evidence"]["icp_constraint"] > 0.1
+    r = client.post("/v1/maps", json={"name": "icp-floor"})
+    assert r.json()["localizer"]["pose"]["min_icp_constraint"] == pytest.approx(0.035)
+    for bad in (-0.1, 0.34, "x"):
+        r = client.patch(
+            "/v1/maps/icp-move", json={"localizer": {"pose": {"min_icp_constraint": bad}}}
+        )
+        assert r.status_code == 422 and error_of(r)["field"] == "localizer.pose.min_icp_constraint"
+    r = client.patch(
+        "/v1/maps/icp-move", json={"localizer": {"pose": {"min_icp_constraint": 0.33}}}
+    )
+    assert r.status_code == 200, r.text
+    strict = _localize(client, "icp-move", body)
+    assert not strict["localized"] and strict["verdict"] == "pose_check"
+    assert "min_icp_constraint" in strict["reason"]
+    assert strict["estimate"] is not None and strict["keyframe_id"] == after["keyframe_id"]
+    assert strict["confidence"] == pytest.approx(after["confidence"])
+    for name in ("icp-move", "icp-new", "icp-floor"):
         assert client.delete(f"/v1/maps/{name}").status_code in (200, 204)

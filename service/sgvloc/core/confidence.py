@@ -14,6 +14,9 @@ from evidence the pipeline has already computed, fed to a small fitted model
 - ``inliers`` / ``inlier_ratio``: RANSAC inliers among the feature correspondences;
 - ``icp_fitness`` / ``icp_rmse``: share of query points within the ICP distance of the
   keyframe cloud after ICP, and their RMSE (metres); absent when ICP did not run;
+- ``icp_constraint``: how well the ICP fit pins the position down in its weakest
+  direction (:func:`sgvloc.core.pose.constraint`, 0 to 1/3; reported, not a model
+  input: the pose step's own floor ``min_icp_constraint`` acts on it);
 - ``free_space``: after ICP, the share of the query's points that the nearest keyframes
   could judge and that lie in space those keyframes saw through
   (:mod:`sgvloc.core.freespace`; smaller is better); absent without ICP;
@@ -98,6 +101,7 @@ class Evidence:
     inlier_ratio: float = 0.0
     icp_fitness: float | None = None
     icp_rmse: float | None = None
+    icp_constraint: float | None = None
     free_space: float | None = None
     agreement: int = 0
     offset_m: float = 0.0
@@ -300,6 +304,8 @@ def gather_evidence(
     if getattr(pose, "refined", False) and pose.icp.get("used"):
         ev.icp_fitness = float(pose.icp["fitness"])
         ev.icp_rmse = float(pose.icp["inlier_rmse"])
+        if pose.icp.get("constraint") is not None:
+            ev.icp_constraint = float(pose.icp["constraint"])
         if free_space is not None:
             ev.free_space = free_space(T_map_query)
     ev.offset_m = float(np.linalg.norm(T_kf_query[:3, 3]))

@@ -187,6 +187,18 @@ class PoseConfig(_Section):
         description="after ICP: share of query points within icp_max_distance of the "
         "keyframe cloud needed to call the pose localized (replaces the RANSAC thresholds)",
     )
+    min_icp_constraint: float = Field(
+        # just under the least constrained correct answer of the training data (0.0385,
+        # balm-campus frames 0-88 cropped to 70 degrees; docs/VERDICT.md)
+        0.035,
+        ge=0.0,
+        le=1.0 / 3.0,
+        description="after ICP: the weakest direction's share of the fit's point-to-plane "
+        "constraint (smallest eigenvalue of the mean n n^T of the matched keyframe normals, "
+        "0 to 1/3) needed to call the pose localized; below it the matched surfaces leave "
+        "the position free along one direction (a corridor seen along its axis, open "
+        "ground) and the fit is as good anywhere along it; 0 disables the check",
+    )
     min_inliers: int = Field(
         10, ge=3, le=100_000, description="fewer RANSAC inliers = not localized"
     )
@@ -266,7 +278,7 @@ class VerdictConfig(_Section):
         le=1.0,
         description="accept an answer when its calibrated confidence (the probability that "
         "its pose is within 2 m and 5 deg) is at least this; the pose step's minimums "
-        "(min_inliers, min_fitness, min_icp_fitness) must hold as well",
+        "(min_inliers, min_fitness, min_icp_fitness, min_icp_constraint) must hold as well",
     )
 
 
@@ -314,4 +326,5 @@ class LocalizerConfig(_Section):
 ADDED_SETTINGS: dict[tuple[str, str], Any] = {
     ("sgv", "tie_tolerance"): 0.0,
     ("retrieval", "offset_m"): 0.0,
+    ("pose", "min_icp_constraint"): 0.0,
 }

@@ -18,7 +18,8 @@ concurrent localizations refine in parallel.
   Rodrigues' formula, then translation), and the loop stops once a step moves less than
   ``stop_m`` and turns less than ``stop_rad``, or after ``max_iterations``.
 - :meth:`Tree.fit_quality`: fitness (share of points with a target point within the
-  distance) and RMSE of those, over every point.
+  distance) and RMSE of those, over every point, and with normals the mean ``n n^T`` of
+  the matched target points' normals (what :func:`sgvloc.core.pose.constraint` reads).
 
 Every sum is over :data:`CHUNKS` fixed ranges of the points, each summed in order and
 added in chunk order; on spare cores (:mod:`sgvloc.core.cores`) helper threads compute
@@ -147,17 +148,28 @@ def _match(tp, lo, hi, axis, split, left, right, pts, i, T, r2, stack, gaps):  #
 
 
 @njit(cache=True, nogil=True)
-def _fit_chunk(tp, lo, hi, axis, split, left, right, pts, T, r2, start, stop):  # pragma: no cover
-    """(points with a tree point within ``sqrt(r2)``, sum of their squared distances)
-    over ``pts[start:stop]`` moved by ``T``."""
+def _fit_chunk(
+    tp, tn, lo, hi, axis, split, left, right, pts, T, r2, start, stop
+):  # pragma: no cover
+    """Over ``pts[start:stop]`` moved by ``T``: (points with a tree point within
+    ``sqrt(r2)``, sum of their squared distances, ``[6]`` sum of ``n n^T`` over their
+    matched tree points' normals ``tn``: xx, yy, zz, xy, xz, yz)."""
     inliers, total = 0, 0.0
+    moment = np.zeros(6)
     stack, gaps = np.empty(_STACK, np.int64), np.empty(_STACK, np.float64)
     for i in range(start, stop):
         _x, _y, _z, j, s = _match(tp, lo, hi, axis, split, left, right, pts, i, T, r2, stack, gaps)
         if j >= 0:
             inliers += 1
             total += s
-    return inliers, total
+            nx, ny, nz = tn[j, 0], tn[j, 1], tn[j, 2]
+            moment[0] += nx * nx
+            moment[1] += ny * ny
+            moment[2] += nz * nz
+            moment[3] += nx * ny
+            moment[4] += nx * nz
+            moment[5] += ny * nz
+    return inliers, total, moment
 
 
 @njit(cache=True, nogil=True)
@@ -249,17 +261,19 @@ def _step(H, g, T, right=False):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def _fit_serial(tp, lo, hi, axis, split, left, right, pts, T, r2, bounds):  # pragma: no cover
+def _fit_serial(tp, tn, lo, hi, axis, split, left, right, pts, T, r2, bounds):  # pragma: no cover
     """:func:`_fit_chunk` over every chunk of ``bounds`` ``[k, 2]``, added in chunk order
     (the same arithmetic as :meth:`Tree.fit_quality` on several threads)."""
     inliers, total = 0, 0.0
+    moment = np.zeros(6)
     for c in range(bounds.shape[0]):
-        n, s = _fit_chunk(
-            tp, lo, hi, axis, split, left, right, pts, T, r2, bounds[c, 0], bounds[c, 1]
+        n, s, m = _fit_chunk(
+            tp, tn, lo, hi, axis, split, left, right, pts, T, r2, bounds[c, 0], bounds[c, 1]
         )
         inliers += n
         total += s
-    return inliers, total
+        moment += m
+    return inliers, total, moment
 
 
 @njit(cache=True, nogil=True)
@@ -324,27 +338,36 @@ class Tree:
 
     def fit_quality(
         self, pts: np.ndarray, T: np.ndarray, max_distance: float
-    ) -> tuple[float, float]:
-        """(fitness, RMSE) of ``pts`` ``[N, 3]`` moved by ``T``: the share with a tree point
-        within ``max_distance``, and the root mean squared distance of those (0 if none)."""
+    ) -> tuple[float, float, np.ndarray | None]:
+        """(fitness, RMSE, moment) of ``pts`` ``[N, 3]`` moved by ``T``: the share with a
+        tree point within ``max_distance``, the root mean squared distance of those (0 if
+        none), and the ``[3, 3]`` mean of ``n n^T`` over their nearest tree points'
+        normals (None without normals or matches)."""
         p = np.ascontiguousarray(pts, dtype=np.float64)
         T = np.ascontiguousarray(T, dtype=np.float64)
         r2 = max_distance * max_distance
+        normals = self.points if self.normals is None else self.normals
         chunks = _chunks(len(p))
         if cores.threads() == 1:  # one call, the lock released once
             bounds = np.array(chunks, dtype=np.int64)
-            inliers, total = _fit_serial(self.points, *self.nodes, p, T, r2, bounds)
+            inliers, total, m = _fit_serial(self.points, normals, *self.nodes, p, T, r2, bounds)
         else:
             parts = cores.split(
-                lambda c: _fit_chunk(self.points, *self.nodes, p, T, r2, c[0], c[1]), chunks
+                lambda c: _fit_chunk(self.points, normals, *self.nodes, p, T, r2, c[0], c[1]),
+                chunks,
             )
-            inliers, total = 0, 0.0
-            for n, s in parts:
+            inliers, total, m = 0, 0.0, np.zeros(6)
+            for n, s, mc in parts:
                 inliers += n
                 total += s
+                m = m + mc
         if inliers == 0:
-            return 0.0, 0.0
-        return inliers / len(p), float(np.sqrt(total / inliers))
+            return 0.0, 0.0, None
+        moment = None
+        if self.normals is not None:
+            xx, yy, zz, xy, xz, yz = m / inliers
+            moment = np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
+        return inliers / len(p), float(np.sqrt(total / inliers)), moment
 
     def align(
         self,

@@ -371,18 +371,39 @@ def nearest_squared_distances(tree: Any, pts: np.ndarray, T: np.ndarray) -> np.n
 
 
 def _fit_quality(
-    tree: Any, pts: np.ndarray, T: np.ndarray, max_distance: float
-) -> tuple[float, float]:
-    """(fitness, RMSE) of every point under ``T``: the share with a target point within
-    ``max_distance``, and the RMS distance of those."""
-    sq = nearest_squared_distances(tree, pts, T)
+    tree: Any, pts: np.ndarray, T: np.ndarray, max_distance: float, normals: Any = None
+) -> tuple[float, float, np.ndarray | None]:
+    """(fitness, RMSE, moment) of every point under ``T``: the share with a target point
+    within ``max_distance``, the RMS distance of those, and with the target's ``normals``
+    ``[M, 3+]`` the mean ``n n^T`` of the normals of their nearest target points (else
+    None), as :meth:`sgvloc.core.icp_numba.Tree.fit_quality` gives."""
+    moved = pts @ T[:3, :3].T + T[:3, 3]
+    idx, sq = tree.batch_nearest_neighbor_search(moved, num_threads=cores.threads())
+    sq = np.asarray(sq, dtype=np.float64)
     inl = sq <= max_distance**2
-    return float(inl.mean()), float(np.sqrt(sq[inl].mean())) if inl.any() else 0.0
+    if not inl.any():
+        return 0.0, 0.0, None
+    moment = None
+    if normals is not None:
+        n = np.asarray(normals)[np.asarray(idx)[inl], :3]
+        moment = n.T @ n / len(n)
+    return float(inl.mean()), float(np.sqrt(sq[inl].mean())), moment
+
+
+def constraint(moment: np.ndarray | None) -> float | None:
+    """How well an ICP fit pins the position down in its weakest direction: the smallest
+    eigenvalue of the mean ``n n^T`` of the matched target normals, from 0 (the matched
+    surfaces leave one direction of translation free: a corridor seen along its axis,
+    open ground) to 1/3 (normals spread evenly over all directions). The translational
+    block of point-to-plane ICP's information matrix, per point. None without a moment."""
+    if moment is None:
+        return None
+    return float(max(np.linalg.eigvalsh(moment)[0], 0.0))
 
 
 def _icp_small_gicp(
     src: np.ndarray, target: IcpTarget, T0: np.ndarray, cfg: PoseConfig
-) -> tuple[np.ndarray, float, float, int]:
+) -> tuple[np.ndarray, float, float, np.ndarray | None, int]:
     import small_gicp
 
     pts = np.asarray(src, dtype=np.float64)
@@ -404,12 +425,13 @@ def _icp_small_gicp(
         num_threads=1,
     )
     T = np.asarray(res.T_target_source, dtype=np.float64).copy()
-    return (T, *_fit_quality(target.tree, pts, T, cfg.icp_max_distance), int(res.iterations))
+    fit = _fit_quality(target.tree, pts, T, cfg.icp_max_distance, target.cloud.normals())
+    return (T, *fit, int(res.iterations))
 
 
 def _icp_numba(
     src: np.ndarray, target: IcpTarget, T0: np.ndarray, cfg: PoseConfig
-) -> tuple[np.ndarray, float, float, int]:
+) -> tuple[np.ndarray, float, float, np.ndarray | None, int]:
     tree = target.numba
     assert tree is not None, "an IcpTarget built for the numba backend"
     pts = np.asarray(src, dtype=np.float64)
@@ -428,7 +450,7 @@ def _icp_numba(
 
 def _icp_open3d(
     src: np.ndarray, dst: np.ndarray, T0: np.ndarray, cfg: PoseConfig
-) -> tuple[np.ndarray, float, float, int]:
+) -> tuple[np.ndarray, float, float, np.ndarray | None, int]:
     import open3d as o3d
 
     reg = o3d.pipelines.registration
@@ -449,10 +471,15 @@ def _icp_open3d(
         reg.ICPConvergenceCriteria(max_iteration=cfg.icp_iterations),
     )
     T = np.asarray(icp.transformation, dtype=np.float64).copy()
+    # the normals' moment as the other backends measure it (small_gicp's normals)
+    indexed = IcpTarget(dst)
+    moment = _fit_quality(
+        indexed.tree, np.asarray(src, np.float64), T, cfg.icp_max_distance, indexed.cloud.normals()
+    )[2]
     if cfg.icp_source_voxel_m > 0:  # fitness and RMSE over every point, as documented
         ev = reg.evaluate_registration(to_cloud(src), target, cfg.icp_max_distance, T)
-        return T, float(ev.fitness), float(ev.inlier_rmse), -1
-    return T, float(icp.fitness), float(icp.inlier_rmse), -1
+        return T, float(ev.fitness), float(ev.inlier_rmse), moment, -1
+    return T, float(icp.fitness), float(icp.inlier_rmse), moment, -1
 
 
 def refine_icp(
@@ -480,16 +507,17 @@ def refine_icp(
         return result
     T0 = result.T_target_source
     if cfg.icp_backend == "open3d":
-        T, fitness, rmse, iterations = _icp_open3d(src_cloud, dst_cloud, T0, cfg)
+        T, fitness, rmse, moment, iterations = _icp_open3d(src_cloud, dst_cloud, T0, cfg)
     elif cfg.icp_backend == "numba":
         if target is None or target.numba is None:
             target = IcpTarget(dst_cloud, "numba")
-        T, fitness, rmse, iterations = _icp_numba(src_cloud, target, T0, cfg)
+        T, fitness, rmse, moment, iterations = _icp_numba(src_cloud, target, T0, cfg)
     else:
         if target is None or target.tree is None:
             target = IcpTarget(dst_cloud)
-        T, fitness, rmse, iterations = _icp_small_gicp(src_cloud, target, T0, cfg)
-    result.icp = {"used": True, "fitness": fitness, "inlier_rmse": rmse}
+        T, fitness, rmse, moment, iterations = _icp_small_gicp(src_cloud, target, T0, cfg)
+    pinned = constraint(moment)
+    result.icp = {"used": True, "fitness": fitness, "inlier_rmse": rmse, "constraint": pinned}
     if iterations >= 0:
         result.icp["iterations"] = iterations
     result.refined = True
@@ -502,10 +530,22 @@ def refine_icp(
             f"RANSAC found no hypothesis ({result.inliers} inliers < ransac_n "
             f"{cfg.ransac_n}); ICP fitness {fitness:.2f} from its starting pose"
         )
-    elif fitness >= cfg.min_icp_fitness:
-        result.verdict = "localized"
-        result.reason = f"ICP fitness {fitness:.2f} (rmse {rmse:.2f} m) after RANSAC"
-    else:
+    elif fitness < cfg.min_icp_fitness:
         result.verdict = "not_localized"
         result.reason = f"ICP fitness {fitness:.2f} < min_icp_fitness {cfg.min_icp_fitness}"
+    elif (pinned or 0.0) < cfg.min_icp_constraint:
+        # a fit along a corridor or over open ground is as good anywhere along the free
+        # direction: its fitness says nothing of where along it the scan was taken
+        result.verdict = "not_localized"
+        result.reason = (
+            f"ICP constraint {pinned or 0.0:.3f} < min_icp_constraint "
+            f"{cfg.min_icp_constraint}: the matched surfaces leave the position free along "
+            "one direction (a corridor seen along its axis, open ground)"
+        )
+    else:
+        result.verdict = "localized"
+        result.reason = (
+            f"ICP fitness {fitness:.2f} (rmse {rmse:.2f} m, constraint {pinned or 0.0:.3f}) "
+            "after RANSAC"
+        )
     return result

@@ -671,7 +671,8 @@ class LocalizeOut(BaseModel):
     )
     evidence: dict[str, Any] | None = Field(
         description="what the confidence was computed from (sgv, sgv_margin, similarity, "
-        "inliers, inlier_ratio, icp_fitness, icp_rmse, free_space, agreement, offset_m)"
+        "inliers, inlier_ratio, icp_fitness, icp_rmse, icp_constraint, free_space, "
+        "agreement, offset_m)"
     )
     prior: PriorOut | None = Field(description="null when the request had no prior")
     pose: PoseOut | None
