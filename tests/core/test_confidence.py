@@ -38,6 +38,7 @@ GOOD = Evidence(
     icp_fitness=0.85,
     icp_rmse=0.25,
     free_space=0.02,
+    icp_constraint=0.25,
     agreement=3,
     offset_m=1.0,
 )
@@ -49,7 +50,10 @@ def test_the_shipped_calibration_loads_for_every_encoder_kind(kind: str) -> None
     assert "icp" in cal.models and set(cal.models) <= set(PROFILES)
     assert cal.encoder_kind in ("learned", kind)
     for profile, model in cal.models.items():
-        assert model.features == list(PROFILE_FEATURES[profile])
+        if cal.encoder_kind == "learned":  # refitted with every current input
+            assert model.features == list(PROFILE_FEATURES[profile])
+        else:  # fitted before the ICP constraint became an input, which they do without
+            assert model.features == [f for f in PROFILE_FEATURES[profile] if f != "icp_constraint"]
         assert all(w >= 0 for w in model.weights)
     assert 0.0 <= cal.confidence(GOOD) <= 1.0
 
@@ -69,6 +73,7 @@ _RISING = [
     + [
         ("icp", "icp_fitness", [0.1, 0.3, 0.5, 0.7, 0.95]),
         ("icp", "free_space", [0.6, 0.3, 0.1, 0.03, 0.0]),  # less contradiction: better
+        ("icp", "icp_constraint", [0.0, 0.02, 0.05, 0.15, 0.3]),
     ],
 )
 def test_confidence_rises_with_the_evidence(profile: str, field: str, values: list) -> None:
@@ -76,7 +81,12 @@ def test_confidence_rises_with_the_evidence(profile: str, field: str, values: li
     base = GOOD
     if profile != "icp":
         base = dataclasses.replace(
-            GOOD, icp_fitness=None, icp_rmse=None, free_space=None, planar=profile == "planar"
+            GOOD,
+            icp_fitness=None,
+            icp_rmse=None,
+            free_space=None,
+            icp_constraint=None,
+            planar=profile == "planar",
         )
     assert base.profile == profile
     # from weak evidence elsewhere, so that the probability is not saturated at 1
@@ -84,7 +94,9 @@ def test_confidence_rises_with_the_evidence(profile: str, field: str, values: li
         base, sgv=0.06, sgv_margin=0.01, inliers=6, inlier_ratio=0.12, agreement=0
     )
     if base.icp_fitness is not None:
-        weak = dataclasses.replace(weak, icp_fitness=0.45, icp_rmse=0.45, free_space=0.15)
+        weak = dataclasses.replace(
+            weak, icp_fitness=0.45, icp_rmse=0.45, free_space=0.15, icp_constraint=0.1
+        )
     conf = [cal.confidence(dataclasses.replace(weak, **{field: v})) for v in values]
     assert all(b >= a for a, b in zip(conf, conf[1:], strict=False)), conf
     # lower RMSE and a smaller offset are better evidence too

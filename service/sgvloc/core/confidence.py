@@ -15,8 +15,8 @@ from evidence the pipeline has already computed, fed to a small fitted model
 - ``icp_fitness`` / ``icp_rmse``: share of query points within the ICP distance of the
   keyframe cloud after ICP, and their RMSE (metres); absent when ICP did not run;
 - ``icp_constraint``: how well the ICP fit pins the position down in its weakest
-  direction (:func:`sgvloc.core.pose.constraint`, 0 to 1/3; reported, not a model
-  input: the pose step's own floor ``min_icp_constraint`` acts on it);
+  direction (:func:`sgvloc.core.pose.constraint`, 0 to 1/3; the pose step's own floor
+  ``min_icp_constraint`` acts on it too);
 - ``free_space``: after ICP, the share of the query's points that the nearest keyframes
   could judge and that lie in space those keyframes saw through
   (:mod:`sgvloc.core.freespace`; smaller is better); absent without ICP;
@@ -136,6 +136,7 @@ _feature("icp_fitness")(lambda e: e.icp_fitness or 0.0)
 _feature("neg_icp_rmse")(lambda e: -(e.icp_rmse or 0.0))
 _feature("neg_free_space")(lambda e: -(e.free_space or 0.0))
 _feature("agreement")(lambda e: e.agreement / AGREEMENT_CAP)
+_feature("icp_constraint")(lambda e: e.icp_constraint or 0.0)
 
 #: the model inputs of each profile
 PROFILE_FEATURES: dict[str, tuple[str, ...]] = {
@@ -153,6 +154,7 @@ PROFILE_FEATURES["icp"] = PROFILE_FEATURES["none"] + (
     "icp_fitness",
     "neg_icp_rmse",
     "neg_free_space",
+    "icp_constraint",
 )
 
 
