@@ -281,9 +281,13 @@ def test_the_nearest_keyframe_of_the_place_comes_first() -> None:
     # another place, however near its keyframe seems, never takes the first place
     far = {**spectral, 3: SpectralCandidate(0.40, _T(0.1, 0.0))}
     assert nearest_of_place([0, 3], far, kf, 0.1) == [0, 3]
-    # a keyframe less than NEAREST_GAIN_M nearer is no reason to move
+    # a keyframe less than gain_m (1 m by default) nearer is no reason to move
     close = {0: seen_from(1, 0.40), 4: seen_from(4, 0.40)}
-    assert nearest_of_place([0, 4], close, {0: poses[1], 4: poses[4]}.__getitem__, 0.1) == [0, 4]
+    kf14 = {0: poses[1], 4: poses[4]}.__getitem__
+    assert nearest_of_place([0, 4], close, kf14, 0.1) == [0, 4]
+    assert nearest_of_place([0, 4], close, kf14, 0.1, 0.4) == [4, 0]
+    assert nearest_of_place([0, 4], close, kf14, 0.1, 0.0) == [4, 0]
+    assert nearest_of_place([0, 3, 2, 1, 4, 5], spectral, kf, 0.1, 5.5) == [0, 3, 2, 1, 4, 5]
     # a top-1 without a SpectralGV pose stays
     assert nearest_of_place([5, 1], spectral, kf, 0.1) == [5, 1]
     assert nearest_of_place([], spectral, kf, 0.1) == []

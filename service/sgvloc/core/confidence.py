@@ -64,11 +64,6 @@ AGREEMENT_CAP = 3
 CORRECT_M, CORRECT_DEG = 2.0, 5.0
 #: implied poses agree within the same bounds
 AGREEMENT_M, AGREEMENT_DEG = CORRECT_M, CORRECT_DEG
-#: a keyframe of the same place replaces the re-ranked top-1 only when its SpectralGV pose
-#: puts the query at least this much nearer (m): beyond the noise of those poses
-#: (:func:`nearest_of_place`)
-NEAREST_GAIN_M = 1.0
-
 #: model inputs: name -> how it is derived from the evidence (oriented: larger = better)
 FEATURES: dict[str, Callable[[Evidence], float]] = {}
 
@@ -230,6 +225,7 @@ def nearest_of_place(
     spectral: Mapping[int, SpectralCandidate],
     T_map_kf: Callable[[int], np.ndarray],
     tolerance: float,
+    gain_m: float = 1.0,
 ) -> list[int]:
     """``ranked`` with its top-1 replaced by the nearest keyframe of the same place.
 
@@ -238,15 +234,15 @@ def nearest_of_place(
     query (the most overlap). A candidate among the next :data:`AGREEMENT_CANDIDATES`
     takes the first place when its score is at least ``1 - tolerance`` times the top-1's,
     its SpectralGV pose puts the query where the top-1's does (within
-    :data:`AGREEMENT_M` and :data:`AGREEMENT_DEG`) and it is at least
-    :data:`NEAREST_GAIN_M` nearer the query by that pose; of several, the nearest. The
-    rest keep their order. ``tolerance`` 0 returns ``ranked`` unchanged."""
+    :data:`AGREEMENT_M` and :data:`AGREEMENT_DEG`) and it is at least ``gain_m`` nearer
+    the query by that pose; of several, the nearest. The rest keep their order.
+    ``tolerance`` 0 returns ``ranked`` unchanged."""
     ranked = [int(i) for i in ranked]
     top = spectral.get(ranked[0]) if ranked and tolerance > 0 else None
     if top is None or top.T_kf_query is None:
         return ranked
     T_map_query = T_map_kf(ranked[0]) @ top.T_kf_query
-    best, best_m = ranked[0], float(np.linalg.norm(top.T_kf_query[:3, 3])) - NEAREST_GAIN_M
+    best, best_m = ranked[0], float(np.linalg.norm(top.T_kf_query[:3, 3])) - gain_m
     for c in ranked[1 : 1 + AGREEMENT_CANDIDATES]:
         cand = spectral.get(c)
         if cand is None or cand.T_kf_query is None:

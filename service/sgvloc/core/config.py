@@ -119,10 +119,19 @@ class SGVConfig(_Section):
         lt=1.0,
         description="after re-ranking, one of the next 5 candidates whose score is within "
         "this fraction of the top-1's and whose SpectralGV pose puts the query at the same "
-        "place (2 m, 5 deg) but at least 1 m nearer to it takes the first place: the "
-        "keyframe of that place with the most overlap for the pose step (sgvloc.core."
+        "place (2 m, 5 deg) but at least tie_gain_m nearer to it takes the first place: "
+        "the keyframe of that place with the most overlap for the pose step (sgvloc.core."
         "confidence.nearest_of_place); 0 keeps the scores' order, as maps made before this "
         "setting do",
+    )
+    tie_gain_m: float = Field(
+        # beyond the noise of the SpectralGV poses; docs/RESULTS.md, "The nearest keyframe
+        # of a place", has what 0 and 0.5 give
+        1.0,
+        ge=0.0,
+        le=10.0,
+        description="see tie_tolerance: how much nearer to the query (m, by its SpectralGV "
+        "pose) a keyframe of the same place must be to take the first place",
     )
 
 

@@ -551,6 +551,7 @@ class Localizer:
                     spectral,
                     lambda i: self._keyframes[i].T_map_sensor,
                     cfg.sgv.tie_tolerance,
+                    cfg.sgv.tie_gain_m,
                 )
                 if order != ranked:
                     by_id = {c.keyframe_id: c for c in out.candidates}

@@ -473,7 +473,11 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
                 ids = [c.keyframe_id for c in out.candidates]
                 if method == "sgv":  # as the localizer: the nearest keyframe of the place
                     ids = nearest_of_place(
-                        ids, spectral, lambda i: poses[i], loc_cfg.sgv.tie_tolerance
+                        ids,
+                        spectral,
+                        lambda i: poses[i],
+                        loc_cfg.sgv.tie_tolerance,
+                        loc_cfg.sgv.tie_gain_m,
                     )
                 rec: dict[str, Any] = {
                     "query": q,
