@@ -197,8 +197,9 @@ class PoseConfig(_Section):
         "keyframe cloud needed to call the pose localized (replaces the RANSAC thresholds)",
     )
     min_icp_constraint: float = Field(
-        # just under the least constrained correct answer of the training data (0.0385,
-        # balm-campus frames 0-88 cropped to 70 degrees; docs/VERDICT.md)
+        # the middle of the floors that keep every accepted correct answer of the
+        # calibration's training frames, whole and cropped to 70 degrees (the least
+        # constrained: 0.041) and reject 2 of their 3 false accepts (docs/VERDICT.md)
         0.035,
         ge=0.0,
         le=1.0 / 3.0,

@@ -361,22 +361,15 @@ class IcpTarget:
         )
 
 
-def nearest_squared_distances(tree: Any, pts: np.ndarray, T: np.ndarray) -> np.ndarray:
-    """Squared distance ``[N]`` float64 from each point ``pts`` ``[N, 3]`` moved by ``T`` to
-    its nearest neighbour in a small_gicp ``KdTree`` (one query per point: on the spare
-    cores, :mod:`sgvloc.core.cores`, with the same answer at any thread count)."""
-    moved = pts @ T[:3, :3].T + T[:3, 3]
-    _, sq = tree.batch_nearest_neighbor_search(moved, num_threads=cores.threads())
-    return np.asarray(sq, dtype=np.float64)
-
-
 def _fit_quality(
     tree: Any, pts: np.ndarray, T: np.ndarray, max_distance: float, normals: Any = None
 ) -> tuple[float, float, np.ndarray | None]:
-    """(fitness, RMSE, moment) of every point under ``T``: the share with a target point
-    within ``max_distance``, the RMS distance of those, and with the target's ``normals``
-    ``[M, 3+]`` the mean ``n n^T`` of the normals of their nearest target points (else
-    None), as :meth:`sgvloc.core.icp_numba.Tree.fit_quality` gives."""
+    """(fitness, RMSE, moment) of every point under ``T`` against a small_gicp ``KdTree``:
+    the share with a target point within ``max_distance``, the RMS distance of those, and
+    with the target's ``normals`` ``[M, 3+]`` the mean ``n n^T`` of the normals of their
+    nearest target points (else None), as :meth:`sgvloc.core.icp_numba.Tree.fit_quality`
+    gives. One query per point, on the spare cores (:mod:`sgvloc.core.cores`), with the
+    same answer at any thread count."""
     moved = pts @ T[:3, :3].T + T[:3, 3]
     idx, sq = tree.batch_nearest_neighbor_search(moved, num_threads=cores.threads())
     sq = np.asarray(sq, dtype=np.float64)
@@ -498,7 +491,9 @@ def refine_icp(
     pose) against ``min_icp_fitness``, provided RANSAC found a hypothesis at all (at
     least ``ransac_n`` inliers) for ICP to start from. The error is ``icp_method``
     (point-to-plane by default), iterated on the query cloud downsampled to
-    ``icp_source_voxel_m``; ``icp_backend`` picks the implementation. With small_gicp,
+    ``icp_source_voxel_m``; ``icp_backend`` picks the implementation. A fit that leaves
+    the position free along one direction (:func:`constraint` below
+    ``min_icp_constraint``) is not localized either, however high its fitness. With small_gicp,
     ``target`` is the keyframe cloud already indexed (:class:`IcpTarget`; built here when
     not given). Diagnostics go to ``result.icp``.
     """
