@@ -679,19 +679,19 @@ def _retrieval(index: Any, query: Features, kmax: int, blocks: tuple[int, ...], 
     centres, by the best similarity over them: as :func:`sgvloc.core.retrieval.retrieve`
     gives it)."""
     from sgvloc.core.rerank import Candidate
-    from sgvloc.core.retrieval import merge_hits
+    from sgvloc.core.retrieval import merge_hits, retrieve
 
     descriptor, variants = query.global_descriptor, query.global_variants
     k = min(kmax, len(index))
-    if len(blocks) > 1 or variants is not None:
+    if len(blocks) > 1:
         lists = (
             index.search_blocks(descriptor, k, blocks, among=among, variants=variants) if k else []
         )
 
         def hits_for(n: int) -> list[Any]:
             return merge_hits(lists, n)
-    else:
-        hits = index.search(descriptor, k, among=among)[0] if k else []
+    else:  # one block: retrieve's own list, whose first n are its top n
+        hits = retrieve(index, descriptor, k, blocks, among=among, variants=variants) if k else []
 
         def hits_for(n: int) -> list[Any]:
             return hits[:n]
