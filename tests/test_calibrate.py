@@ -55,6 +55,9 @@ def test_calibrate_writes_a_calibration_that_loads(tmp_path):
         assert partial.models[profile] == shipped.models[profile]
         kept = partial.fitted_on["kept"][profile]
         assert (kept["from"], kept["fingerprint"]) == (shipped.name, shipped.fingerprint)
+        # the runs it was fitted on, also when the shipped one kept it from an earlier one
+        assert kept["fit"]["answers"] > 0 and kept["runs"], kept
+        assert all(profile in r["answers"] for r in kept["runs"])
     assert "kept from" in res.output
     # a report without sgv at the map's top-k is refused with what to run
     args = ["calibrate", "--from", str(report / "eval.json"), "--config", str(tmp_path / "k.json")]

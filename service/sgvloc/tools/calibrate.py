@@ -281,7 +281,15 @@ def calibrate(
 
 def _kept_record(base: Calibration, profile: str) -> dict[str, Any]:
     """What ``base`` says it fitted ``profile`` on: its fit figures and the runs that
-    gave it answers of that profile."""
+    gave it answers of that profile; for a profile ``base`` kept from one before it, that
+    one's record (``fitted_by`` names the calibration that fitted it)."""
     fitted = base.fitted_on
+    earlier = fitted.get("kept", {}).get(profile)
+    if isinstance(earlier, dict):
+        return {
+            "fitted_by": earlier.get("fitted_by", earlier.get("from")),
+            "fit": earlier.get("fit"),
+            "runs": earlier.get("runs", []),
+        }
     runs = [r for r in fitted.get("runs", []) if profile in r.get("answers", {})]
     return {"fit": fitted.get("fit", {}).get(profile), "runs": runs}
