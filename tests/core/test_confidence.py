@@ -50,10 +50,7 @@ def test_the_shipped_calibration_loads_for_every_encoder_kind(kind: str) -> None
     assert "icp" in cal.models and set(cal.models) <= set(PROFILES)
     assert cal.encoder_kind in ("learned", kind)
     for profile, model in cal.models.items():
-        if cal.encoder_kind == "learned":  # refitted with every current input
-            assert model.features == list(PROFILE_FEATURES[profile])
-        else:  # fitted before the ICP constraint became an input, which they do without
-            assert model.features == [f for f in PROFILE_FEATURES[profile] if f != "icp_constraint"]
+        assert model.features == list(PROFILE_FEATURES[profile])  # every current input
         assert all(w >= 0 for w in model.weights)
     assert 0.0 <= cal.confidence(GOOD) <= 1.0
 

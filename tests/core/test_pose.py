@@ -13,6 +13,7 @@ from sgvloc.core.pose import (
     check_rigid,
     constraint,
     fgr_pose,
+    icp_stages,
     is_rigid,
     ransac_pose,
     refine_icp,
@@ -146,11 +147,31 @@ def test_a_prepared_target_gives_the_same_answer(pair, backend):
     assert a.icp == b.icp and a.icp["iterations"] >= 1
 
 
+@pytest.mark.parametrize("backend", ["numba", "small_gicp", "open3d"])
+def test_the_coarse_stage_pulls_a_rough_estimate_into_the_fit(pair, backend):
+    """Started 2 m off along the street (a RANSAC estimate from a few inliers), ICP with
+    1 m correspondences settles 2 m off, where a good share of the scan still fits; the
+    coarse stage at 3 m first brings it to the truth, with a better fitness."""
+    _, _, src_cloud, dst_cloud, T_gt = pair
+    start = planar_pose(2.0, 0.0, 0.0) @ T_gt
+    fits = {}
+    for coarse in (0.0, 3.0):
+        cfg = PoseConfig(icp_backend=backend, icp_coarse_m=coarse)
+        assert len(icp_stages(cfg)) == (2 if coarse else 1)
+        res = PoseResult(start.copy(), 40, 12, 0.3, 0.2, "localized", "")
+        res = refine_icp(res, src_cloud, dst_cloud, cfg)
+        fits[coarse] = (translation_error(res.T_target_source, T_gt), res.icp["fitness"])
+    assert fits[0.0][0] > 1.5 and fits[3.0][0] < 0.1, fits
+    assert fits[3.0][1] > fits[0.0][1] + 0.1, fits
+    assert PoseConfig().icp_coarse_m == 3.0  # on by default for new maps
+    assert icp_stages(PoseConfig(icp_coarse_m=1.0)) == [(1.0, 30)]  # not wider: one stage
+
+
 @pytest.mark.parametrize("settings", list(ICP_VARIANTS.values()), ids=list(ICP_VARIANTS))
 def test_icp_rejects_a_wrong_pose(pair, settings):
     _, _, src_cloud, dst_cloud, T_gt = pair
     wrong = T_gt.copy()
-    wrong[:3, 3] += [12.0, -9.0, 0.0]
+    wrong[:3, 3] += [20.0, -15.0, 0.0]  # beyond the reach of the coarse stage (3 m)
     res = ransac_pose(np.zeros((0, 3)), np.zeros((0, 33)), np.zeros((0, 3)), np.zeros((0, 33)))
     assert not res.localized and "too few keypoints" in res.reason
     res.T_target_source = wrong

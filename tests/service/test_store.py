@@ -266,6 +266,7 @@ def test_a_map_stored_before_a_setting_existed_keeps_its_answers(tmp_path: Path)
         del stored["sgv"]["tie_tolerance"]
         del stored["retrieval"]["offset_m"]
         del stored["pose"]["min_icp_constraint"]
+        del stored["pose"]["icp_coarse_m"]
         conn.execute(
             "UPDATE meta SET value = ? WHERE key = 'localizer_config'", (json.dumps(stored),)
         )
@@ -279,6 +280,8 @@ def test_a_map_stored_before_a_setting_existed_keeps_its_answers(tmp_path: Path)
     assert m.get("new").record.localizer_config.retrieval.offset_m == 4.0
     assert m.get("old").record.localizer_config.pose.min_icp_constraint == 0.0
     assert m.get("new").record.localizer_config.pose.min_icp_constraint == 0.035
+    assert m.get("old").record.localizer_config.pose.icp_coarse_m == 0.0
+    assert m.get("new").record.localizer_config.pose.icp_coarse_m == 3.0
     m.update_settings("old", {"top_k": 7})  # written back whole, the old value with it
     m.close()
     with sqlite3.connect(db) as conn:
@@ -286,3 +289,4 @@ def test_a_map_stored_before_a_setting_existed_keeps_its_answers(tmp_path: Path)
     assert json.loads(text)["sgv"]["tie_tolerance"] == 0.0 and json.loads(text)["top_k"] == 7
     assert json.loads(text)["retrieval"]["offset_m"] == 0.0
     assert json.loads(text)["pose"]["min_icp_constraint"] == 0.0
+    assert json.loads(text)["pose"]["icp_coarse_m"] == 0.0

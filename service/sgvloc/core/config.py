@@ -157,6 +157,19 @@ class PoseConfig(_Section):
         1.0, gt=0.0, le=100.0, description="ICP correspondence distance (m)"
     )
     icp_iterations: int = Field(30, ge=1, le=1000)
+    icp_coarse_m: float = Field(
+        # chosen on the calibration's training frames (docs/VERDICT.md, "Coarse ICP")
+        3.0,
+        ge=0.0,
+        le=100.0,
+        description="ICP first runs icp_coarse_iterations with this correspondence "
+        "distance (m), which pulls a rough RANSAC estimate (a few inliers, a metre or "
+        "more off) towards the fit before the icp_max_distance stage sharpens it; 0, or "
+        "a value not above icp_max_distance, skips the coarse stage",
+    )
+    icp_coarse_iterations: int = Field(
+        10, ge=1, le=1000, description="iterations of the coarse ICP stage (icp_coarse_m)"
+    )
     icp_method: Literal["point_to_plane", "point_to_point"] = Field(
         "point_to_plane",
         description="ICP error: distance to the keyframe cloud's local plane (normals from "
@@ -337,4 +350,5 @@ ADDED_SETTINGS: dict[tuple[str, str], Any] = {
     ("sgv", "tie_tolerance"): 0.0,
     ("retrieval", "offset_m"): 0.0,
     ("pose", "min_icp_constraint"): 0.0,
+    ("pose", "icp_coarse_m"): 0.0,
 }

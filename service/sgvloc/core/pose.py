@@ -394,6 +394,15 @@ def constraint(moment: np.ndarray | None) -> float | None:
     return float(max(np.linalg.eigvalsh(moment)[0], 0.0))
 
 
+def icp_stages(cfg: PoseConfig) -> list[tuple[float, int]]:
+    """The ICP stages as ``(correspondence distance m, iterations)``: the coarse stage
+    (``icp_coarse_m``) when it is wider than ``icp_max_distance``, then the fine one."""
+    fine = (cfg.icp_max_distance, cfg.icp_iterations)
+    if cfg.icp_coarse_m > cfg.icp_max_distance:
+        return [(cfg.icp_coarse_m, cfg.icp_coarse_iterations), fine]
+    return [fine]
+
+
 def _icp_small_gicp(
     src: np.ndarray, target: IcpTarget, T0: np.ndarray, cfg: PoseConfig
 ) -> tuple[np.ndarray, float, float, np.ndarray | None, int]:
@@ -405,21 +414,24 @@ def _icp_small_gicp(
         if cfg.icp_source_voxel_m > 0
         else small_gicp.PointCloud(pts)
     )
-    res = small_gicp.align(
-        target.cloud,
-        source,
-        target.tree,
-        init_T_target_source=T0,
-        registration_type="PLANE_ICP" if cfg.icp_method == "point_to_plane" else "ICP",
-        max_correspondence_distance=cfg.icp_max_distance,
-        max_iterations=cfg.icp_iterations,
-        translation_epsilon=cfg.icp_stop_m,
-        rotation_epsilon=math.radians(cfg.icp_stop_deg),
-        num_threads=1,
-    )
-    T = np.asarray(res.T_target_source, dtype=np.float64).copy()
+    T, iterations = np.asarray(T0, dtype=np.float64), 0
+    for distance, max_iterations in icp_stages(cfg):
+        res = small_gicp.align(
+            target.cloud,
+            source,
+            target.tree,
+            init_T_target_source=T,
+            registration_type="PLANE_ICP" if cfg.icp_method == "point_to_plane" else "ICP",
+            max_correspondence_distance=distance,
+            max_iterations=max_iterations,
+            translation_epsilon=cfg.icp_stop_m,
+            rotation_epsilon=math.radians(cfg.icp_stop_deg),
+            num_threads=1,
+        )
+        T = np.asarray(res.T_target_source, dtype=np.float64).copy()
+        iterations += int(res.iterations)
     fit = _fit_quality(target.tree, pts, T, cfg.icp_max_distance, target.cloud.normals())
-    return (T, *fit, int(res.iterations))
+    return (T, *fit, iterations)
 
 
 def _icp_numba(
@@ -429,15 +441,18 @@ def _icp_numba(
     assert tree is not None, "an IcpTarget built for the numba backend"
     pts = np.asarray(src, dtype=np.float64)
     source = voxel_centroids(src, cfg.icp_source_voxel_m) if cfg.icp_source_voxel_m > 0 else pts
-    T, iterations = tree.align(
-        source,
-        T0,
-        cfg.icp_max_distance,
-        cfg.icp_iterations,
-        cfg.icp_stop_m,
-        math.radians(cfg.icp_stop_deg),
-        plane=cfg.icp_method == "point_to_plane",
-    )
+    T, iterations = T0, 0
+    for distance, max_iterations in icp_stages(cfg):
+        T, n = tree.align(
+            source,
+            T,
+            distance,
+            max_iterations,
+            cfg.icp_stop_m,
+            math.radians(cfg.icp_stop_deg),
+            plane=cfg.icp_method == "point_to_plane",
+        )
+        iterations += n
     return (T, *tree.fit_quality(pts, T, cfg.icp_max_distance), iterations)
 
 
@@ -455,15 +470,17 @@ def _icp_open3d(
         estimation = reg.TransformationEstimationPointToPoint(False)
     if cfg.icp_source_voxel_m > 0:
         source = source.voxel_down_sample(cfg.icp_source_voxel_m)
-    icp = reg.registration_icp(
-        source,
-        target,
-        cfg.icp_max_distance,
-        T0,
-        estimation,
-        reg.ICPConvergenceCriteria(max_iteration=cfg.icp_iterations),
-    )
-    T = np.asarray(icp.transformation, dtype=np.float64).copy()
+    T = np.asarray(T0, dtype=np.float64)
+    for distance, max_iterations in icp_stages(cfg):
+        icp = reg.registration_icp(
+            source,
+            target,
+            distance,
+            T,
+            estimation,
+            reg.ICPConvergenceCriteria(max_iteration=max_iterations),
+        )
+        T = np.asarray(icp.transformation, dtype=np.float64).copy()
     # the normals' moment as the other backends measure it (small_gicp's normals)
     indexed = IcpTarget(dst)
     moment = _fit_quality(
@@ -491,7 +508,9 @@ def refine_icp(
     pose) against ``min_icp_fitness``, provided RANSAC found a hypothesis at all (at
     least ``ransac_n`` inliers) for ICP to start from. The error is ``icp_method``
     (point-to-plane by default), iterated on the query cloud downsampled to
-    ``icp_source_voxel_m``; ``icp_backend`` picks the implementation. A fit that leaves
+    ``icp_source_voxel_m``, first with the coarse correspondence distance
+    ``icp_coarse_m`` (:func:`icp_stages`), then with ``icp_max_distance``;
+    ``icp_backend`` picks the implementation. A fit that leaves
     the position free along one direction (:func:`constraint` below
     ``min_icp_constraint``) is not localized either, however high its fitness. With small_gicp,
     ``target`` is the keyframe cloud already indexed (:class:`IcpTarget`; built here when
