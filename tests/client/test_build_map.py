@@ -252,6 +252,7 @@ def test_choose_encoder_runs_the_self_test_and_records_it(
     assert f"| {report['chosen']} (chosen) |" in out.output
     for f in report["encoders"].values():
         assert f["queries"] == 4 and 0 <= f["pose_success_pct"] <= 100 and f["false_accepts"] >= 0
+        assert 0 <= f["localized_correct"] <= f["correct_poses"] <= f["queries"]
     with Client(service_url) as c:
         assert "chosen" not in {m.name for m in c.list_maps()}
     out = runner.invoke(app, base)
@@ -279,16 +280,25 @@ def test_choose_encoder_runs_the_self_test_and_records_it(
 def test_self_test_choice_rule() -> None:
     from sgvloc.tools.self_test import choose
 
-    def fig(correct: int, fa: int, r1: float) -> dict:
-        return {"correct_poses": correct, "false_accepts": fa, "recall_at_1_pct": r1}
+    def fig(localized: int, fa: int, correct: int, r1: float) -> dict:
+        return {
+            "localized_correct": localized,
+            "false_accepts": fa,
+            "correct_poses": correct,
+            "recall_at_1_pct": r1,
+        }
 
     order = ("learned", "handcrafted", "bev")
-    # most correct poses wins, whatever the rest
-    assert choose({"learned": fig(8, 0, 90), "handcrafted": fig(9, 3, 50)}, order) == "handcrafted"
-    # then fewest false accepts, then R@1, then the order given
-    figs = {"learned": fig(9, 2, 90), "handcrafted": fig(9, 1, 50), "bev": fig(9, 1, 60)}
+    # most queries localized correctly wins, whatever the rest: a correct pose the
+    # verdict rejects is not an answer to act on
+    figs = {"learned": fig(8, 0, 10, 90), "handcrafted": fig(9, 3, 9, 50)}
+    assert choose(figs, order) == "handcrafted"
+    # then fewest false accepts, then most correct poses, then R@1, then the order given
+    figs = {"learned": fig(9, 2, 9, 90), "handcrafted": fig(9, 1, 9, 50), "bev": fig(9, 1, 9, 60)}
     assert choose(figs, order) == "bev"
-    figs["handcrafted"] = fig(9, 1, 60)
+    figs["handcrafted"] = fig(9, 1, 10, 50)
+    assert choose(figs, order) == "handcrafted"
+    figs["handcrafted"] = fig(9, 1, 9, 60)
     assert choose(figs, order) == "handcrafted"
     assert choose(figs, ("bev", "handcrafted", "learned")) == "bev"
 

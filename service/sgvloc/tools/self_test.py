@@ -8,10 +8,12 @@ or after: a revisit must be found, not the neighbour recorded a moment earlier).
 service's default pipeline (:mod:`sgvloc.tools.evaluation`), run once per encoder on the
 same queries.
 
-The encoder chosen is the one with the most correct poses among the in-coverage queries
-(pose success: within 2 m and 5 deg), then the fewest false accepts over every sampled
-query (in and out of coverage), then the highest Recall@1 at 5 m, then the order the
-candidates were given in: the same data always gives the same choice.
+The encoder chosen is the one whose answers a vehicle can act on most often: the most
+in-coverage queries localized correctly (accepted by the verdict and within 2 m and
+5 deg), then the fewest false accepts over every sampled query (in and out of
+coverage), then the most correct poses in coverage (pose success, whatever the
+verdict), then the highest Recall@1 at 5 m, then the order the candidates were given
+in: the same data always gives the same choice.
 """
 
 from __future__ import annotations
@@ -28,8 +30,9 @@ CANDIDATES = ("learned", "handcrafted", "bev")
 #: format tag of a self-test report
 FORMAT = "sgvloc-self-test/1"
 RULE = (
-    "most correct poses (in coverage), then fewest false accepts (all sampled queries), "
-    "then highest R@1 at 5 m, then the candidates' order"
+    "most queries localized correctly (in coverage), then fewest false accepts (all "
+    "sampled queries), then most correct poses (in coverage), then highest R@1 at 5 m, "
+    "then the candidates' order"
 )
 
 
@@ -83,7 +86,9 @@ def self_test(
                 f"at least {gap_s:g} s away); the encoders cannot be compared on it"
             )
         recs = result.per_query[f"sgv@{row['k']}"]
-        correct = sum(q["correct"] for q in recs if q["in_coverage"])
+        inside = [q for q in recs if q["in_coverage"]]
+        correct = sum(q["correct"] for q in inside)
+        localized_correct = sum(q["correct"] and q["accepted"] for q in inside)
         figures[kind] = {
             "queries": row["queries"],
             "negatives": row["out_of_coverage"],
@@ -91,6 +96,8 @@ def self_test(
             "ceiling_pct": row["ceiling_5m"],
             "pose_success_pct": row["success_pct"],
             "correct_poses": correct,
+            "localized_correct": localized_correct,
+            "localized_correct_pct": 100.0 * localized_correct / len(inside),
             "false_accepts": row["false_accepts"],
             "accepted_in_coverage_pct": row["accepted_in_coverage_pct"],
             "encoder_fingerprint": result.config["encoder_fingerprint"],
@@ -117,7 +124,13 @@ def choose(figures: dict[str, dict[str, Any]], order: tuple[str, ...]) -> str:
 
     def key(kind: str) -> tuple[float, ...]:
         f = figures[kind]
-        return (f["correct_poses"], -f["false_accepts"], f["recall_at_1_pct"], -order.index(kind))
+        return (
+            f["localized_correct"],
+            -f["false_accepts"],
+            f["correct_poses"],
+            f["recall_at_1_pct"],
+            -order.index(kind),
+        )
 
     return max((k for k in order if k in figures), key=key)
 
@@ -129,14 +142,16 @@ def report_table(report: dict[str, Any]) -> str:
         f"{report['negatives']} without, each localized against the scans at least "
         f"{report['leave_out_s']:g} s away ({report['pipeline']}; {report['seconds']:g} s)",
         "",
-        "| encoder | R@1 5 m % | ceiling % | pose success % | false accepts | seconds |",
-        "|---|---:|---:|---:|---:|---:|",
+        "| encoder | R@1 5 m % | ceiling % | pose success % | localized correctly % "
+        "| false accepts | seconds |",
+        "|---|---:|---:|---:|---:|---:|---:|",
     ]
     for kind, f in report["encoders"].items():
         mark = " (chosen)" if kind == report["chosen"] else ""
         lines.append(
             f"| {kind}{mark} | {f['recall_at_1_pct']:.1f} | {f['ceiling_pct']:.1f} | "
-            f"{f['pose_success_pct']:.1f} | {f['false_accepts']} | {f['seconds']:g} |"
+            f"{f['pose_success_pct']:.1f} | {f['localized_correct_pct']:.1f} | "
+            f"{f['false_accepts']} | {f['seconds']:g} |"
         )
     lines += ["", f"chosen: {report['chosen']} ({report['rule']})"]
     return "\n".join(lines)
