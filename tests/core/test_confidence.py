@@ -267,27 +267,27 @@ def test_the_nearest_keyframe_of_the_place_comes_first() -> None:
         5: SpectralCandidate(0.395, None),  # no pose of its own
     }
     kf = poses.__getitem__
-    assert nearest_of_place([0, 3, 2, 1, 4, 5], spectral, kf, 0.1) == [1, 0, 3, 2, 4, 5]
+    assert nearest_of_place([0, 3, 2, 1, 4, 5], spectral, kf, 0.1, 1.0) == [1, 0, 3, 2, 4, 5]
     # a tolerance that 1 misses (0.37 < 0.94 * 0.40) leaves 2; none at all keeps the order
-    assert nearest_of_place([0, 3, 2, 1, 4, 5], spectral, kf, 0.06) == [2, 0, 3, 1, 4, 5]
-    assert nearest_of_place([0, 3, 2, 1, 4, 5], spectral, kf, 0.0) == [0, 3, 2, 1, 4, 5]
+    assert nearest_of_place([0, 3, 2, 1, 4, 5], spectral, kf, 0.06, 1.0) == [2, 0, 3, 1, 4, 5]
+    assert nearest_of_place([0, 3, 2, 1, 4, 5], spectral, kf, 0.0, 1.0) == [0, 3, 2, 1, 4, 5]
     # 4 is the nearest, but only a tolerance of one half admits its score
-    assert nearest_of_place([0, 4, 1], spectral, kf, 0.5)[0] == 4
+    assert nearest_of_place([0, 4, 1], spectral, kf, 0.5, 1.0)[0] == 4
     # only the next five candidates are looked at
-    assert nearest_of_place([0, 3, 3, 3, 3, 3, 1], spectral, kf, 0.1)[0] == 0
+    assert nearest_of_place([0, 3, 3, 3, 3, 3, 1], spectral, kf, 0.1, 1.0)[0] == 0
     # another place, however near its keyframe seems, never takes the first place
     far = {**spectral, 3: SpectralCandidate(0.40, _T(0.1, 0.0))}
-    assert nearest_of_place([0, 3], far, kf, 0.1) == [0, 3]
-    # a keyframe less than gain_m (1 m by default) nearer is no reason to move
+    assert nearest_of_place([0, 3], far, kf, 0.1, 1.0) == [0, 3]
+    # a keyframe less than gain_m (1 m here) nearer is no reason to move
     close = {0: seen_from(1, 0.40), 4: seen_from(4, 0.40)}
     kf14 = {0: poses[1], 4: poses[4]}.__getitem__
-    assert nearest_of_place([0, 4], close, kf14, 0.1) == [0, 4]
+    assert nearest_of_place([0, 4], close, kf14, 0.1, 1.0) == [0, 4]
     assert nearest_of_place([0, 4], close, kf14, 0.1, 0.4) == [4, 0]
     assert nearest_of_place([0, 4], close, kf14, 0.1, 0.0) == [4, 0]
     assert nearest_of_place([0, 3, 2, 1, 4, 5], spectral, kf, 0.1, 5.5) == [0, 3, 2, 1, 4, 5]
     # a top-1 without a SpectralGV pose stays
-    assert nearest_of_place([5, 1], spectral, kf, 0.1) == [5, 1]
-    assert nearest_of_place([], spectral, kf, 0.1) == []
+    assert nearest_of_place([5, 1], spectral, kf, 0.1, 1.0) == [5, 1]
+    assert nearest_of_place([], spectral, kf, 0.1, 1.0) == []
 
 
 def test_decide_orders_the_reasons() -> None:

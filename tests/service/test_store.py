@@ -264,6 +264,7 @@ def test_a_map_stored_before_a_setting_existed_keeps_its_answers(tmp_path: Path)
         (text,) = conn.execute("SELECT value FROM meta WHERE key = 'localizer_config'").fetchone()
         stored = json.loads(text)
         del stored["sgv"]["tie_tolerance"]
+        del stored["sgv"]["tie_gain_m"]
         del stored["retrieval"]["offset_m"]
         del stored["pose"]["min_icp_constraint"]
         del stored["pose"]["icp_coarse_m"]
@@ -276,6 +277,8 @@ def test_a_map_stored_before_a_setting_existed_keeps_its_answers(tmp_path: Path)
     assert m.get("old").record.localizer_config.sgv.tie_tolerance == 0.0
     fresh = LocalizerConfig().sgv.tie_tolerance
     assert m.get("new").record.localizer_config.sgv.tie_tolerance == fresh > 0
+    assert m.get("old").record.localizer_config.sgv.tie_gain_m == 1.0
+    assert m.get("new").record.localizer_config.sgv.tie_gain_m == 0.0
     assert m.get("old").record.localizer_config.retrieval.offset_m == 0.0
     assert m.get("new").record.localizer_config.retrieval.offset_m == 4.0
     assert m.get("old").record.localizer_config.pose.min_icp_constraint == 0.0

@@ -225,7 +225,7 @@ def nearest_of_place(
     spectral: Mapping[int, SpectralCandidate],
     T_map_kf: Callable[[int], np.ndarray],
     tolerance: float,
-    gain_m: float = 1.0,
+    gain_m: float,
 ) -> list[int]:
     """``ranked`` with its top-1 replaced by the nearest keyframe of the same place.
 
