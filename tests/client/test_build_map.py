@@ -303,6 +303,28 @@ def test_self_test_choice_rule() -> None:
     assert choose(figs, ("bev", "handcrafted", "learned")) == "bev"
 
 
+def test_a_self_test_that_localizes_little_warns() -> None:
+    """A map whose best encoder localizes under half of the scans with a revisit
+    correctly is built with a warning that says so, in the report and its table."""
+    from sgvloc.tools.self_test import report_table, warning
+
+    def fig(localized: int) -> dict:
+        return {"queries": 10, "localized_correct": localized, "recall_at_1_pct": 30.0}
+
+    assert warning({"learned": fig(5)}, "learned") is None
+    few = warning({"learned": fig(4), "bev": fig(1)}, "learned")
+    assert few and few.startswith("learned, the best, localizes only 4 of the 10 scans")
+    none = warning({"learned": fig(0), "bev": fig(0)}, "bev")
+    assert none and none.startswith("no encoder localizes any of the 10 scans")
+    row = fig(0) | {"ceiling_pct": 90.0, "pose_success_pct": 0.0, "false_accepts": 0}
+    row |= {"localized_correct_pct": 0.0, "seconds": 1}
+    report = {"data": "d", "queries": 10, "negatives": 3, "leave_out_s": 30, "seconds": 1}
+    report |= {"pipeline": "p", "encoders": {"bev": row}, "chosen": "bev"}
+    report |= {"rule": "r", "warning": none}
+    assert report_table(report).endswith(f"warning: {none}")
+    assert "warning" not in report_table(report | {"warning": None})
+
+
 def test_self_test_of_a_served_map(service_url: str, balm_mini_dir: Path) -> None:
     """POST /v1/maps/{map}/self-test localizes the map's own keyframes against the rest
     (each one's 30 s of the drive left out), reports figures that follow from its

@@ -115,8 +115,29 @@ def self_test(
         "encoders": figures,
         "chosen": chosen,
         "rule": RULE,
+        "warning": warning(figures, chosen),
         "seconds": round(time.perf_counter() - t_all, 1),
     }
+
+
+def warning(figures: dict[str, dict[str, Any]], chosen: str) -> str | None:
+    """What to tell before a map is built on ``chosen``: None when it localizes at least
+    half of the scans with a revisit correctly, else why its figures need a look."""
+    f = figures[chosen]
+    n, q = f["localized_correct"], f["queries"]
+    if 2 * n >= q:
+        return None
+    head = (
+        f"no encoder localizes any of the {q} scans with a revisit correctly (the choice "
+        "rests on the rule's later figures)"
+        if n == 0
+        else f"{chosen}, the best, localizes only {n} of the {q} scans with a revisit correctly"
+    )
+    return (
+        f"{head}: revisits that face other ways (a narrow field of view), scans far apart "
+        "or a sensor unlike the calibration's leave few answers to act on; look at the "
+        "figures before serving this map"
+    )
 
 
 def choose(figures: dict[str, dict[str, Any]], order: tuple[str, ...]) -> str:
@@ -154,7 +175,9 @@ def report_table(report: dict[str, Any]) -> str:
             f"{f['false_accepts']} | {f['seconds']:g} |"
         )
     lines += ["", f"chosen: {report['chosen']} ({report['rule']})"]
+    if report.get("warning"):
+        lines.append(f"warning: {report['warning']}")
     return "\n".join(lines)
 
 
-__all__ = ["CANDIDATES", "FORMAT", "choose", "report_table", "self_test"]
+__all__ = ["CANDIDATES", "FORMAT", "choose", "report_table", "self_test", "warning"]
