@@ -165,6 +165,16 @@ def test_calibration_round_trips_and_refuses_damage(tmp_path) -> None:
     bad["models"]["icp"]["features"][0] = "nonsense"
     with pytest.raises(InputError, match="unknown feature"):
         Calibration.from_dict(bad)
+    for field, value in [("bias", "x"), ("bias", float("nan")), ("mean", float("inf"))]:
+        bad = json.loads(path.read_text())
+        m = bad["models"]["icp"]
+        if field == "bias":
+            m["bias"] = value
+        else:
+            m[field][0] = value
+        # (NaN round-trips through JSON: a request body can carry it)
+        with pytest.raises(InputError, match=f"models.icp: {field} must hold finite numbers"):
+            Calibration.from_dict(json.loads(json.dumps(bad)))
     with pytest.raises(InputError, match="cannot read"):
         Calibration.load(tmp_path / "missing.json")
     m = LogisticModel(["sgv"], [0.0], [1.0], [2.0], 0.0)
@@ -297,6 +307,7 @@ def test_decide_orders_the_reasons() -> None:
     assert decide(0.4, 0.5, ok, np.eye(4)).code == "low_confidence"
     assert decide(0.9, 0.5, bad, np.eye(4)).code == "pose_check"
     assert decide(0.9, 0.5, ok, None).code == "no_estimate"
+    assert decide(float("nan"), 0.5, ok, np.eye(4)).code == "low_confidence"
     far = Prior((100.0, 0.0), 10.0)
     v = decide(0.9, 0.5, ok, np.eye(4), far)
     assert (v.localized, v.code) == (False, "outside_prior") and "100.0 m" in v.reason

@@ -207,6 +207,67 @@ def test_insert_remove_and_version():
         loc.keyframe(a)
 
 
+def test_ids_removed_twice_or_coming_back_and_fresh_ids() -> None:
+    """A repeated id is removed once (one version change); an id removed from an HNSW
+    index (still held there until it compacts) can be added again, and a fresh id skips
+    it and the explicit ids of its own batch."""
+    from sgvloc.core.config import RetrievalConfig
+
+    rng = np.random.default_rng(0)
+    enc = PrecomputedEncoder("p", 16, 8)
+
+    def kf(loc, x, **kw):
+        feats = enc.from_arrays(
+            rng.normal(size=16), rng.normal(size=(20, 3)), rng.normal(size=(20, 8))
+        )
+        T = np.eye(4)
+        T[0, 3] = x
+        return loc.make_keyframe(T, features=feats, **kw)
+
+    for index, fresh in (("flat", [2, 4, 5]), ("hnsw", [2, 4, 6])):
+        loc = Localizer(enc, LocalizerConfig(retrieval=RetrievalConfig(index=index)))
+        assert loc.add_keyframes([kf(loc, 0.0, keyframe_id=5), kf(loc, 1.0)]) == [5, 1]
+        loc.remove_keyframes([5, 5])
+        assert loc.keyframe_ids() == [1] and loc.version == 2
+        assert loc.index.ids().tolist() == [1]
+        # fresh ids skip the batch's own ids, and with HNSW the removed id it still holds
+        batch = [kf(loc, 2.0), kf(loc, 3.0), kf(loc, 4.0), kf(loc, 5.0, keyframe_id=3)]
+        assert loc.add_keyframes(batch) == [*fresh, 3]
+        if index == "hnsw":
+            loc.add_keyframes([kf(loc, 6.0, keyframe_id=5)])  # the removed id comes back
+            assert 5 in loc.keyframe_ids() and 5 in loc.index
+        with pytest.raises(InputError, match="top_k"):
+            loc.localize(features=kf(loc, 0.0).features, top_k=0)
+
+
+def test_a_keyframe_removed_while_a_seeded_fit_runs(monkeypatch, balm_mini_dir) -> None:
+    """The fit runs outside the map's lock; a write that lands meanwhile (here: every
+    keyframe removed) leaves the answer as the map was when the submap was taken."""
+    import sgvloc.core.localizer as localizer_module
+    from sgvloc.core.tracking import Seed
+
+    seq = KittiSequence(balm_mini_dir)
+    frames = [seq[i] for i in range(4)]
+    loc = Localizer(make_encoder(EncoderSpec(kind="handcrafted")))
+    for f in frames:
+        loc.add_keyframe(f.T_world_sensor, scan=f.scan().points)
+    version = loc.version
+    real = localizer_module.register
+
+    def racing(*args, **kwargs):
+        out = real(*args, **kwargs)
+        loc.remove_keyframes(loc.keyframe_ids())
+        return out
+
+    monkeypatch.setattr(localizer_module, "register", racing)
+    q = frames[1]
+    res = loc.localize(q.scan().points, seed=Seed(q.T_world_sensor, 1.0, 5.0))
+    assert res.mode == "tracked" and res.localized and res.map_version == version
+    assert loc.keyframe_ids() == [] and res.keyframe_id is not None
+    t_err, _ = pose_errors(res.T_map_sensor, q.T_world_sensor)
+    assert t_err < 0.5
+
+
 @pytest.fixture(scope="module")
 def elsewhere(tmp_path_factory) -> np.ndarray:
     """A scan of another place: a synthetic town's street, nowhere in the campus map."""

@@ -361,7 +361,7 @@ def decide(
             return Verdict(False, "outside_prior", why)
     if not pose.localized:
         return Verdict(False, "pose_check", pose.reason)
-    if confidence < min_confidence:
+    if not confidence >= min_confidence:  # a NaN confidence is not trusted either
         return Verdict(
             False,
             "low_confidence",
@@ -416,6 +416,10 @@ def assess(
 # -- the calibrated model ---------------------------------------------------------------
 
 
+def _finite_number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
 @dataclass
 class LogisticModel:
     """``p = sigmoid(bias + sum_i weights[i] * (x_i - mean[i]) / scale[i])``, weights >= 0."""
@@ -433,6 +437,14 @@ class LogisticModel:
         n = len(self.features)
         if not (len(self.mean) == len(self.scale) == len(self.weights) == n):
             raise InputError("calibration: features, mean, scale and weights differ in length")
+        for name, values in (
+            ("mean", self.mean),
+            ("scale", self.scale),
+            ("weights", self.weights),
+            ("bias", [self.bias]),
+        ):
+            if not all(_finite_number(v) for v in values):
+                raise InputError(f"calibration: {name} must hold finite numbers")
         if any(not s > 0 for s in self.scale) or any(w < 0 for w in self.weights):
             raise InputError("calibration: scales must be positive and weights non-negative")
 
@@ -502,8 +514,16 @@ class Calibration:
         if not isinstance(d, Mapping) or d.get("format") != "sgvloc-calibration/1":
             raise InputError("not an sgvloc calibration (format 'sgvloc-calibration/1' expected)")
         try:
-            models = {p: LogisticModel(**m) for p, m in dict(d["models"]).items()}
+            models = {}
+            for p, m in dict(d["models"]).items():
+                try:
+                    models[p] = LogisticModel(**m)
+                except InputError as exc:
+                    why = str(exc).removeprefix("calibration: ")
+                    raise InputError(f"calibration models.{p}: {why}") from None
             return cls(str(d["name"]), str(d["encoder_kind"]), models, dict(d.get("fitted_on", {})))
+        except InputError:
+            raise
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError(f"damaged calibration: {exc}") from None
 

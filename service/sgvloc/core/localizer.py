@@ -173,8 +173,11 @@ class Localizer:
         #: keyframe clouds indexed for ICP, by (keyframe id, id of the cloud array): the
         #: entry holds the array, so its id cannot be reused while the entry lives
         self._icp_targets: BuildCache[IcpTarget] = BuildCache(ICP_CACHED_KEYFRAMES)
-        #: keyframe range images for the free-space check, keyed as the ICP targets
-        self._range_images: BuildCache[RangeImage] = BuildCache(RANGE_IMAGES_CACHED)
+        #: (cloud, range image) of keyframes for the free-space check, keyed as the ICP
+        #: targets (the entry holds the cloud for the same reason)
+        self._range_images: BuildCache[tuple[np.ndarray, RangeImage]] = BuildCache(
+            RANGE_IMAGES_CACHED
+        )
 
     # -- the map ------------------------------------------------------------------------
 
@@ -256,14 +259,13 @@ class Localizer:
         A keyframe with ``id < 0`` gets the next free id.
         """
         with self._lock.write():
-            ids = []
-            for kf in keyframes:
-                if kf.id < 0:
-                    kf.id = self._fresh_id()
-                ids.append(kf.id)
+            given = {kf.id for kf in keyframes if kf.id >= 0}
+            ids = [kf.id if kf.id >= 0 else self._fresh_id(given) for kf in keyframes]
             dup = [i for i in ids if i in self._keyframes]
             if dup or len(set(ids)) != len(ids):
                 raise ConflictError(f"keyframe id(s) already exist: {dup[:5] or ids}")
+            for kf, i in zip(keyframes, ids, strict=True):
+                kf.id = i
             self._put(keyframes)
             if keyframes:
                 self.version += 1
@@ -279,7 +281,7 @@ class Localizer:
     def remove_keyframes(self, keyframe_ids: list[int]) -> None:
         """Remove keyframes in one step (one version change); an unknown id raises
         :class:`NotFoundError` and removes nothing."""
-        ids = [int(i) for i in keyframe_ids]
+        ids = list(dict.fromkeys(int(i) for i in keyframe_ids))  # each once, in order
         if not ids:
             return
         with self._lock.write():
@@ -294,8 +296,10 @@ class Localizer:
         ``version``. Ids already in the wanted state are skipped, so a change applied
         twice changes nothing."""
         with self._lock.write():
-            self._drop([int(i) for i in remove if int(i) in self._keyframes])
-            self._put([kf for kf in add if kf.id not in self._keyframes])
+            gone = dict.fromkeys(int(i) for i in remove if int(i) in self._keyframes)
+            self._drop(list(gone))
+            new = {kf.id: kf for kf in add if kf.id not in self._keyframes}  # each id once
+            self._put(list(new.values()))
             self.version = int(version)
 
     def _put(self, keyframes: list[Keyframe]) -> None:
@@ -367,11 +371,14 @@ class Localizer:
             self.calibration = calibration
             self._submaps = BuildCache(config.tracking.cached_submaps)
 
-    def _fresh_id(self) -> int:
+    def _fresh_id(self, taken: set[int]) -> int:
+        """The next id that no keyframe has, ``taken`` does not hold and the index does
+        not keep (a removed id an HNSW index still holds until it compacts)."""
         while True:
             candidate = next(self._next_id)
-            if candidate not in self._keyframes:
-                return candidate
+            if candidate not in self._keyframes and candidate not in taken:
+                if not self.index.retired(candidate):
+                    return candidate
 
     # -- localization -------------------------------------------------------------------
 
@@ -449,7 +456,7 @@ class Localizer:
             result.timings_ms["total"] = _ms(t_start)
             return result
         cfg = self.config
-        top_k = top_k or cfg.top_k
+        top_k = cfg.top_k if top_k is None else top_k
         method = check_method(rerank_method or cfg.rerank)
         refine = refine or cfg.pose.refine
         if refine not in ("none", "icp"):
@@ -618,12 +625,13 @@ class Localizer:
     def _track(self, scan: np.ndarray, seed: Seed) -> TrackResult:
         """Register ``scan`` against the submap around ``seed`` (built once per map cell
         and version, then cached)."""
-        cfg = self.config.tracking
         t = time.perf_counter()
-        x, y = seed.T_map_sensor[:2, 3]
-        cell = (int(np.floor(x / cfg.submap_cell_m)), int(np.floor(y / cfg.submap_cell_m)))
         with self._lock.read():
-            key = (self.version, cell)
+            cfg = self.config.tracking  # as the submap is built: settings swap under the lock
+            x, y = seed.T_map_sensor[:2, 3]
+            cell = (int(np.floor(x / cfg.submap_cell_m)), int(np.floor(y / cfg.submap_cell_m)))
+            version = self.version
+            key = (version, cell)
 
             def build():  # noqa: ANN202 - the cache's builder
                 centre = ((cell[0] + 0.5) * cfg.submap_cell_m, (cell[1] + 0.5) * cfg.submap_cell_m)
@@ -639,7 +647,7 @@ class Localizer:
 
             submap = self._submaps.get(key, build)
             poses = (
-                {i: self._keyframes[i].T_map_sensor[:3, 3] for i in submap.keyframe_ids}
+                {i: self._keyframes[i].T_map_sensor for i in submap.keyframe_ids}
                 if submap is not None
                 else {}
             )
@@ -653,7 +661,9 @@ class Localizer:
             check_deadline("tracking")
             out = register(scan, seed, submap, cfg)
             pos = out.T_map_sensor[:3, 3]
-            out.nearest_keyframe = min(poses, key=lambda i: float(np.linalg.norm(poses[i] - pos)))
+            nearest = min(poses, key=lambda i: float(np.linalg.norm(poses[i][:3, 3] - pos)))
+            out.nearest_keyframe, out.T_map_nearest = nearest, poses[nearest]
+        out.map_version = version
         out.timings_ms["track"] = _ms(t)
         return out
 
@@ -665,8 +675,8 @@ class Localizer:
         describe, not."""
         T = tracked.T_map_sensor
         T_kf = None
-        if T is not None and tracked.nearest_keyframe is not None:
-            T_kf = np.linalg.inv(self._keyframes[tracked.nearest_keyframe].T_map_sensor) @ T
+        if T is not None and tracked.T_map_nearest is not None:
+            T_kf = np.linalg.inv(tracked.T_map_nearest) @ T
         localized, reason, confidence = tracked.ok, tracked.why, tracked.confidence
         timings = {"track": tracked.timings_ms["track"], "total": _ms(t_start)}
         return LocalizationResult(
@@ -678,7 +688,7 @@ class Localizer:
             [],
             "none",
             timings,
-            self.version,
+            tracked.map_version,
             verdict="localized" if localized else "tracking_failed",
             confidence=confidence,
             min_confidence=min_confidence,
@@ -757,7 +767,10 @@ class Localizer:
         views = []
         for kf in (whole[i] for i in ids):
             if kf.cloud is not None and len(kf.cloud):
-                image = self._range_images.get((kf.id, id(kf.cloud)), partial(RangeImage, kf.cloud))
+                cloud = kf.cloud  # held by the entry, so that its id() is not reused
+                _, image = self._range_images.get(
+                    (kf.id, id(cloud)), lambda c=cloud: (c, RangeImage(c))
+                )
                 views.append((kf.T_map_sensor, image))
         return violation(thin(query_cloud), T_map_query, views)
 

@@ -121,6 +121,10 @@ class FaissIndex:
             ids = ids[~np.isin(ids, np.fromiter(self._tombstones, np.int64))]
         return ids
 
+    def retired(self, id_: int) -> bool:
+        """Whether ``id_`` was removed but is still held (HNSW, until it compacts)."""
+        return int(id_) in self._tombstones
+
     def __contains__(self, id_: int) -> bool:
         with self._lock.read():
             return int(id_) in set(self._live_ids().tolist())
@@ -162,6 +166,8 @@ class FaissIndex:
         if len(np.unique(ids)) != len(ids):
             raise ConflictError("duplicate ids in one add() call")
         with self._lock.write():
+            if self._tombstones and not self._tombstones.isdisjoint(ids.tolist()):
+                self._compact()  # removed ids coming back: drop the tombstones first
             present = np.isin(ids, self._all_ids())
             if present.any():
                 raise ConflictError(f"id(s) already in the index: {ids[present][:5].tolist()}")

@@ -83,6 +83,10 @@ class TrackResult:
     seed_offset_m: float = float("nan")
     seed_offset_deg: float = float("nan")
     nearest_keyframe: int | None = None
+    #: the nearest keyframe's pose and the map's version, as the submap was taken (the
+    #: keyframe may be gone by the time the answer is made)
+    T_map_nearest: np.ndarray | None = None
+    map_version: int = 0
     confidence: float = 0.0  # set by the localizer once the fit passed its checks
     timings_ms: dict[str, float] = field(default_factory=dict)
 
