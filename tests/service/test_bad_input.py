@@ -203,6 +203,22 @@ def test_unknown_fields_are_refused(client: httpx.Client, pre_map: str) -> None:
     _expect(r, 422, "invalid_input", "keyframes[0].pose")
 
 
+@pytest.mark.usefixtures("unchanged")
+@pytest.mark.parametrize(
+    ("extra", "field"),
+    [
+        ({"key": "k\x00"}, "keyframes[0].key"),
+        ({"metadata": {"sequence": "s\x00"}}, "keyframes[0].metadata.sequence"),
+        ({"metadata": {"tags": {"a": "b\x00"}}}, "keyframes[0].metadata.tags.a"),
+    ],
+)
+def test_text_with_nul_is_refused(client: httpx.Client, pre_map: str, extra, field) -> None:
+    """PostgreSQL cannot hold NUL in text: refused alike on every store."""
+    feats = random_features(np.random.default_rng(2))
+    r = _insert(client, pre_map, {"T_map_sensor": EYE, "features": feats, **extra})
+    _expect(r, 422, "invalid_input", field)
+
+
 # -- poses -------------------------------------------------------------------------------
 
 

@@ -101,6 +101,9 @@ def test_listing_pages_and_filters(client: httpx.Client) -> None:
         ({"time_min": "nan"}, "time_min"),
         ({"time_min": "5", "time_max": "4"}, "time_min"),
         ({"key_prefix": ""}, "key_prefix"),
+        ({"key_prefix": "a\x00"}, "key_prefix"),  # PostgreSQL cannot hold NUL in text
+        ({"sequence": "s\x00"}, "sequence"),
+        ({"cursor": "\u00b2"}, "cursor"),  # a digit to str.isdigit(), not to int()
     ],
 )
 def test_bad_filters_are_422_naming_the_parameter(client: httpx.Client, params, field) -> None:

@@ -219,6 +219,46 @@ def test_store_round_trip(tmp_path: Path) -> None:
     store.close()
 
 
+def test_a_closed_store_says_so_and_a_snapshot_reads_only_its_own_map(tmp_path: Path) -> None:
+    """Every call on a store closed meanwhile (its map deleted) raises StoreClosedError,
+    which the service answers 404; a snapshot of a map whose file was replaced by a new
+    map of the same name refuses rather than stream the other map's rows."""
+    from sgvloc.server.store import StoreClosedError
+
+    rng = np.random.default_rng(6)
+    m = _manager(tmp_path)
+    m.create("a", SPEC)
+    m.insert("a", _items(rng, 2, "k"))
+    store = m.get("a").store
+    m.close()
+    calls = [
+        store.record,
+        store.extent,
+        store.last_write,
+        lambda: store.get(1),
+        lambda: store.fetch([1]),
+        lambda: store.find_keys(["k0"]),
+        lambda: store.select(KeyframeFilter(key_prefix="k")),
+        lambda: store.matching_ids(KeyframeFilter(key_prefix="k")),
+        lambda: store.delete([1]),
+    ]
+    for call in calls:
+        with pytest.raises(StoreClosedError, match="'a' was deleted or unloaded"):
+            call()
+    with pytest.raises(StoreClosedError), store.snapshot():
+        pass
+
+    path = tmp_path / "maps" / "a" / "map.sqlite"
+    old = SqliteMapStore.open(path)
+    shutil.rmtree(path.parent)  # the map deleted, and one made again under its name
+    m = _manager(tmp_path)
+    m.create("a", SPEC)
+    m.close()
+    with pytest.raises(StoreClosedError), old.snapshot():
+        pass
+    old.close()
+
+
 def test_schema_1_is_migrated_on_open(tmp_path: Path) -> None:
     """A map stored before positions had columns (schema 1) is migrated when loaded:
     its extent and bounding-box filters then work, nothing else changes."""

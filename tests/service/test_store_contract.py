@@ -157,6 +157,24 @@ def test_a_self_test_runs_on_the_stored_map_and_its_summary_survives_a_restart(
     assert h.version == version  # the keyframes did not change
 
 
+def test_replicas_settings_changes_never_undo_each_other(managers: Factory) -> None:
+    """Two replicas of one shared store: a PATCH on one that the other has not followed
+    yet is kept when the other PATCHes something else, and so is a self-test's record."""
+    a = managers()
+    if not a.shared:
+        pytest.skip("one process per SQLite map folder: there are no replicas to race")
+    a.create("m", SPEC)
+    b = managers()  # loads the map as it is now; it follows nothing in this test
+    a.update_settings("m", {"top_k": 7})
+    b.update_settings("m", {"rerank": "none"})
+    b.record_self_test("m", {"format": "test"})
+    for m in (a, b):
+        m.close()
+    record = managers().get("m").record
+    assert record.localizer_config.top_k == 7 and record.localizer_config.rerank == "none"
+    assert record.last_self_test == {"format": "test"} and record.settings_version == 3
+
+
 def test_delete_map_and_use_the_name_again(managers: Factory, rng: np.random.Generator) -> None:
     m = managers()
     m.create("a", SPEC)
@@ -175,20 +193,34 @@ def test_delete_map_and_use_the_name_again(managers: Factory, rng: np.random.Gen
 def test_archive_round_trip(managers: Factory, rng: np.random.Generator) -> None:
     m = managers()
     m.create("a", SPEC)
-    items = _items(rng, 4, "k")
+    items = _items(rng, 5, "k")
     ids = m.insert("a", items).ids
     m.delete_keyframe("a", ids[1])
+    m.delete_keyframe("a", ids[-1])  # the highest id: the copy must not give it again
+    m.update_settings("a", {"top_k": 5})
     with m.export_archive("a") as blocks:
         data = b"".join(blocks)
     h = m.import_archive(io.BytesIO(data), "b")
-    assert h.version == 2 and m.get("b").num_keyframes == 3
+    assert h.version == 3 and m.get("b").num_keyframes == 3
+    assert h.record.settings_version == 1 and h.record.localizer_config.top_k == 5
     with pytest.raises(ConflictError):
         m.import_archive(io.BytesIO(data), "b")
-    assert [s.id for s in m.list_keyframes("b", KeyframeFilter())] == [ids[0], *ids[2:]]
+    assert [s.id for s in m.list_keyframes("b", KeyframeFilter())] == [ids[0], *ids[2:4]]
     assert m.get_keyframe("b", ids[2]).key == "k2"
-    assert m.insert("b", _items(rng, 1)).ids[0] > ids[-1]
+    assert (
+        m.insert("b", _items(rng, 1)).ids[0] == ids[-1] + 1 == m.insert("a", _items(rng, 1)).ids[0]
+    )
+    # a map whose keyframes were all deleted keeps its version and next id too
+    m.create("c", SPEC)
+    gone = m.insert("c", _items(rng, 2)).ids
+    m.delete_keyframes("c", KeyframeFilter(key_prefix=None, sequence="a"))
+    m.delete_keyframes("c", KeyframeFilter(sequence="b"))
+    with m.export_archive("c") as blocks:
+        empty = m.import_archive(io.BytesIO(b"".join(blocks)), "d")
+    assert empty.num_keyframes == 0 and empty.version == 3
+    assert m.insert("d", _items(rng, 1)).ids[0] == gone[-1] + 1
     m.close()
-    assert {h.name for h in managers().list()} == {"a", "b"}
+    assert {h.name for h in managers().list()} == {"a", "b", "c", "d"}
 
 
 def test_features_fetched_from_the_store_give_the_same_answers(

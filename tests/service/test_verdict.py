@@ -3,6 +3,7 @@ settings changed after creation (PATCH) that survive a restart."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import httpx
@@ -151,6 +152,13 @@ def test_patch_changes_settings_and_survives_a_restart(tmp_path: Path) -> None:
         srv.stop()
 
 
+def _with_bias(value: object) -> dict:
+    d = shipped_calibration("learned").to_dict()
+    for model in d["models"].values():
+        model["bias"] = value
+    return d
+
+
 @pytest.mark.parametrize(
     "body, status, field",
     [
@@ -165,6 +173,9 @@ def test_patch_changes_settings_and_survives_a_restart(tmp_path: Path) -> None:
         ({"localizer": {"top_k": 0}}, 422, "localizer.top_k"),
         ({"calibration": {"format": "x"}}, 422, "calibration"),
         ({"calibration": "latest"}, 422, "calibration"),
+        # stored, a bias that is not a finite number failed every later localize (500)
+        ({"calibration": _with_bias("x")}, 422, "calibration"),
+        ({"calibration": _with_bias(float("nan"))}, 422, "calibration"),
         ({"encoder": {"kind": "bev"}}, 422, "encoder"),
     ],
 )
@@ -172,7 +183,10 @@ def test_bad_patches(
     client: httpx.Client, balm_map: BalmMap, body: dict, status: int, field: str | None
 ) -> None:
     before = _info(client, "balm")
-    r = client.patch("/v1/maps/balm", json=body)
+    # json.dumps writes NaN as JSON's parsers read it (httpx's json= refuses it)
+    r = client.patch(
+        "/v1/maps/balm", content=json.dumps(body), headers={"Content-Type": "application/json"}
+    )
     assert r.status_code == status, r.text
     if field is not None:
         assert error_of(r)["field"] == field

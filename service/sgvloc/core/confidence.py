@@ -520,7 +520,7 @@ class Calibration:
                     models[p] = LogisticModel(**m)
                 except InputError as exc:
                     why = str(exc).removeprefix("calibration: ")
-                    raise InputError(f"calibration models.{p}: {why}") from None
+                    raise InputError(f"models.{p}: {why}") from None
             return cls(str(d["name"]), str(d["encoder_kind"]), models, dict(d.get("fitted_on", {})))
         except InputError:
             raise

@@ -52,7 +52,7 @@ class ArchiveError(InputError):
 # -- writing ----------------------------------------------------------------------------
 
 
-def _manifest(record: MapRecord, version: int, count: int) -> dict[str, Any]:
+def _manifest(record: MapRecord, version: int, count: int, next_id: int | None) -> dict[str, Any]:
     return {
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
@@ -71,6 +71,9 @@ def _manifest(record: MapRecord, version: int, count: int) -> dict[str, Any]:
         },
         "version": int(version),
         "keyframes": int(count),
+        # ids are never reused after a delete: the map made from the archive goes on
+        # from here, not from its highest id still present
+        "next_id": None if next_id is None else int(next_id),
         "chunk": CHUNK,
     }
 
@@ -116,7 +119,11 @@ class _Sink:
 
 
 def write_archive(
-    record: MapRecord, version: int, count: int, rows: Iterable[KeyframeRow]
+    record: MapRecord,
+    version: int,
+    count: int,
+    rows: Iterable[KeyframeRow],
+    next_id: int | None = None,
 ) -> Iterator[bytes]:
     """The archive of a map as a stream of byte blocks (one per member, roughly).
 
@@ -134,7 +141,8 @@ def write_archive(
             sums.append((hashlib.sha256(data).hexdigest(), name))
             return sink.take()
 
-        yield add(MANIFEST, json.dumps(_manifest(record, version, count), indent=1).encode())
+        manifest = _manifest(record, version, count, next_id)
+        yield add(MANIFEST, json.dumps(manifest, indent=1).encode())
         chunk: list[KeyframeRow] = []
         written = 0
         for row in rows:
@@ -164,6 +172,7 @@ class ArchiveHeader:
     version: int
     keyframes: int
     sgvloc_version: str
+    next_id: int | None = None  # the id the map's next insert gets (None: not recorded)
 
 
 def _header(manifest: dict[str, Any]) -> ArchiveHeader:
@@ -191,11 +200,16 @@ def _header(manifest: dict[str, Any]) -> ArchiveHeader:
             settings_updated_at=m.get("settings_updated_at"),
         )
         version, count = int(manifest["version"]), int(manifest["keyframes"])
+        next_id = manifest.get("next_id")
+        next_id = None if next_id is None else int(next_id)
     except (KeyError, TypeError, ValueError) as exc:
         raise ArchiveError(f"the archive's manifest is damaged: {exc}") from None
-    if version < 0 or count < 0:
-        raise ArchiveError("the archive's manifest is damaged: negative version or count")
-    return ArchiveHeader(record, version, count, str(manifest.get("sgvloc_version", "?")))
+    if version < 0 or count < 0 or (next_id is not None and not 1 <= next_id < 2**62):
+        raise ArchiveError(
+            "the archive's manifest is damaged: negative version or count, or a bad next_id"
+        )
+    sgvloc_version = str(manifest.get("sgvloc_version", "?"))
+    return ArchiveHeader(record, version, count, sgvloc_version, next_id)
 
 
 def _unpack_chunk(data: bytes, name: str) -> list[KeyframeRow]:

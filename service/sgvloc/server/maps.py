@@ -65,6 +65,7 @@ from .store import (
     KeyframeSummary,
     MapRecord,
     MapStore,
+    SettingsChangedError,
     SharedBackend,
     SqliteBackend,
     StoreBackend,
@@ -78,6 +79,8 @@ from .store import (
 log = logging.getLogger(__name__)
 
 MAP_NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")  # whole name: fullmatch
+#: tries of a settings change on a shared store that other replicas keep changing
+SETTINGS_TRIES = 5
 _TMP_PREFIX = ".tmp-"
 _TRASH_PREFIX = ".deleted-"
 
@@ -882,27 +885,32 @@ class MapManager:
         with handle.write_lock:
             if handle.closed:
                 raise NotFoundError(f"map {name!r} does not exist")
-            current = handle.record.localizer_config
-            config = current
-            if localizer:
-                merged = _merge(current.model_dump(), localizer)
-                try:
-                    config = LocalizerConfig.model_validate(merged)
-                except ValidationError as exc:
-                    err = exc.errors()[0]
-                    where = ".".join(str(x) for x in err["loc"])
-                    raise field_error(InputError(err["msg"]), f"localizer.{where}") from None
-                if config.retrieval.index_settings() != current.retrieval.index_settings():
-                    raise field_error(
-                        InputError(
-                            "the index's retrieval settings cannot change after creation "
-                            f"({', '.join(INDEX_SETTINGS)}: the index was built with them): "
-                            "create a new map"
-                        ),
-                        "localizer.retrieval",
-                    )
-            cal = calibration or handle.localizer.calibration
-            record = handle.store.update_settings(config, cal)
+
+            def change(base: MapRecord) -> tuple[LocalizerConfig, Calibration]:
+                current = base.localizer_config
+                if not localizer:
+                    config = current
+                else:
+                    merged = _merge(current.model_dump(), localizer)
+                    try:
+                        config = LocalizerConfig.model_validate(merged)
+                    except ValidationError as exc:
+                        err = exc.errors()[0]
+                        where = ".".join(str(x) for x in err["loc"])
+                        raise field_error(InputError(err["msg"]), f"localizer.{where}") from None
+                    if config.retrieval.index_settings() != current.retrieval.index_settings():
+                        raise field_error(
+                            InputError(
+                                "the index's retrieval settings cannot change after creation "
+                                f"({', '.join(INDEX_SETTINGS)}: the index was built with "
+                                "them): create a new map"
+                            ),
+                            "localizer.retrieval",
+                        )
+                return config, calibration or self._calibration_of(handle, base)
+
+            record = self._write_settings(handle, change)
+            config, cal = record.localizer_config, self._calibration_of(handle, record)
             handle.localizer.update_settings(config, cal)
             handle.record = record
         log.info(
@@ -912,6 +920,39 @@ class MapManager:
             cal.fingerprint,
         )
         return handle
+
+    def _write_settings(
+        self,
+        handle: MapHandle,
+        change: Callable[[MapRecord], tuple[LocalizerConfig, Calibration]],
+        last_self_test: dict[str, Any] | None = None,
+    ) -> MapRecord:
+        """Store ``change`` applied to the map's settings (call under the write lock).
+        On a shared store the settings are read from the store, and written only if no
+        other replica changed them meanwhile (else read again, a few times), so that two
+        replicas' PATCHes never undo each other."""
+        if not self.shared:
+            config, cal = change(handle.record)
+            return handle.store.update_settings(config, cal, last_self_test)
+        for _ in range(SETTINGS_TRIES):
+            base = handle.store.record()
+            config, cal = change(base)
+            try:
+                return handle.store.update_settings(
+                    config, cal, last_self_test, expect_settings_version=base.settings_version
+                )
+            except SettingsChangedError:
+                continue
+        raise ConflictError(
+            f"map {handle.name!r}: its settings kept changing under other replicas' writes; retry"
+        )
+
+    @staticmethod
+    def _calibration_of(handle: MapHandle, record: MapRecord) -> Calibration:
+        """The calibration a record answers with (none stored: the one running, which
+        is the shipped one of its encoder kind)."""
+        stored = record.calibration
+        return stored if stored is not None else handle.localizer.calibration
 
     def self_test_plan(
         self, name: str, queries: int, gap_s: float, gap_keyframes: int, radius_m: float
@@ -954,8 +995,13 @@ class MapManager:
         with handle.write_lock:
             if handle.closed:
                 raise NotFoundError(f"map {name!r} does not exist")
-            record = handle.store.update_settings(
-                handle.record.localizer_config, handle.localizer.calibration, summary
+            record = self._write_settings(
+                handle,
+                lambda base: (base.localizer_config, self._calibration_of(handle, base)),
+                summary,
+            )
+            handle.localizer.update_settings(
+                record.localizer_config, self._calibration_of(handle, record)
             )
             handle.record = record
         log.info("map %r: self-test recorded (%s)", name, summary.get("figures"))
@@ -1192,7 +1238,9 @@ class MapManager:
         handle = self.get(name)
         try:
             with handle.store.snapshot() as (version, count, rows):
-                yield write_archive(handle.record, version, count, rows)
+                # read after the snapshot: at least its next id (ids only grow)
+                next_id = handle.store.next_id()
+                yield write_archive(handle.record, version, count, rows, next_id)
         except StoreClosedError:
             raise NotFoundError(f"map {name!r} does not exist") from None
 
@@ -1232,14 +1280,18 @@ class MapManager:
         record = replace(record, name=name, encoder_spec=spec)
 
         def fill(store: MapStore) -> None:
+            filled = False
             for rows in chunks:
                 for row in rows:
                     self._check_archived(encoder, row)
                 try:
-                    store.insert_exact(rows, header.version)
+                    store.insert_exact(rows, header.version, header.next_id)
                 except self.backend.errors as exc:
                     raise_if_full(exc)
                     raise ArchiveError(f"the archive's keyframes clash: {exc}") from None
+                filled = True
+            if not filled:  # no keyframes: the version and the next id all the same
+                store.insert_exact([], header.version, header.next_id)
 
         if isinstance(self.backend, SharedBackend):
             # filled under a hidden name, published (renamed) in one step at the end

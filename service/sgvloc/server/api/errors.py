@@ -33,7 +33,7 @@ from sgvloc_client.wire import WireError
 
 from ..logs import REQUEST_ID_HEADER, current_request_id
 from ..maps import MapUnavailableError, StaleError
-from ..store import StoreUnavailableError, storage_full
+from ..store import StoreClosedError, StoreUnavailableError, storage_full
 
 log = logging.getLogger(__name__)
 
@@ -112,6 +112,7 @@ _ENGINE_CODES: list[tuple[type[SgvlocError], int, str, bool]] = [
     (MapUnavailableError, 503, "map_unavailable", False),
     (EncoderMismatchError, 409, "encoder_mismatch", False),
     (NotFoundError, 404, "not_found", False),
+    (StoreClosedError, 404, "not_found", False),  # the map was deleted during the request
     (ConflictError, 409, "conflict", False),
     (EmptyScanError, 422, "empty_scan", False),
     (InputError, 422, "invalid_input", False),

@@ -14,6 +14,7 @@ from typing import Annotated, Any, Literal
 
 import numpy as np
 from pydantic import (
+    AfterValidator,
     BaseModel,
     BeforeValidator,
     ConfigDict,
@@ -335,18 +336,29 @@ class FeaturesBody(_In):
         )
 
 
+def _no_nul(v: str) -> str:
+    # stores keep text in PostgreSQL too, which refuses NUL in text and in jsonb
+    if "\x00" in v:
+        raise ValueError("must not contain a NUL character")
+    return v
+
+
+#: text a store keeps: any string without NUL characters
+Text = Annotated[str, AfterValidator(_no_nul)]
+
+
 class KeyframeMetadata(_In):
     """Optional keyframe metadata."""
 
     timestamp: float | None = Field(None, allow_inf_nan=False, description="seconds")
-    sequence: str | None = Field(None, max_length=256)
-    tags: dict[str, str] | None = None
+    sequence: Text | None = Field(None, max_length=256)
+    tags: dict[Text, Text] | None = None
 
 
 class KeyframeBody(_In):
     """One keyframe: a pose and exactly one of ``points`` / ``features``."""
 
-    key: str | None = Field(
+    key: Text | None = Field(
         None, min_length=1, max_length=256, description="makes the insert idempotent"
     )
     T_map_sensor: Array = Field(description="4x4 rigid transform, row-major")

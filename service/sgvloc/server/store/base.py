@@ -286,6 +286,10 @@ class KeyframeSummary:
     created_at: str
 
 
+class SettingsChangedError(StoreError):
+    """The map's stored settings changed since they were read (another replica's PATCH)."""
+
+
 class StoreClosedError(StoreError):
     """The store was closed meanwhile (its map is being deleted)."""
 
@@ -311,10 +315,14 @@ class MapStore(ABC):
         localizer_config: LocalizerConfig,
         calibration: Calibration,
         last_self_test: dict[str, Any] | None = None,
+        *,
+        expect_settings_version: int | None = None,
     ) -> MapRecord:
         """Replace the localizer settings and calibration (and, if given, the latest
         self-test's summary) in one transaction; bumps ``settings_version`` (not the
-        keyframe version). Returns the new record."""
+        keyframe version). Returns the new record. ``expect_settings_version``: write
+        only if the stored settings are still that version, else raise
+        :class:`SettingsChangedError` and change nothing (another writer came first)."""
 
     @abstractmethod
     def find_keys(self, keys: list[str]) -> dict[str, int]:
@@ -357,9 +365,16 @@ class MapStore(ABC):
         without keypoints, local features and cloud."""
 
     @abstractmethod
-    def insert_exact(self, rows: list[KeyframeRow], version: int) -> None:
+    def insert_exact(
+        self, rows: list[KeyframeRow], version: int, next_id: int | None = None
+    ) -> None:
         """Insert rows keeping their ``id`` and ``created_at`` and set the version, in
-        one transaction (to fill a new store from an archive)."""
+        one transaction (to fill a new store from an archive); later inserts get ids
+        from ``next_id`` on (when given) and above every id inserted."""
+
+    @abstractmethod
+    def next_id(self) -> int:
+        """The smallest id the next insert may get: above every id the map ever had."""
 
     @abstractmethod
     def insert(self, rows: list[KeyframeRow]) -> tuple[list[int], int]:

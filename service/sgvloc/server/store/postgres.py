@@ -41,7 +41,7 @@ from psycopg_pool import ConnectionPool, PoolTimeout
 
 from sgvloc.core.confidence import Calibration
 from sgvloc.core.config import LocalizerConfig
-from sgvloc.core.errors import ConflictError, NotFoundError
+from sgvloc.core.errors import ConflictError, InputError, NotFoundError
 
 from .base import (
     ROW_COLUMNS,
@@ -53,6 +53,7 @@ from .base import (
     KeyframeSummary,
     MapRecord,
     MapStore,
+    SettingsChangedError,
     SharedBackend,
     StoreClosedError,
     StoreError,
@@ -231,6 +232,11 @@ class PgBackend(SharedBackend):
                 f"the map store (PostgreSQL) failed: {str(exc).strip() or type(exc).__name__}; "
                 "retry later"
             ) from None
+        except psycopg.DataError as exc:  # a value PostgreSQL cannot hold (text with NUL)
+            raise InputError(
+                f"the map store refused a value: {str(exc).strip() or type(exc).__name__}; "
+                "nothing was changed"
+            ) from None
 
     def start(self) -> None:
         if self.pool.closed:
@@ -282,8 +288,9 @@ class PgBackend(SharedBackend):
         try:
             with self.transaction() as cur:
                 cur.execute(
-                    "INSERT INTO sgvloc_maps (name, meta) VALUES (%s, %s) RETURNING map_id",
-                    (name, json.dumps(record_to_meta(record))),
+                    "INSERT INTO sgvloc_maps (name, meta, settings_version) VALUES (%s, %s, %s) "
+                    "RETURNING map_id",
+                    (name, json.dumps(record_to_meta(record)), int(record.settings_version)),
                 )
                 map_id = int(cur.fetchone()[0])
                 cur.execute("SELECT pg_notify(%s, %s)", (CHANNEL, name))
@@ -415,6 +422,8 @@ class PgMapStore(MapStore):
         localizer_config: LocalizerConfig,
         calibration: Calibration,
         last_self_test: dict[str, Any] | None = None,
+        *,
+        expect_settings_version: int | None = None,
     ) -> MapRecord:
         patch = {
             "localizer_config": localizer_config.model_dump_json(),
@@ -425,6 +434,9 @@ class PgMapStore(MapStore):
             patch["last_self_test"] = json.dumps(last_self_test)
         with self._tx() as cur:
             self._lock_map(cur)
+            if expect_settings_version is not None:
+                if self._meta(cur)[1] != expect_settings_version:
+                    raise SettingsChangedError(f"map {self.name!r}: settings changed")
             cur.execute(
                 "UPDATE sgvloc_maps SET meta = meta || %s::jsonb, "
                 "settings_version = settings_version + 1 WHERE map_id = %s",
@@ -540,6 +552,14 @@ class PgMapStore(MapStore):
 
             yield version, count, rows()
 
+    def next_id(self) -> int:
+        with self._tx() as cur:
+            cur.execute("SELECT next_id FROM sgvloc_maps WHERE map_id = %s", (self.map_id,))
+            row = cur.fetchone()
+        if row is None:
+            raise StoreClosedError(f"map {self.name!r} was deleted")
+        return int(row[0])
+
     def changes_since(self, version: int) -> list[Change] | None:
         with self._tx() as cur:
             _, _, current = self._meta(cur)
@@ -623,16 +643,18 @@ class PgMapStore(MapStore):
             self._record_change(cur, version, "delete", want)
         return version
 
-    def insert_exact(self, rows: list[KeyframeRow], version: int) -> None:
+    def insert_exact(
+        self, rows: list[KeyframeRow], version: int, next_id: int | None = None
+    ) -> None:
         """Fill a staged map from an archive: ids and creation times kept, the version
         set (no change is recorded: replicas load a published map whole)."""
         with self._tx() as cur:
-            _, next_id = self._lock_map(cur)
+            _, current = self._lock_map(cur)
             cur.executemany(
                 _INSERT,
                 [(self.map_id, *row_values(row, int(row.id), row.created_at)) for row in rows],
             )
-            top = max([next_id - 1, *(int(r.id) for r in rows)])
+            top = max([current - 1, (next_id or 1) - 1, *(int(r.id) for r in rows)])
             cur.execute(
                 "UPDATE sgvloc_maps SET version = %s, next_id = %s, updated_at = %s "
                 "WHERE map_id = %s",

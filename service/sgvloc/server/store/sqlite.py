@@ -43,6 +43,7 @@ from .base import (
     KeyframeSummary,
     MapRecord,
     MapStore,
+    SettingsChangedError,
     StoreBackend,
     StoreClosedError,
     StoreError,
@@ -138,6 +139,19 @@ class SqliteMapStore(MapStore):
         self.path = path
         self._conn = conn
         self._lock = threading.Lock()
+        self._closed = False
+        #: the database file this store opened: a snapshot checks that it reads the same
+        #: one (not a map deleted and made again under the same name meanwhile)
+        self._inode = path.stat().st_ino
+
+    @contextmanager
+    def _locked(self) -> Iterator[sqlite3.Connection]:
+        """The connection, under the lock; a store closed meanwhile (its map deleted or
+        unloaded) raises :class:`StoreClosedError`, as the manager expects of any call."""
+        with self._lock:
+            if self._closed:
+                raise StoreClosedError(f"map {self.path.parent.name!r} was deleted or unloaded")
+            yield self._conn
 
     # -- opening ------------------------------------------------------------------------
 
@@ -189,12 +203,13 @@ class SqliteMapStore(MapStore):
 
     def close(self) -> None:
         with self._lock:
+            self._closed = True
             self._conn.close()
 
     # -- map settings -------------------------------------------------------------------
 
     def _meta(self) -> dict[str, str]:
-        with self._lock:
+        with self._locked():
             return dict(self._conn.execute("SELECT key, value FROM meta").fetchall())
 
     def record(self) -> MapRecord:
@@ -206,6 +221,8 @@ class SqliteMapStore(MapStore):
         localizer_config: LocalizerConfig,
         calibration: Calibration,
         last_self_test: dict[str, Any] | None = None,
+        *,
+        expect_settings_version: int | None = None,
     ) -> MapRecord:
         """Replace the localizer settings and calibration (one transaction)."""
         values = {
@@ -215,10 +232,17 @@ class SqliteMapStore(MapStore):
         }
         if last_self_test is not None:
             values["last_self_test"] = json.dumps(last_self_test)
-        with self._lock:
+        with self._locked():
             conn = self._conn
             conn.execute("BEGIN IMMEDIATE")
             try:
+                if expect_settings_version is not None:
+                    row = conn.execute(
+                        "SELECT value FROM meta WHERE key = 'settings_version'"
+                    ).fetchone()
+                    if int(row[0] if row else 0) != expect_settings_version:
+                        name = self.path.parent.name
+                        raise SettingsChangedError(f"map {name!r}: settings changed")
                 conn.executemany(
                     "INSERT OR REPLACE INTO meta (key, value) VALUES (?, ?)", values.items()
                 )
@@ -237,7 +261,7 @@ class SqliteMapStore(MapStore):
     def find_keys(self, keys: list[str]) -> dict[str, int]:
         """The ids of those ``keys`` that exist: ``{key: id}``."""
         found: dict[str, int] = {}
-        with self._lock:
+        with self._locked():
             for start in range(0, len(keys), 500):
                 chunk = keys[start : start + 500]
                 marks = ",".join("?" * len(chunk))
@@ -252,13 +276,10 @@ class SqliteMapStore(MapStore):
     _row = staticmethod(keyframe_row)
 
     def get(self, keyframe_id: int) -> KeyframeRow:
-        try:
-            with self._lock:
-                r = self._conn.execute(
-                    f"SELECT {self._COLUMNS} FROM keyframes WHERE id = ?", (int(keyframe_id),)
-                ).fetchone()
-        except sqlite3.ProgrammingError:  # closed
-            raise StoreClosedError(f"{self.path}: the map store is closed") from None
+        with self._locked() as conn:
+            r = conn.execute(
+                f"SELECT {self._COLUMNS} FROM keyframes WHERE id = ?", (int(keyframe_id),)
+            ).fetchone()
         if r is None:
             raise NotFoundError(f"keyframe {keyframe_id} does not exist")
         return self._row(r)
@@ -271,7 +292,7 @@ class SqliteMapStore(MapStore):
         columns = SLIM_COLUMNS if slim else self._COLUMNS
         want = sorted({int(i) for i in ids})
         rows: list[tuple] = []
-        with self._lock:
+        with self._locked():
             for start in range(0, len(want), 500):
                 chunk = want[start : start + 500]
                 marks = ",".join("?" * len(chunk))
@@ -292,7 +313,7 @@ class SqliteMapStore(MapStore):
     ) -> list[KeyframeSummary]:
         """Up to ``limit`` keyframes matching ``where`` with ``id > after_id``, by id."""
         cond, args = _where(where)
-        with self._lock:
+        with self._locked():
             rows = self._conn.execute(
                 "SELECT id, key, T_map_sensor, metadata, created_at FROM keyframes "
                 f"WHERE id > ?{cond} ORDER BY id LIMIT ?",
@@ -305,7 +326,7 @@ class SqliteMapStore(MapStore):
 
     def matching_ids(self, where: KeyframeFilter) -> list[int]:
         cond, args = _where(where)
-        with self._lock:
+        with self._locked():
             return [
                 r[0]
                 for r in self._conn.execute(
@@ -314,7 +335,7 @@ class SqliteMapStore(MapStore):
             ]
 
     def extent(self) -> tuple[list[float], list[float]] | None:
-        with self._lock:
+        with self._locked():
             r = self._conn.execute(
                 "SELECT min(x), min(y), min(z), max(x), max(y), max(z) FROM keyframes"
             ).fetchone()
@@ -326,13 +347,27 @@ class SqliteMapStore(MapStore):
     def snapshot(self, slim: bool = False) -> Iterator[tuple[int, int, Iterator[KeyframeRow]]]:
         """A read transaction on a second connection: WAL mode lets it see one state of
         the map while writers go on."""
-        conn = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
-        try:
-            conn.execute("BEGIN")
-            version = int(
-                conn.execute("SELECT value FROM meta WHERE key = 'version'").fetchone()[0]
+        with self._locked():
+            pass  # closed: the map is gone
+        gone = StoreClosedError(f"map {self.path.parent.name!r} was deleted or unloaded")
+        try:  # mode=rw: a file deleted meanwhile is not made again, empty
+            conn = sqlite3.connect(
+                f"file:{self.path}?mode=rw", uri=True, isolation_level=None, check_same_thread=False
             )
-            count = int(conn.execute("SELECT COUNT(*) FROM keyframes").fetchone()[0])
+        except sqlite3.OperationalError:
+            raise gone from None
+        try:
+            try:
+                conn.execute("BEGIN")
+                version = int(
+                    conn.execute("SELECT value FROM meta WHERE key = 'version'").fetchone()[0]
+                )
+                count = int(conn.execute("SELECT COUNT(*) FROM keyframes").fetchone()[0])
+                same = self.path.stat().st_ino == self._inode
+            except (sqlite3.Error, OSError, TypeError):
+                raise gone from None
+            if not same:  # the map was deleted and made again under this name
+                raise gone
 
             page = self._SLIM_PAGE if slim else self._PAGE
             rows = self._pages(lambda last: conn.execute(page, (last, 256)).fetchall())
@@ -357,7 +392,7 @@ class SqliteMapStore(MapStore):
         is stored if any row fails (a duplicate key raises ``sqlite3.IntegrityError``).
         """
         now = utc_now()
-        with self._lock:
+        with self._locked():
             conn = self._conn
             conn.execute("BEGIN IMMEDIATE")
             try:
@@ -385,7 +420,7 @@ class SqliteMapStore(MapStore):
         The version is bumped, or set to ``set_version`` (used to undo an insert whose
         in-memory half failed). Unknown ids raise :class:`NotFoundError`, deleting nothing.
         """
-        with self._lock:
+        with self._locked():
             conn = self._conn
             conn.execute("BEGIN IMMEDIATE")
             try:
@@ -412,10 +447,12 @@ class SqliteMapStore(MapStore):
     )
     _MARKS = ",".join("?" * 12)
 
-    def insert_exact(self, rows: list[KeyframeRow], version: int) -> None:
+    def insert_exact(
+        self, rows: list[KeyframeRow], version: int, next_id: int | None = None
+    ) -> None:
         """Insert rows keeping their ids and ``created_at``, and set the version (one
         transaction). For filling a new store from an archive."""
-        with self._lock:
+        with self._locked():
             conn = self._conn
             conn.execute("BEGIN IMMEDIATE")
             try:
@@ -424,12 +461,34 @@ class SqliteMapStore(MapStore):
                     [row_values(row, int(row.id), row.created_at) for row in rows],
                 )
                 conn.execute("UPDATE meta SET value = ? WHERE key = 'version'", (str(version),))
+                conn.execute(
+                    "INSERT OR REPLACE INTO meta (key, value) VALUES ('updated_at', ?)",
+                    (utc_now(),),
+                )
+                if next_id is not None:  # AUTOINCREMENT goes on above sqlite_sequence
+                    seq = self._sequence(conn)
+                    if next_id - 1 > seq:
+                        conn.execute("DELETE FROM sqlite_sequence WHERE name = 'keyframes'")
+                        conn.execute(
+                            "INSERT INTO sqlite_sequence (name, seq) VALUES ('keyframes', ?)",
+                            (int(next_id) - 1,),
+                        )
                 conn.execute("COMMIT")
             except BaseException as exc:
                 if conn.in_transaction:
                     conn.execute("ROLLBACK")
                 raise_if_full(exc)
                 raise
+
+    @staticmethod
+    def _sequence(conn: sqlite3.Connection) -> int:
+        """The highest id AUTOINCREMENT has given (0 before the first insert)."""
+        row = conn.execute("SELECT seq FROM sqlite_sequence WHERE name = 'keyframes'").fetchone()
+        return 0 if row is None else int(row[0])
+
+    def next_id(self) -> int:
+        with self._locked() as conn:
+            return self._sequence(conn) + 1
 
     @staticmethod
     def _bump_version(conn: sqlite3.Connection) -> int:

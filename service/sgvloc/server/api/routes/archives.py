@@ -48,14 +48,23 @@ async def export_map(map_name: MapName, manager: ManagerDep) -> StreamingRespons
     """Download a map as one archive: settings, encoder identity, calibration, version and
     every keyframe with its features and cloud, with checksums. Streamed from one
     consistent state of the map; writers are not blocked meanwhile."""
-    manager.get(map_name)  # 404 before the answer starts
 
     def blocks() -> Iterator[bytes]:
         with manager.export_archive(map_name) as stream:
             yield from stream
 
+    # the snapshot opens here, off the event loop: a map deleted meanwhile is a 404
+    # before the answer starts, not an empty archive (and once started, the generator
+    # closes the snapshot however the download ends)
+    stream = blocks()
+    first = await anyio.to_thread.run_sync(next, stream, b"")
+
+    def rest() -> Iterator[bytes]:
+        yield first
+        yield from stream
+
     return StreamingResponse(
-        blocks(),
+        rest(),
         media_type=ARCHIVE_TYPE,
         headers={"Content-Disposition": f'attachment; filename="{map_name}.sgvmap.tar"'},
     )

@@ -82,6 +82,9 @@ def keyframe_filter(
 ) -> KeyframeFilter:
     """The filters of a listing or bulk delete, from the query string (422 naming the
     parameter when one is malformed)."""
+    for name, text in (("key_prefix", key_prefix), ("sequence", sequence)):
+        if text is not None and "\x00" in text:
+            raise ApiError(422, "invalid_input", f"{name} must not contain a NUL character", name)
     box = None
     if bbox is not None:
         try:
@@ -111,7 +114,8 @@ FilterDep = Annotated[KeyframeFilter, Depends(keyframe_filter)]
 def _cursor(cursor: str | None) -> int:
     if cursor is None:
         return 0
-    if not cursor.isdigit() or len(cursor) > 19 or int(cursor) > 2**63 - 1:
+    # ASCII digits only: str.isdigit() also takes superscripts, which int() refuses
+    if not (cursor.isascii() and cursor.isdigit()) or len(cursor) > 19 or int(cursor) > 2**63 - 1:
         raise ApiError(
             422, "invalid_input", "cursor must be a next_cursor of an earlier page", "cursor"
         )
