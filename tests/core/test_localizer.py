@@ -332,6 +332,7 @@ def test_a_prior_excludes_far_keyframes(campus):
     assert free.keyframe_id not in ids
     for i in ids:
         assert np.linalg.norm(loc.keyframe(i).T_map_sensor[:2, 3] - away) <= 4.0
+
     if (
         res.T_map_sensor_estimate is not None
         and np.linalg.norm(res.T_map_sensor_estimate[:2, 3] - away) > 4.0
@@ -343,6 +344,31 @@ def test_a_prior_excludes_far_keyframes(campus):
     assert not empty.localized and empty.verdict == "no_keyframe_in_prior"
     assert "no keyframe within 20 m" in empty.reason
     assert empty.prior == {"used": True, "keyframes_in_radius": 0} and not empty.retrieved
+
+
+@pytest.mark.parametrize("method", ["average-qe", "alpha-qe"])
+def test_query_expansion_keeps_to_the_prior(method: str) -> None:
+    """Query expansion searches a second time: inside the prior's region as well, even
+    when a keyframe outside it matches the query best."""
+    from sgvloc.core.prior import Prior
+
+    rng = np.random.default_rng(1)
+    enc = PrecomputedEncoder("p", 16, 8)
+    e = np.eye(16)
+    loc = Localizer(enc)
+
+    def add(x: float, g: np.ndarray) -> int:
+        T = np.eye(4)
+        T[0, 3] = x
+        f = enc.from_arrays(g, rng.normal(size=(20, 3)), rng.normal(size=(20, 8)))
+        return loc.add_keyframe(T, features=f)
+
+    far = add(100.0, e[0])  # the best match, 100 m from the prior
+    near = {add(0.0, e[0] + 2 * e[1]), add(1.0, e[0] + 2 * e[2])}
+    query = enc.from_arrays(e[0], rng.normal(size=(20, 3)), rng.normal(size=(20, 8)))
+    res = loc.localize(features=query, prior=Prior((0.0, 0.0), 5.0), rerank_method=method)
+    assert {c.keyframe_id for c in res.retrieved} == near
+    assert {c.keyframe_id for c in res.reranked} == near and far not in near
 
 
 def test_the_free_space_check_uses_only_the_keyframes_searched(campus):

@@ -92,3 +92,25 @@ def test_ceiling_counts_a_true_match_anywhere_in_the_candidates():
     # the ceiling is not capped at k: merged retrieval starts from up to 2k candidates
     assert agg["ceiling_5m"] == 75.0 and agg["R@1_5m"] == 25.0 and agg["R@5_5m"] == 50.0
     assert agg["candidates_mean"] == 8.0 and agg["queries"] == 4
+
+
+def test_a_rows_ceiling_counts_the_starting_candidates_and_unanswered_queries_leave_the_means():
+    """Query expansion answers from a search of its own, so the ceiling is counted in the
+    candidates re-ranking started from; a query without any candidate fails S and has no
+    RTE to average (it no longer turns the row's means into NaN)."""
+    from sgvloc.tools.evaluation.runner import _aggregate
+
+    base = {"in_coverage": True, "ms": 1.0, "top1_changed": False, "candidates": 3}
+    base |= {"accepted": False, "correct": False, "confidence": 0.0, "localized": False}
+    recs = [
+        {**base, "rank@5m": None, "start_rank": 2, "rte": 1.0, "rre": 1.0, "has_estimate": True},
+        {**base, "rank@5m": 1, "start_rank": 1, "rte": 3.0, "rre": 3.0, "has_estimate": True},
+        {**base, "rank@5m": None, "start_rank": None, "rte": np.nan, "rre": np.nan}
+        | {"has_estimate": False, "candidates": 0},
+    ]
+    out = _aggregate("average-qe", 3, recs, [5.0], with_pose=True)
+    assert out["ceiling_5m"] == pytest.approx(200.0 / 3) and out["R@1_5m"] == pytest.approx(
+        100.0 / 3
+    )
+    assert out["mean_rte_m"] == pytest.approx(2.0) and out["mean_rre_deg"] == pytest.approx(2.0)
+    assert out["success_pct"] == pytest.approx(100.0 / 3) and out["no_estimate"] == 1

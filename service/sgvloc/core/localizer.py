@@ -545,7 +545,7 @@ class Localizer:
                     whole.update(self._whole([i]))
                 return whole[i].features
 
-            out = rerank(method, query, retrieved, features_of, self.index, cfg)
+            out = rerank(method, query, retrieved, features_of, self.index, cfg, among)
             whole.update(
                 self._whole([c.keyframe_id for c in out.candidates if c.keyframe_id not in whole])
             )

@@ -76,13 +76,16 @@ def rerank(
     features_of: FeaturesOf,
     index: FaissIndex,
     cfg: LocalizerConfig,
+    among: np.ndarray | None = None,
 ) -> RerankOutput:
-    """Re-order ``retrieved`` (in retrieval order) with ``method``."""
+    """Re-order ``retrieved`` (in retrieval order) with ``method``. ``among``: the
+    keyframe ids retrieval was restricted to (a prior's region, a leave-out's visible
+    scans), which query expansion's second search keeps to as well."""
     check_method(method)
     if not retrieved or method == "none":
         return RerankOutput(method, list(retrieved))
     if method in ("average-qe", "alpha-qe"):
-        return _query_expansion(method, query, retrieved, features_of, index, cfg)
+        return _query_expansion(method, query, retrieved, features_of, index, cfg, among)
     if method == "sgv":
         return _sgv(query, retrieved, features_of, cfg)
     return _rir(method, query, retrieved, features_of, cfg)
@@ -119,6 +122,7 @@ def _query_expansion(
     features_of: FeaturesOf,
     index: FaissIndex,
     cfg: LocalizerConfig,
+    among: np.ndarray | None = None,
 ) -> RerankOutput:
     top = retrieved[: cfg.qe_k]
     descs = np.stack(
@@ -132,7 +136,7 @@ def _query_expansion(
     expanded = (weights[:, None] * descs).sum(axis=0)
     if not np.linalg.norm(expanded) > 0:
         return RerankOutput(method, list(retrieved), info={"expanded": False})
-    hits = index.search(expanded / np.linalg.norm(expanded), len(retrieved))[0]
+    hits = index.search(expanded / np.linalg.norm(expanded), len(retrieved), among=among)[0]
     rank_of = {c.keyframe_id: c.retrieval_rank for c in retrieved}
     sim_of = {c.keyframe_id: c.similarity for c in retrieved}
     cands = [

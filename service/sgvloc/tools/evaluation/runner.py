@@ -466,7 +466,7 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
             for k in ks:
                 t = time.perf_counter()
                 start = candidates(k)
-                out = rerank(method, fq, start, feats.__getitem__, index, loc_cfg)
+                out = rerank(method, fq, start, feats.__getitem__, index, loc_cfg, among)
                 ms = (time.perf_counter() - t) * 1e3
                 if method == "sgv" and k == k_scores:
                     sgv_out = out
@@ -493,6 +493,14 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
                     rec[f"rank@{thr:g}m"] = (
                         first_true_rank(poses[ids, :3, 3], gt[:3, 3], thr) if covered else None
                     )
+                # the ceiling's rank: in the candidates re-ranking started from (query
+                # expansion answers from a search of its own)
+                start_ids = [c.keyframe_id for c in start]
+                rec["start_rank"] = (
+                    first_true_rank(poses[start_ids, :3, 3], gt[:3, 3], cfg.thresholds[0])
+                    if covered
+                    else None
+                )
                 if k in table_ks:
                     rec.update(verdict_record(qk, ids, gt, src == 0, spectral, prior, visible))
                 recs[(method, k)].append(rec)
@@ -569,7 +577,8 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
         "recall, S and RTE/RRE: over the in-coverage queries (a database scan within "
         f"{split.threshold:g} m); RTE/RRE are means, a query that is not localized keeps its "
         "estimate; with no estimate at all (too few correspondences) the matched keyframe's "
-        "pose is used",
+        "pose is used; a query with no candidate at all (nothing to describe, or none in "
+        "the prior's radius) counts as a failure in S and is left out of the means",
         f"verdict: accepted = the calibrated confidence ({calibration.name}, "
         f"{calibration.fingerprint}) >= min_confidence {min_confidence:g} and the pose "
         "step's minimums hold"
@@ -714,6 +723,11 @@ def _mean(xs: list[float]) -> float:
     return float(np.mean(xs)) if xs else float("nan")
 
 
+def _nanmean(xs: list[float]) -> float:
+    finite = [x for x in xs if not np.isnan(x)]
+    return float(np.mean(finite)) if finite else float("nan")
+
+
 def _aggregate(
     method: str, k: int, recs: list[dict[str, Any]], thresholds: list[float], with_pose: bool
 ) -> dict[str, Any]:
@@ -728,7 +742,7 @@ def _aggregate(
         out[f"MRR_{thr:g}m"] = mrr(ranks)
     # the recall ceiling: a true match among the candidates re-ranking starts from (k of
     # them, or up to k per block when descriptor blocks are merged)
-    first = [r[f"rank@{thresholds[0]:g}m"] for r in cov]
+    first = [r.get("start_rank", r[f"rank@{thresholds[0]:g}m"]) for r in cov]
     out[f"ceiling_{thresholds[0]:g}m"] = ceiling(first)
     out["candidates_mean"] = _mean([float(r.get("candidates", k)) for r in cov])
     ms = [r["ms"] for r in recs]
@@ -744,8 +758,10 @@ def _aggregate(
     # pose success where the re-ranked top-1 is a true match (the pose step alone)
     true1 = np.array([r[f"rank@{thresholds[0]:g}m"] == 1 for r in cov], dtype=bool)
     out["success_true_top1_pct"] = 100.0 * float(ok[true1].mean()) if true1.any() else float("nan")
-    out["mean_rte_m"] = _mean(t)
-    out["mean_rre_deg"] = _mean(a)
+    # over the queries with an estimate to measure (one without candidates has none; it
+    # counts in no_estimate and as a failure in success_pct)
+    out["mean_rte_m"] = _nanmean(t)
+    out["mean_rre_deg"] = _nanmean(a)
     out["median_rte_m"] = float(np.nanmedian(t)) if t else float("nan")
     out["localized_pct"] = 100.0 * _mean([float(r.get("localized", False)) for r in cov])
     out["no_estimate"] = sum(1 for r in cov if not r.get("has_estimate", True))
