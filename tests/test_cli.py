@@ -153,3 +153,29 @@ def test_package_data_loads_beside_a_folder_named_sgvloc(tmp_path: Path) -> None
     )
     assert run.returncode == 0, run.stderr
     assert run.stdout.startswith(__version__)
+
+
+def test_bad_arguments_are_one_line_usage_errors(tmp_path: Path) -> None:
+    """A URL, timeout, device or file the command cannot use is exit 2 naming the option,
+    never a traceback, and nothing is left behind."""
+    from typer.testing import CliRunner
+
+    from sgvloc.cli import app
+
+    missing = str(tmp_path / "no" / "such.json")
+    out = str(tmp_path / "t")
+    cases = [
+        (["map", "list", "--url", "http://[::1"], "--url"),
+        (["map", "list", "--timeout", "-1"], "--timeout"),
+        (["build-map", "--data", str(tmp_path), "--map", "x", "--timeout", "0"], "--timeout"),
+        (["train", "--data", str(tmp_path), "--out", out, "--device", "gpu"], "--device"),
+        (["eval", "--data", str(tmp_path), "--config", missing], "--config"),
+        (["calibrate", "--out", str(tmp_path / "c.json"), "--config", missing], "--config"),
+        (["new-key", "--name", "a", "--role", "viewer", "--keys-file", missing], "--keys-file"),
+        (["new-key", "--name", "a", "--role", "viewer", "--key-file", missing], "--key-file"),
+    ]  # fmt: skip
+    for args, option in cases:
+        run = CliRunner().invoke(app, args, env={"COLUMNS": "200"})
+        assert run.exit_code == 2, (args, run.output)
+        assert option in run.output and "Traceback" not in run.output, (args, run.output)
+    assert sorted(p.name for p in tmp_path.iterdir()) == []

@@ -126,7 +126,7 @@ class AsyncClient(BaseClient):
                     self._url(i, call.path),
                     content=call.content,
                     headers=call.headers,
-                    timeout=httpx.USE_CLIENT_DEFAULT if call.timeout is None else call.timeout,
+                    timeout=call.http_timeout,
                 )
             except httpx.TransportError as exc:
                 sent = not isinstance(exc, httpx.ConnectError)
@@ -169,7 +169,7 @@ class AsyncClient(BaseClient):
         deadline = time.monotonic() + timeout
         while True:
             try:
-                if await self._send(self._ready()):
+                if await self._send(self._ready_poll(deadline)):
                     return
                 last = "the service is still loading its maps"
             except TransportError as exc:
@@ -362,18 +362,19 @@ class AsyncClient(BaseClient):
         self, map: str, dest: str | os.PathLike[str] | BinaryIO, *, timeout: float | None = 600.0
     ) -> int:
         """See :meth:`Client.export_map`."""
-        path = f"{_map_path(map)}/export"
-        with _open_dest(dest) as out:
-            async with self._http.stream(
-                "GET", self._url(self._pick(), path), timeout=timeout
-            ) as r:
-                if r.status_code >= 400:
-                    await r.aread()
-                    raise self._error(r.status_code, self._decode(r))
-                size = 0
-                async for block in r.aiter_bytes():
-                    out.write(block)
-                    size += len(block)
+        url = self._url(self._pick(), f"{_map_path(map)}/export")
+        try:
+            with _open_dest(dest) as out:
+                async with self._http.stream("GET", url, timeout=timeout) as r:
+                    if r.status_code >= 400:
+                        await r.aread()
+                        raise self._error(r.status_code, self._decode(r))
+                    size = 0
+                    async for block in r.aiter_bytes():
+                        out.write(block)
+                        size += len(block)
+        except httpx.TransportError as exc:
+            raise self._unanswered("GET", url, exc) from exc
         return size
 
     async def import_map(
@@ -391,12 +392,13 @@ class AsyncClient(BaseClient):
                 for block in _chunks(f):
                     yield block
 
-            r = await self._http.post(
-                self._url(self._pick(), self._import_path(name)),
-                content=chunks(),
-                headers={"Content-Type": ARCHIVE_TYPE},
-                timeout=timeout,
-            )
+            url = self._url(self._pick(), self._import_path(name))
+            try:
+                r = await self._http.post(
+                    url, content=chunks(), headers={"Content-Type": ARCHIVE_TYPE}, timeout=timeout
+                )
+            except httpx.TransportError as exc:
+                raise self._unanswered("POST", url, exc) from exc
         return self._finish(self._import_call(), r)
 
     # ----------------------------------------------------------------------------------

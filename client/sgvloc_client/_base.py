@@ -8,11 +8,13 @@ response logic lives in this module.
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import json
 import os
 import threading
 import time
+import uuid
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
@@ -74,8 +76,15 @@ class Call(Generic[T]):
     headers: Mapping[str, str] | None = None
     idempotent: bool = False
     passthrough: tuple[int, ...] = ()
-    #: seconds for this call instead of the client's timeout (a long-running request)
+    #: seconds for this call instead of the client's timeout (a long-running request;
+    #: None waits as long as it takes), when ``own_timeout``
     timeout: float | None = None
+    own_timeout: bool = False
+
+    @property
+    def http_timeout(self) -> Any:
+        """The ``timeout`` argument for httpx: this call's own, or the client's."""
+        return self.timeout if self.own_timeout else httpx.USE_CLIENT_DEFAULT
 
 
 def _body_only(fn: Callable[[Any], T]) -> Callable[[int, Any], T]:
@@ -93,12 +102,22 @@ ARCHIVE_TYPE = "application/x-tar"  # map archives (export_map / import_map)
 
 @contextmanager
 def _open_dest(dest: str | os.PathLike[str] | BinaryIO) -> Iterator[BinaryIO]:
-    """A binary file to write: ``dest`` itself, or the path opened (and closed after)."""
-    if isinstance(dest, str | os.PathLike):
-        with open(dest, "wb") as f:
-            yield f
-    else:
+    """A binary file to write: ``dest`` itself, or for a path a new file beside it that
+    replaces the path only when the block ends without error (a failed download leaves
+    an existing file as it was)."""
+    if not isinstance(dest, str | os.PathLike):
         yield dest
+        return
+    final = os.fspath(dest)
+    part = f"{final}.{uuid.uuid4().hex[:8]}.part"
+    try:
+        with open(part, "xb") as f:
+            yield f
+        os.replace(part, final)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(part)
+        raise
 
 
 @contextmanager
@@ -257,6 +276,17 @@ class BaseClient:
     ) -> Call[T]:
         content, headers = (None, None) if body is None else self._encode(body)
         return Call(method, path, parse, content, headers, idempotent, passthrough)
+
+    def _ready_poll(self, deadline: float) -> Call[bool]:
+        """One ``/readyz`` poll of :meth:`wait_until_ready`: not resent, and given no
+        more than the time left, so that the wait ends when it said it would."""
+        left = max(0.05, deadline - time.monotonic())
+        return replace(self._ready(), idempotent=False, timeout=left, own_timeout=True)
+
+    def _unanswered(self, method: str, url: str, exc: httpx.TransportError) -> TransportError:
+        """A streamed call's connection error as the SDK's :class:`TransportError`."""
+        detail = str(exc) or type(exc).__name__
+        return TransportError(f"{method} {url} failed: {type(exc).__name__}: {detail}")
 
     # ----------------------------------------------------------------------------------
     # Retries
@@ -424,14 +454,17 @@ class BaseClient:
             "gap_keyframes": gap_keyframes,
             "radius_m": radius_m,
         }
-        # Only records a summary with the map: running it again is harmless.
+        # Not resent: it only records a summary, but a timed-out one may still be running
+        # on the server, and each try would start another.
         call = self._call(
-            "POST", _map_path(name) + "/self-test", lambda _s, b: dict(b), body, idempotent=True
+            "POST", _map_path(name) + "/self-test", lambda _s, b: dict(b), body, idempotent=False
         )
-        return replace(call, timeout=timeout)
+        return replace(call, timeout=timeout, own_timeout=True)
 
     def _delete_map(self, name: str) -> Call[None]:
-        return self._call("DELETE", _map_path(name), lambda _s, _b: None, idempotent=True)
+        # Not resent: a delete that went through but whose answer was lost would answer
+        # 404 the second time, reporting a failure for a success.
+        return self._call("DELETE", _map_path(name), lambda _s, _b: None, idempotent=False)
 
     def _insert_keyframes(
         self, map: str, keyframes: Sequence[KeyframeIn | Mapping[str, Any]]
@@ -465,7 +498,7 @@ class BaseClient:
             "DELETE",
             f"{_map_path(map)}/keyframes/{int(keyframe_id)}",
             _body_only(KeyframeDeleted.from_body),
-            idempotent=True,
+            idempotent=False,  # as delete_map: a resend would answer 404
         )
 
     def _list_keyframes(
@@ -491,12 +524,13 @@ class BaseClient:
             raise ValueError("give at least one filter, or all=True to delete every keyframe")
         if all:
             params["all"] = "true"
-        # resending deletes what matches then: nothing more, once the first one went through
+        # Not resent: a second try would report 0 deleted after the first went through,
+        # and would delete keyframes inserted in between that match.
         return self._call(
             "DELETE",
             f"{_map_path(map)}/keyframes?{urlencode(params)}",
             _body_only(KeyframesDeleted.from_body),
-            idempotent=True,
+            idempotent=False,
         )
 
     def _map_stats(self, map: str) -> Call[MapStats]:

@@ -125,7 +125,7 @@ class Client(BaseClient):
                     self._url(i, call.path),
                     content=call.content,
                     headers=call.headers,
-                    timeout=httpx.USE_CLIENT_DEFAULT if call.timeout is None else call.timeout,
+                    timeout=call.http_timeout,
                 )
             except httpx.TransportError as exc:
                 sent = not isinstance(exc, httpx.ConnectError)
@@ -168,7 +168,7 @@ class Client(BaseClient):
         deadline = time.monotonic() + timeout
         while True:
             try:
-                if self._send(self._ready()):
+                if self._send(self._ready_poll(deadline)):
                     return
                 last = "the service is still loading its maps"
             except TransportError as exc:
@@ -364,18 +364,18 @@ class Client(BaseClient):
     ) -> int:
         """Download map ``map`` as an archive into ``dest`` (a path or a binary file),
         streamed; returns the bytes written. ``timeout``: seconds without data."""
-        path = f"{_map_path(map)}/export"
-        with (
-            _open_dest(dest) as out,
-            self._http.stream("GET", self._url(self._pick(), path), timeout=timeout) as r,
-        ):
-            if r.status_code >= 400:
-                r.read()
-                raise self._error(r.status_code, self._decode(r))
-            size = 0
-            for block in r.iter_bytes():
-                out.write(block)
-                size += len(block)
+        url = self._url(self._pick(), f"{_map_path(map)}/export")
+        try:
+            with _open_dest(dest) as out, self._http.stream("GET", url, timeout=timeout) as r:
+                if r.status_code >= 400:
+                    r.read()
+                    raise self._error(r.status_code, self._decode(r))
+                size = 0
+                for block in r.iter_bytes():
+                    out.write(block)
+                    size += len(block)
+        except httpx.TransportError as exc:
+            raise self._unanswered("GET", url, exc) from exc
         return size
 
     def import_map(
@@ -387,13 +387,14 @@ class Client(BaseClient):
     ) -> MapInfo:
         """Create a map from an archive made by :meth:`export_map` (streamed from ``src``,
         a path or a binary file), under ``name`` or its archived name."""
+        url = self._url(self._pick(), self._import_path(name))
         with _open_src(src) as f:
-            r = self._http.post(
-                self._url(self._pick(), self._import_path(name)),
-                content=_chunks(f),
-                headers={"Content-Type": ARCHIVE_TYPE},
-                timeout=timeout,
-            )
+            try:
+                r = self._http.post(
+                    url, content=_chunks(f), headers={"Content-Type": ARCHIVE_TYPE}, timeout=timeout
+                )
+            except httpx.TransportError as exc:
+                raise self._unanswered("POST", url, exc) from exc
         return self._finish(self._import_call(), r)
 
     # ----------------------------------------------------------------------------------

@@ -32,12 +32,20 @@ class WireError(ValueError):
 def encode_array(arr: np.ndarray) -> dict[str, Any]:
     """An ndarray as a MessagePack-ready map (little-endian, C order)."""
     a = np.asarray(arr)
-    if a.dtype.kind == "f":
-        a = a.astype("<f8" if a.dtype.itemsize == 8 else "<f4", copy=False)
-    elif a.dtype.kind in "iu" and a.dtype.itemsize > 1:
-        a = a.astype("<i8" if a.dtype.itemsize == 8 else "<i4", copy=False)
-    elif a.dtype.kind == "b":
-        a = a.astype("|u1")
+    kind, size = a.dtype.kind, a.dtype.itemsize
+    if kind == "f":
+        a = a.astype("<f8" if size == 8 else "<f4", copy=False)
+    elif kind == "b" or (kind == "u" and size == 1):
+        a = a.astype("|u1", copy=False)
+    elif kind == "i" or (kind == "u" and size < 8):
+        # every value kept: int8/16 and uint16 fit int32, uint32 needs int64
+        a = a.astype("<i8" if size == 8 or (kind == "u" and size == 4) else "<i4", copy=False)
+    elif kind == "u":  # uint64: as int64 where every value fits
+        if a.size and int(a.max()) > np.iinfo(np.int64).max:
+            raise ValueError("a uint64 array with values beyond int64 cannot be sent")
+        a = a.astype("<i8", copy=False)
+    else:
+        raise ValueError(f"arrays of dtype {a.dtype} cannot be sent (numbers only)")
     a = np.ascontiguousarray(a)
     return {"__nd__": True, "dtype": a.dtype.str, "shape": list(a.shape), "data": a.tobytes()}
 

@@ -227,6 +227,8 @@ def new_key_command(
         raise typer.BadParameter(f"role must be one of {', '.join(ROLES)}", param_hint="--role")
     key = new_key()
     entry = keys_entry(name, role, key, [m.strip() for m in maps.split(",") if m.strip()])
+    if keys_file is not None and not keys_file.parent.is_dir():  # before a key is written
+        raise typer.BadParameter(f"{keys_file.parent} is not a folder", param_hint="--keys-file")
     if key_file is not None:
         try:
             write_key(key_file, key)
@@ -234,11 +236,19 @@ def new_key_command(
             raise typer.BadParameter(
                 f"{key_file} exists: a key file is never overwritten", param_hint="--key-file"
             ) from None
+        except OSError as exc:
+            why = f"{key_file}: {exc.strerror}"
+            raise typer.BadParameter(why, param_hint="--key-file") from None
         typer.echo(f"wrote the {role} key {name!r} to {key_file}", err=True)
     else:
         typer.echo(f"key: {key}", err=True)
     if keys_file is not None:
-        append_entry(keys_file, entry)
+        try:
+            append_entry(keys_file, entry)
+        except OSError as exc:
+            typer.echo(f"new-key: {keys_file}: {exc.strerror}; the entry was not added", err=True)
+            typer.echo(entry)
+            raise typer.Exit(1) from None
         typer.echo(f"added {name!r} ({role}) to {keys_file}", err=True)
     else:
         typer.echo(entry)
@@ -364,7 +374,9 @@ def build_map_command(
             "sgvloc eval --db-until)",
         ),
     ] = None,
-    timeout: Annotated[float, typer.Option(help="seconds to wait for one request")] = 300.0,
+    timeout: Annotated[
+        float, typer.Option(min=0.001, help="seconds to wait for one request")
+    ] = 300.0,
     api_key: Annotated[
         str | None, typer.Option(help="bearer token for the service", envvar="SGVLOC_API_KEY")
     ] = None,
@@ -459,7 +471,7 @@ def build_map_command(
         if data_dir is not None:
             result = build_map(source, data_dir, map_name, **options)
         else:
-            with sgvloc_client.Client(url, timeout=timeout, api_key=api_key) as client:
+            with _sdk(url, api_key, timeout) as client:
                 result = build_map(source, client, map_name, **options)
     except (SgvlocError, sgvloc_client.SgvlocError) as exc:
         typer.echo(f"build-map: {exc}", err=True)
@@ -612,7 +624,12 @@ def eval_command(
     query_stride: Annotated[int, typer.Option(min=1, help="evaluate every n-th query")] = 1,
     encoder: EncoderOpt = None,
     config: Annotated[
-        Path | None, typer.Option(help="JSON LocalizerConfig (retrieval, sgv, pose settings)")
+        Path | None,
+        typer.Option(
+            exists=True,
+            dir_okay=False,
+            help="JSON LocalizerConfig (retrieval, sgv, pose settings)",
+        ),
     ] = None,
     cache_dir: CacheDirOpt = None,
     frames: Annotated[
@@ -925,7 +942,10 @@ def calibrate_command(
     query_stride: Annotated[int, typer.Option(min=1, help="every n-th query")] = 1,
     encoder: EncoderOpt = None,
     config: Annotated[
-        Path | None, typer.Option(help="JSON LocalizerConfig (top_k, sgv, pose settings)")
+        Path | None,
+        typer.Option(
+            exists=True, dir_okay=False, help="JSON LocalizerConfig (top_k, sgv, pose settings)"
+        ),
     ] = None,
     cache_dir: CacheDirOpt = None,
     progress: ProgressOpt = True,
@@ -1261,6 +1281,8 @@ def train_command(
     threads: ThreadsOpt = None,
 ) -> None:
     """Train the learned BEV encoder (a small CNN) on BEV image sequences with poses."""
+    if device not in ("cpu", "cuda", "auto"):
+        raise typer.BadParameter(f"{device!r} is not cpu, cuda or auto", param_hint="'--device'")
     from .server.threads import usable_cpus
 
     _cap_threads(threads, usable_cpus())
@@ -1360,7 +1382,7 @@ KeyOpt = Annotated[
         envvar="SGVLOC_API_KEY",
     ),
 ]
-TimeoutOpt = Annotated[float, typer.Option(help="seconds to wait for the service")]
+TimeoutOpt = Annotated[float, typer.Option(min=0.001, help="seconds to wait for the service")]
 KeyPrefixOpt = Annotated[str | None, typer.Option(help="keyframes whose key starts with this")]
 BboxOpt = Annotated[
     str | None, typer.Option(help="x_min,y_min,x_max,y_max: positions inside this box")
@@ -1403,10 +1425,16 @@ def _sdk_call(command: str, fn: Callable[[], T]) -> T:
 
 
 def _sdk(url: str, api_key: str | None, timeout: float) -> Any:
-    """A :class:`sgvloc_client.Client` (imported here: the CLI starts without httpx)."""
+    """A :class:`sgvloc_client.Client` (imported here: the CLI starts without httpx); a
+    URL it cannot use is a usage error naming ``--url``."""
+    import httpx
+
     import sgvloc_client
 
-    return sgvloc_client.Client(url, timeout=timeout, api_key=api_key)
+    try:
+        return sgvloc_client.Client(url, timeout=timeout, api_key=api_key)
+    except (httpx.InvalidURL, ValueError) as exc:
+        raise typer.BadParameter(f"{url!r}: {exc}", param_hint="'--url'") from None
 
 
 @map_app.command("list")

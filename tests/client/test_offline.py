@@ -219,12 +219,17 @@ def test_retries_on_closed_port_only_for_idempotent_calls(closed_url: str) -> No
         return transport.sent
 
     assert attempts(lambda c: c.get_map("m")) == 3
-    assert attempts(lambda c: c.delete_map("m")) == 3
     assert attempts(lambda c: c.localize("m", points=np.zeros((4, 3)))) == 3
     assert attempts(lambda c: c.insert_keyframes("m", [{**kf, "key": "a"}])) == 3
-    # Not safe to resend: a keyless insert could store twice, a create could 409.
+    # Not safe to resend: a keyless insert could store twice, a create could 409, a
+    # delete whose answer was lost would answer 404 (or delete what was added since),
+    # a self-test that timed out may still run and each try would start another.
     assert attempts(lambda c: c.insert_keyframes("m", [{**kf, "key": "a"}, kf])) == 1
     assert attempts(lambda c: c.create_map("m")) == 1
+    assert attempts(lambda c: c.delete_map("m")) == 1
+    assert attempts(lambda c: c.delete_keyframe("m", 1)) == 1
+    assert attempts(lambda c: c.delete_keyframes("m", key_prefix="k")) == 1
+    assert attempts(lambda c: c.self_test_map("m")) == 1
 
     with Client(url, retries=0) as c, pytest.raises(TransportError, match="1 attempt"):
         c.health()
@@ -244,6 +249,82 @@ def test_async_client_retries_and_errors(closed_url: str) -> None:
                 await c.create_map("campus")
 
     asyncio.run(main())
+
+
+def test_a_failed_export_keeps_the_file_and_archive_calls_raise_the_sdks_errors(
+    closed_url: str, tmp_path: Path
+) -> None:
+    """export_map writes beside the destination and replaces it only once the archive
+    arrived whole; a connection that fails is the SDK's TransportError, sync and async."""
+    dest = tmp_path / "campus.sgvmap.tar"
+    dest.write_bytes(b"an earlier archive")
+    transport = httpx.MockTransport(lambda r: _error_response(404, "not_found"))
+    with Client(transport=transport) as c, pytest.raises(NotFound):
+        c.export_map("nope", dest)
+    assert dest.read_bytes() == b"an earlier archive" and sorted(tmp_path.iterdir()) == [dest]
+    ok = httpx.MockTransport(lambda r: httpx.Response(200, content=b"tar" * 1000))
+    with Client(transport=ok) as c:
+        assert c.export_map("campus", dest) == 3000 and dest.read_bytes() == b"tar" * 1000
+    with Client(closed_url) as c:
+        with pytest.raises(TransportError):
+            c.export_map("campus", tmp_path / "x.tar")
+        with pytest.raises(TransportError):
+            c.import_map(dest)
+
+    async def main() -> None:
+        async with AsyncClient(closed_url) as c:
+            with pytest.raises(TransportError):
+                await c.export_map("campus", tmp_path / "y.tar")
+            with pytest.raises(TransportError):
+                await c.import_map(dest)
+
+    asyncio.run(main())
+    assert sorted(tmp_path.iterdir()) == [dest]
+
+
+def test_wait_until_ready_ends_when_it_said_against_a_silent_service() -> None:
+    """A service that accepts connections and never answers: the wait ends after its
+    own timeout, not after every retry at the client's (here 10 s each)."""
+    import socket
+    import time
+
+    with socket.socket() as silent:
+        silent.bind(("127.0.0.1", 0))
+        silent.listen(8)
+        url = f"http://127.0.0.1:{silent.getsockname()[1]}"
+        with Client(url, timeout=10.0, retries=3) as c:
+            t0 = time.monotonic()
+            with pytest.raises(TransportError, match="not ready after 0.5 s"):
+                c.wait_until_ready(timeout=0.5)
+            assert time.monotonic() - t0 < 5.0
+
+
+def test_a_self_test_without_a_timeout_waits_as_long_as_it_takes() -> None:
+    seen = []
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        seen.append(request.extensions["timeout"])
+        return _packed(200, {"figures": {}})
+
+    with Client(transport=httpx.MockTransport(handler), timeout=0.5) as c:
+        c.self_test_map("m", timeout=None)
+        c.self_test_map("m", timeout=60.0)
+    assert seen[0]["read"] is None and seen[1]["read"] == 60.0
+
+
+def test_arrays_keep_their_values_on_the_wire() -> None:
+    for a in (
+        np.array([3_000_000_000], np.uint32),
+        np.array([-3], np.int8),
+        np.array([2**40], np.uint64),
+        np.zeros((0, 3), np.float32),
+    ):
+        back = wire.unpackb(wire.packb({"a": a}))["a"]
+        assert back.tolist() == a.tolist() and back.shape == a.shape
+    with pytest.raises(ValueError, match="beyond int64"):
+        wire.packb(np.array([2**63], np.uint64))
+    with pytest.raises(ValueError, match="numbers only"):
+        wire.packb(np.array(["text"]))
 
 
 def test_timeout_is_an_httpx_timeout_value() -> None:

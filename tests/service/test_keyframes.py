@@ -137,6 +137,25 @@ def test_get_and_delete_keyframe(client: httpx.Client) -> None:
     assert r.json()["created"] == [True] and r.json()["ids"][0] > max(ids)
 
 
+def test_a_keyframe_without_keypoints_over_json_and_msgpack(client: httpx.Client) -> None:
+    """JSON cannot carry the shape of an empty array ([] for [0, 3]): a keyframe with no
+    keypoints is stored over either wire format alike."""
+    from sgvloc_client import wire
+
+    _new_map(client, "kf-empty")
+    rng = np.random.default_rng(2)
+    f = random_features(rng)
+    f["keypoints"] = np.zeros((0, 3), np.float32)
+    f["local_features"] = np.zeros((0, 8), np.float32)
+    body = {"keyframes": [{"T_map_sensor": _pose(0), "features": f}]}
+    r = client.post("/v1/maps/kf-empty/keyframes", json=wire.to_jsonable(body))
+    assert r.status_code == 201, r.text
+    assert post_msgpack(client, "/v1/maps/kf-empty/keyframes", body).status_code == 201
+    for i in (*r.json()["ids"], r.json()["ids"][0] + 1):
+        kf = client.get(f"/v1/maps/kf-empty/keyframes/{i}").json()
+        assert kf["num_keypoints"] == 0, kf
+
+
 def test_concurrent_inserts_and_localizations(client: httpx.Client, server) -> None:
     """Writers and readers at once: every request succeeds, nothing is lost."""
     _new_map(client, "kf-conc")

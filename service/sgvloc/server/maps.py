@@ -1030,10 +1030,13 @@ class MapManager:
                 ),
                 "features.fingerprint",
             )
+        # JSON cannot say the shape of an empty array: [] is no keypoints, [N, 3] and
+        # [N, D] with N = 0 (MessagePack sends the shape itself)
+        kp, lf = np.asarray(f.keypoints), np.asarray(f.local_features)
+        if kp.size == 0 and lf.size == 0:
+            kp, lf = kp.reshape(0, 3), lf.reshape(0, encoder.local_dim)
         with at_field("features"):
-            return _encoder_features(
-                encoder, f.global_descriptor, f.keypoints, f.local_features, handle.name
-            )
+            return _encoder_features(encoder, f.global_descriptor, kp, lf, handle.name)
 
     def _check_scan_allowed(self, handle: MapHandle) -> None:
         spec = handle.record.encoder_spec
