@@ -56,6 +56,16 @@ def _exp_rotation(v: np.ndarray) -> np.ndarray:
     return np.eye(3) + math.sin(angle) * K + (1 - math.cos(angle)) * K @ K
 
 
+#: fixes closer in time than this give no velocity (their registration noise, divided by
+#: a tiny interval, would read as a fast motion)
+MIN_STEP_S = 0.02
+
+
+def _check_stamp(stamp: float) -> None:
+    if not math.isfinite(stamp):
+        raise ValueError(f"stamp must be a finite number of seconds, got {stamp!r}")
+
+
 @dataclass
 class MotionModel:
     """The prediction half of a tracker, free of any transport.
@@ -104,18 +114,17 @@ class MotionModel:
         return self.pose is None or self.misses >= self.max_misses
 
     def predict(self, stamp: float, odom_delta: Any = None) -> np.ndarray | None:
-        """The predicted ``T_map_sensor`` at ``stamp`` (None without a usable fix).
+        """The predicted ``T_map_sensor`` at ``stamp`` (None without a usable fix); it
+        changes nothing (:meth:`seed` takes the odometry into the track).
 
         ``odom_delta``: the vehicle's own motion since the previous scan (``T_prev_curr``);
         it replaces the constant-velocity model while given.
         """
+        _check_stamp(stamp)
         if self.pose is None or self.stamp is None:
             return None
         if odom_delta is not None:
-            step = np.asarray(odom_delta, dtype=np.float64).reshape(4, 4)
-            base = self._pending_odom if self._pending_odom is not None else np.eye(4)
-            self._pending_odom = base @ step
-            return self.pose @ self._pending_odom
+            return self.pose @ self._odometry(odom_delta)
         dt = stamp - self.stamp
         if self._delta is None or self._delta_dt <= 0 or dt <= 0:
             return self.pose.copy()
@@ -126,13 +135,22 @@ class MotionModel:
         step[:3, 3] = self._delta[:3, 3] * ratio
         return self.pose @ step
 
+    def _odometry(self, odom_delta: Any) -> np.ndarray:
+        """The odometry since the last fix, with this scan's ``odom_delta``."""
+        step = np.asarray(odom_delta, dtype=np.float64).reshape(4, 4)
+        return (self._pending_odom if self._pending_odom is not None else np.eye(4)) @ step
+
     def seed(self, stamp: float, odom_delta: Any = None) -> Seed | None:
-        """The seed for a scan taken at ``stamp`` (seconds), or None: relocalize."""
+        """The seed for a scan taken at ``stamp`` (seconds), or None: relocalize. Call
+        it once per scan: its ``odom_delta`` adds to the odometry since the last fix."""
+        _check_stamp(stamp)
         if self.lost or self.stamp is None or stamp - self.stamp > self.max_gap_s:
             return None
         T = self.predict(stamp, odom_delta)
         if T is None:
             return None
+        if odom_delta is not None:
+            self._pending_odom = self._odometry(odom_delta)
         dt = max(0.0, stamp - self.stamp)
         widen = self.widen**self.misses
         return Seed(
@@ -143,12 +161,13 @@ class MotionModel:
 
     def observe(self, result: Localization, stamp: float) -> None:
         """Take an answer for the scan at ``stamp`` into the track."""
+        _check_stamp(stamp)
         if not result.localized or result.T_map_sensor is None:
             self.misses += 1
             return
         T = np.asarray(result.T_map_sensor, dtype=np.float64)
         consecutive = self.misses == 0 and self.pose is not None and self.stamp is not None
-        if consecutive and stamp > self.stamp:  # the motion between consecutive fixes
+        if consecutive and stamp - self.stamp >= MIN_STEP_S:  # motion between consecutive fixes
             self._delta = np.linalg.inv(self.pose) @ T
             self._delta_dt = stamp - self.stamp
         elif not consecutive:  # after misses the last motion is stale: assume none

@@ -69,6 +69,23 @@ def test_odometry_replaces_the_motion_model_and_accumulates_over_misses() -> Non
     assert s.sigma_m > m.sigma_m * m.widen  # widened after the miss
 
 
+def test_predict_changes_nothing_and_fixes_close_in_time_give_no_velocity() -> None:
+    m = MotionModel()
+    m.observe(_fix(_pose(0, 0, 0)), 0.0)
+    step = _pose(1, 0, 0)
+    first, again = m.predict(0.1, odom_delta=step), m.predict(0.1, odom_delta=step)
+    np.testing.assert_allclose(first, again)  # a preview does not count the odometry
+    np.testing.assert_allclose(m.seed(0.1, odom_delta=step).T_map_sensor, first)
+    # two fixes 1 ms apart, 2 cm of registration noise: no 20 m/s velocity from them
+    m = MotionModel()
+    m.observe(_fix(_pose(0, 0, 0)), 10.0)
+    m.observe(_fix(_pose(0.02, 0, 0)), 10.001)
+    np.testing.assert_allclose(m.seed(10.1).T_map_sensor, _pose(0.02, 0, 0), atol=1e-12)
+    for bad in (float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="stamp"):
+            m.seed(bad)
+
+
 def test_misses_and_gaps_send_the_next_scan_global() -> None:
     m = MotionModel(max_misses=2, max_gap_s=5.0)
     m.observe(_fix(_pose(0, 0, 0)), 0.0)

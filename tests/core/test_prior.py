@@ -35,6 +35,17 @@ def test_grid_finds_exactly_the_keyframes_inside_the_radius() -> None:
     assert len(grid.within(Prior((0.0, 0.0), 1e6))) == 0
 
 
+def test_a_keyframe_exactly_on_the_radius_at_a_cell_edge_is_found() -> None:
+    """x - r rounds into the next cell although the keyframe, a hair below the cell
+    edge, lies exactly on the radius: the search still looks in its cell."""
+    grid = PositionGrid(cell_m=10.0)
+    p = float(np.nextafter(10.0, -np.inf))
+    grid.add(1, np.array([p, 0.0, 0.0]))
+    x, r = 50.92423645144843, 40.92423645144843
+    assert abs(p - x) <= r and np.floor((x - r) / 10.0) > np.floor(p / 10.0)
+    assert grid.within(Prior((x, 0.0), r)).tolist() == [1]
+
+
 def test_prior_rejects_estimates_outside_its_region() -> None:
     p = Prior((10.0, 0.0), 5.0)
     assert p.rejects(_T(12, 3)) is None

@@ -51,6 +51,18 @@ def test_a_seed_1m_and_5deg_off_is_recovered(scans, settings: dict) -> None:
         assert np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1))) < 1.0
 
 
+def test_a_scan_of_a_few_points_is_not_trusted(scans) -> None:
+    """Twelve points of a 0.6 m patch keep one or two on the scan's voxel grid: they fit
+    anywhere, so the fit is refused whatever its fitness (it was accepted 10 m off)."""
+    seq, clouds = scans
+    cfg = TrackingConfig()
+    submap = build_submap(clouds, cfg)
+    pts = seq[7].scan().xyzi()
+    near = pts[np.argsort(np.linalg.norm(pts[:, :3] - [5.0, 0.0, 0.0], axis=1))[:12]]
+    out = register(near, Seed(seq[7].T_world_sensor, 4.0, 45.0), submap, cfg)
+    assert not out.ok and "too few to fix a pose" in out.why and out.scan_points < 30
+
+
 def test_scan_cloud_drops_non_finite_and_far_points() -> None:
     cfg = TrackingConfig(max_range_m=12.0)
     pts = np.zeros((16, 4), np.float32)

@@ -111,8 +111,10 @@ class PositionGrid:
         """Ids of the keyframes inside the prior's radius, sorted ``[M]`` int64."""
         x, y = prior.position[:2]
         r = prior.radius_m
-        lo = self._cell(np.array([x - r, y - r]))
-        hi = self._cell(np.array([x + r, y + r]))
+        # one cell more each way: a keyframe exactly on the radius may round into the
+        # next cell; the exact distance test below decides
+        lo = tuple(c - 1 for c in self._cell(np.array([x - r, y - r])))
+        hi = tuple(c + 1 for c in self._cell(np.array([x + r, y + r])))
         span = (hi[0] - lo[0] + 1) * (hi[1] - lo[1] + 1)
         if span > len(self._cells):
             cells = [c for c in self._cells if lo[0] <= c[0] <= hi[0] and lo[1] <= c[1] <= hi[1]]

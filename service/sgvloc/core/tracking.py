@@ -108,6 +108,9 @@ class TrackResult:
 
 
 FINE_M = 0.2  # the "fine" fitness: scan points this close to the map
+#: fewest scan points (after the scan's voxel grid) and matched correspondences a fit
+#: is trusted on: one or two points always fit, however wrong the pose
+MIN_FIT_POINTS = 30
 #: neighbours of a submap point's covariance
 SUBMAP_NEIGHBOURS = 10
 
@@ -269,7 +272,12 @@ def register(points: np.ndarray, seed: Seed, submap: Submap, cfg: TrackingConfig
         seed_offset_deg=dyaw,
     )
     k = cfg.seed_sigmas
-    if fitness < cfg.min_fitness:
+    if len(source) < MIN_FIT_POINTS or int(used) < MIN_FIT_POINTS:
+        out.why = (
+            f"the scan keeps {len(source)} points on the {cfg.scan_voxel_m:g} m grid, "
+            f"{int(used)} of them matched: too few to fix a pose (at least {MIN_FIT_POINTS})"
+        )
+    elif fitness < cfg.min_fitness:
         out.why = f"only {fitness:.0%} of the scan fits the map (min_fitness {cfg.min_fitness:g})"
     elif rmse > cfg.max_rmse_m:
         out.why = f"the fit's RMSE {rmse:.2f} m exceeds max_rmse_m {cfg.max_rmse_m:g}"
