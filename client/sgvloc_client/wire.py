@@ -99,12 +99,42 @@ def packb(obj: Any) -> bytes:
     return msgpack.packb(_to_wire(obj), use_bin_type=True)
 
 
+#: a MessagePack body may hold one map or list per this many bytes (an array travels as
+#: one map with its bytes; a list of three float32 takes 16)
+MSGPACK_BYTES_PER_CONTAINER = 12
+
+
+def container_budget(size: int, bytes_per_container: int) -> int:
+    """How many maps and lists (objects and arrays) a body of ``size`` bytes may hold:
+    an empty one takes a byte or two in the body and tens of bytes in memory, so a body
+    of little else would cost a hundred times its size to parse."""
+    return size // bytes_per_container + 10_000
+
+
 def unpackb(data: bytes, max_bytes: int | None = None) -> Any:
-    """Parse MessagePack into the same structure with ndarrays restored (read-only views)."""
+    """Parse MessagePack into the same structure with ndarrays restored (read-only views).
+    Refuses a body holding more maps and lists than :func:`container_budget` allows."""
     if max_bytes is not None and len(data) > max_bytes:
         raise WireError(f"body has {len(data)} bytes, limit is {max_bytes}")
+    budget = container_budget(len(data), MSGPACK_BYTES_PER_CONTAINER)
+    count = 0
+
+    def counted(container: Any) -> Any:
+        nonlocal count
+        count += 1
+        if count > budget:
+            raise WireError(
+                f"body holds more than {budget} maps and lists in {len(data)} bytes: too "
+                "many to be a request (arrays travel as bytes, a few fields each)"
+            )
+        return container
+
     try:
-        obj = msgpack.unpackb(data, raw=False, strict_map_key=True)
+        obj = msgpack.unpackb(
+            data, raw=False, strict_map_key=True, object_hook=counted, list_hook=counted
+        )
+    except WireError:
+        raise
     except (msgpack.ExtraData, msgpack.FormatError, msgpack.StackError, ValueError) as exc:
         raise WireError(f"body is not valid MessagePack: {exc}") from None
     return _from_wire(obj)

@@ -92,6 +92,15 @@ def test_a_deleted_map_loses_its_series(client: httpx.Client) -> None:
     assert f'map="{name}"' not in text
 
 
+def test_made_up_methods_do_not_grow_the_metrics(client: httpx.Client) -> None:
+    """Any token is a method to HTTP: unknown ones share the label "other", so no request,
+    authenticated or not, adds series at will."""
+    for i in range(5):
+        assert client.request(f"XMETH{i}", "/healthz").status_code in (404, 405)
+    text = client.get("/metrics").text
+    assert "XMETH" not in text and 'method="other"' in text
+
+
 def test_request_ids(client: httpx.Client) -> None:
     r = client.get("/healthz", headers={"X-Request-ID": "edge-7f3a:42"})
     assert r.headers["X-Request-ID"] == "edge-7f3a:42"

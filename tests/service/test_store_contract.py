@@ -175,6 +175,37 @@ def test_replicas_settings_changes_never_undo_each_other(managers: Factory) -> N
     assert record.last_self_test == {"format": "test"} and record.settings_version == 3
 
 
+def test_a_replica_starts_past_maps_it_cannot_load_now(
+    managers: Factory, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """One map deleted by another replica between the catalog and its load, one the
+    store does not answer for: the start-up serves the rest and is ready (it stayed
+    unready for good), and the follower loads the missing map once the store answers."""
+    from sgvloc.server.store import StoreUnavailableError
+    from sgvloc.server.store.postgres import PgBackend
+
+    a = managers()
+    if not a.shared:
+        pytest.skip("one process per SQLite map folder: no other replica deletes a map")
+    for name in ("m1", "m2", "m3"):
+        a.create(name, SPEC)
+    real_open = PgBackend.open
+
+    def racing_open(self, name):
+        if name == "m1":
+            raise StoreUnavailableError("the store did not answer")
+        if name == "m2":
+            a.delete("m2")  # another replica, just now
+        return real_open(self, name)
+
+    monkeypatch.setattr(PgBackend, "open", racing_open)
+    b = managers()
+    assert b.loaded.is_set() and {h.name for h in b.list()} == {"m3"} and not b.failed
+    monkeypatch.setattr(PgBackend, "open", real_open)
+    b.sync()
+    assert {h.name for h in b.list()} == {"m1", "m3"}
+
+
 def test_delete_map_and_use_the_name_again(managers: Factory, rng: np.random.Generator) -> None:
     m = managers()
     m.create("a", SPEC)

@@ -349,7 +349,12 @@ class MapManager:
             if self._stop.is_set():
                 log.warning("shutting down: maps from %r on were not loaded", name)
                 return
-            self._load_named(name)
+            try:
+                self._load_named(name)
+            except NotFoundError:  # deleted by another replica since the catalog was read
+                continue
+            except StoreUnavailableError as exc:  # the follower loads it once it answers
+                log.warning("map %r not loaded yet: %s", name, exc)
         self.loaded.set()
 
     def _load_named(self, name: str) -> None:

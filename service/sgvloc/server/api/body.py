@@ -27,6 +27,9 @@ from .errors import ApiError
 MSGPACK_TYPES = (wire.MSGPACK, "application/x-msgpack", "application/vnd.msgpack")
 JSON_TYPES = (wire.JSON,)
 
+#: a JSON body may hold one object or array per this many bytes (a point [0,0,0], is 8)
+JSON_BYTES_PER_CONTAINER = 6
+
 #: numeric response fields sent as ndarrays in MessagePack (float64)
 ARRAY_FIELDS = frozenset({"T_map_sensor", "T_keyframe_sensor", "translation", "quaternion_xyzw"})
 
@@ -50,6 +53,16 @@ class RawBody:
         try:
             if self.content_type in MSGPACK_TYPES:
                 return wire.unpackb(self.data)
+            # each object or array costs tens of bytes in memory however few it takes in
+            # the body ("{}," is three): a body of little else is refused before parsing
+            n = self.data.count(b"{") + self.data.count(b"[")
+            if n > wire.container_budget(len(self.data), JSON_BYTES_PER_CONTAINER):
+                raise ApiError(
+                    400,
+                    "bad_body",
+                    f"the body holds {n} objects and arrays in {len(self.data)} bytes: too "
+                    "many to be a request (arrays of numbers, a few fields each)",
+                )
             return json.loads(self.data)
         except wire.WireError as exc:
             raise ApiError(400, "bad_body", str(exc)) from None

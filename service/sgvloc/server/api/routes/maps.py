@@ -230,7 +230,8 @@ async def self_test_map(
     it is served (:mod:`sgvloc.core.leave_out`). Each query takes a worker on its own, so
     localizations go on beside it; the summary is recorded with the map
     (``last_self_test``). 409 if keyframes change meanwhile."""
-    req = SelfTestRequest.model_validate(body.decode())
+    # parsed in a worker thread, as every body (a large one would hold the event loop)
+    req = await worker.run(lambda: SelfTestRequest.model_validate(body.decode()))
     t0 = time.monotonic()
     version, plan = await worker.run(
         lambda: manager.self_test_plan(
