@@ -351,9 +351,8 @@ class SqliteMapStore(MapStore):
             pass  # closed: the map is gone
         gone = StoreClosedError(f"map {self.path.parent.name!r} was deleted or unloaded")
         try:  # mode=rw: a file deleted meanwhile is not made again, empty
-            conn = sqlite3.connect(
-                f"file:{self.path}?mode=rw", uri=True, isolation_level=None, check_same_thread=False
-            )
+            uri = f"{self.path.resolve().as_uri()}?mode=rw"  # percent-encoded: any folder
+            conn = sqlite3.connect(uri, uri=True, isolation_level=None, check_same_thread=False)
         except sqlite3.OperationalError:
             raise gone from None
         try:
