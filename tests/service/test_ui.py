@@ -142,6 +142,9 @@ def test_page_and_assets_need_no_key_and_carry_a_strict_policy(ui_server: Server
         assert "default-src 'self'" in csp and "script-src 'self'" in csp
         assert "unsafe-inline" not in csp and "unsafe-eval" not in csp
         assert r.headers["x-content-type-options"] == "nosniff"
+    # the page at another address would load without its script and style
+    r = httpx.get(f"{ui_server.url}/ui/index.html")
+    assert r.status_code == 308 and r.headers["location"] == "/ui"
     assert httpx.get(f"{ui_server.url}/ui/keys.json").status_code == 404
     assert httpx.get(f"{ui_server.url}/ui/..%2Fsettings.py").status_code == 404
     # the data behind it is not open

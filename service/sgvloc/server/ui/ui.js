@@ -339,6 +339,9 @@
     try {
       await loadKeyframes(generation);
       await refreshLocalizations();
+      // fitted again with the answers too: an estimate beyond the keyframes stays in view
+      state.view = null;
+      applyView();
     } catch (exc) {
       handle(exc, `map ${name}`);
     }

@@ -12,6 +12,7 @@ from functools import cache
 from pathlib import Path
 
 from fastapi import APIRouter, Response
+from fastapi.responses import RedirectResponse
 
 from ..errors import ApiError
 
@@ -59,5 +60,8 @@ async def ui_page() -> Response:
 
 @router.get("/ui/{name}")
 async def ui_asset(name: str) -> Response:
-    """The page's script and style sheet."""
+    """The page's script and style sheet (the page itself lives at ``/ui``, where its
+    relative links resolve)."""
+    if name == "index.html":
+        return RedirectResponse("/ui", status_code=308)
     return _file(name)
