@@ -382,6 +382,8 @@ def test_random_bytes(tmp_path, rng, ext):
         ("FIELDS x y z\nSIZE 4 4 3\nTYPE F F F\nCOUNT 1 1 1\n", "unsupported TYPE F SIZE 3"),
         ("FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nFOO 1\n", "unknown key 'FOO'"),
         ("FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 2 1\n", "'y' has COUNT 2"),
+        ("", "the header has no FIELDS"),
+        ("FIELDS x x y z\nSIZE 4 4 4 4\nTYPE F F F F\nCOUNT 1 1 1 1\n", "names a field twice"),
     ],
 )
 def test_pcd_bad_headers(tmp_path, header, problem):
@@ -424,6 +426,40 @@ def test_ply_errors(tmp_path):
     )
     with _raises_naming(bad_line, "line 9 has 2 values"):
         read_scan(bad_line)
+    head = "ply\nformat {} 1.0\nelement vertex 2\nproperty float x\nproperty float y\n"
+    head += "property float z\nend_header\n"
+    fewer = tmp_path / "fewer.ply"  # the header says 2 vertices, 3 follow
+    fewer.write_text(head.format("ascii") + "1 2 3\n4 5 6\n7 8 9\n")
+    with _raises_naming(fewer, "says 2 vertices but 1 more line(s) follow"):
+        read_scan(fewer)
+    fewer_bin = tmp_path / "fewer-bin.ply"
+    data = np.arange(9, dtype="<f4").tobytes()
+    fewer_bin.write_bytes(head.format("binary_little_endian").encode() + data)
+    with _raises_naming(fewer_bin, "says 2 vertices but 12 more byte(s) follow"):
+        read_scan(fewer_bin)
+    listed = tmp_path / "list.ply"
+    listed.write_text(
+        "ply\nformat ascii 1.0\nelement vertex 1\nproperty list uchar float x\n"
+        "property float y\nproperty float z\nend_header\n2 1 2 3 4\n"
+    )
+    with _raises_naming(listed, "'x' is a list"):
+        read_scan(listed)
+
+
+def test_a_corrupt_npz_names_the_file(tmp_path, rng):
+    """A damaged zip member (bad CRC) or a file that is no zip at all."""
+    good = tmp_path / "good.npz"
+    np.savez(good, points=rng.normal(size=(50, 3)).astype(np.float32))
+    raw = bytearray(good.read_bytes())
+    raw[raw.find(b"\x93NUMPY") + 130] ^= 0xFF
+    crc = tmp_path / "crc.npz"
+    crc.write_bytes(bytes(raw))
+    with _raises_naming(crc, "CRC"):
+        read_scan(crc)
+    nozip = tmp_path / "nozip.npz"
+    nozip.write_bytes(b"PK\x03\x04" + b"\0" * 40)
+    with _raises_naming(nozip, "not a zip file"):
+        read_scan(nozip)
 
 
 def test_missing_and_unknown(tmp_path):

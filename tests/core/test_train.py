@@ -194,6 +194,11 @@ def test_tiny_training_lowers_the_loss_and_checkpoints(seq: Sequence, tmp_path: 
     _, state2 = load_checkpoint(ckpt)
     assert state2["step"] == 9 and len(state2["history"]) == 9
     assert state2["history"][:8] == state["history"]
+    assert not list(tmp_path.glob("*.tmp"))  # saved beside, then renamed
+    # a checkpoint cut short (a save interrupted before saves were atomic) is a clear error
+    ckpt.write_bytes(ckpt.read_bytes()[:20_000])
+    with pytest.raises(InputError, match="cannot resume from this checkpoint"):
+        train([seq], tmp_path, tiny_config(10), progress=False)
 
 
 def test_exported_weights_make_a_learned_encoder_of_their_own(

@@ -40,3 +40,19 @@ def test_slow_uploads_hold_up_no_one(tmp_path) -> None:
     slow = result.slow
     assert slow.connections >= 8 and slow.timed_out >= 8, result.summary()
     assert "slow uploads: 8 clients" in result.summary()
+
+
+def test_a_run_that_fails_leaves_no_map_behind(tmp_path) -> None:
+    """The map is deleted however the run ends: here its seeding fails (a service that
+    takes 5 keyframes per insert, the run sends 10)."""
+    import httpx
+    from conftest import Server
+
+    srv = Server(tmp_path / "data", tmp_path / "server.log", env={"SGVLOC_MAX_BATCH": "5"})
+    srv.start()
+    try:
+        with pytest.raises(RuntimeError, match="cannot seed map"):
+            run_loadtest(srv.url, clients=1, duration_s=1.0, seed_keyframes=10, map_name="lt")
+        assert httpx.get(f"{srv.url}/v1/maps/lt").status_code == 404
+    finally:
+        srv.stop()

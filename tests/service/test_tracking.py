@@ -190,6 +190,32 @@ def test_eval_track_on_the_fixture(balm_mini_dir: Path, tmp_path: Path) -> None:
     assert any("availability" in line for line in report_lines(r))
 
 
+def test_a_kidnap_back_revisits_and_bad_stream_options_are_clear(
+    balm_mini_dir: Path, tmp_path: Path
+) -> None:
+    """A jump back in the sequence streams the scans again (it ended the stream and
+    measured the recovery from the first visit); frame options that select nothing
+    are errors that say so."""
+    from sgvloc.core.errors import InputError
+    from sgvloc.tools.eval_track import ScanRecord, eval_track, stream_order, summarize
+
+    assert stream_order(20, [(12, 4)]) == [*range(13), *range(4, 20)]
+    assert stream_order(10, [(3, 7), (8, 1)]) == [0, 1, 2, 3, 7, 8, 1, 2, 3, 4, 5, 6, 7, 8, 9]
+    order = stream_order(8, [(5, 2)])  # 0..5, then 2..7: scan 2's second visit is the jump's
+    recs = [
+        ScanRecord(i, k * 0.1, "tracked", k >= 7, True, 0.1, 0.1, 5.0, True, None, [0.0, 0.0])
+        for k, i in enumerate(order)
+    ]
+    kid = summarize(recs, 4, 0, [(5, 2)], order).kidnaps[0]
+    assert kid["scans_until_correct_fix"] == 2  # from stream position 6 on; position 7 fixes
+    for kwargs, match in [
+        ({"first_scan": 99}, "outside the 15 scans"),
+        ({"map_until": -1.0}, "no keyframe"),
+    ]:
+        with pytest.raises(InputError, match=match):
+            eval_track(balm_mini_dir, tmp_path, **kwargs)
+
+
 def test_eval_track_counts_scans_the_encoder_cannot_describe(
     balm_mini_dir: Path, tmp_path: Path
 ) -> None:

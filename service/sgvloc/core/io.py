@@ -16,6 +16,7 @@ from __future__ import annotations
 import logging
 import os
 import struct
+import zipfile
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -208,6 +209,10 @@ def _pcd_header(raw: bytes, p: Path) -> tuple[Any, list[str], bytes]:
             )
         lines[key.upper()] = vals
     fields = lines.get("FIELDS", [])
+    if not fields:
+        raise ScanFormatError(f"{p}: not a valid PCD file: the header has no FIELDS")
+    if len(set(fields)) != len(fields):
+        raise ScanFormatError(f"{p}: PCD FIELDS names a field twice: {' '.join(fields)}")
     lines.setdefault("COUNT", ["1"] * len(fields))
     for key in ("SIZE", "TYPE", "COUNT"):
         if len(lines.get(key, [])) != len(fields):
@@ -363,8 +368,32 @@ def read_ply(path: PathLike) -> Scan:
         raise ScanFormatError(
             f"{p}: PLY vertex element must come first (elements are {' '.join(names)})"
         )
-    data = ply["vertex"].data
+    vertex = ply["vertex"]
+    for prop in vertex.properties:
+        if prop.name in ("x", "y", "z") and type(prop).__name__ == "PlyListProperty":
+            raise ScanFormatError(f"{p}: PLY property {prop.name!r} is a list, expected a number")
+    lists = any(type(prop).__name__ == "PlyListProperty" for prop in vertex.properties)
+    if len(names) == 1 and not lists:  # nothing may follow the vertices: a header lies
+        _check_ply_rest(raw, vertex, ply.text, p)
+    data = vertex.data
     return _scan_from_columns(lambda nm: data[nm], list(data.dtype.names), p, len(data))
+
+
+def _check_ply_rest(raw: bytes, vertex: Any, text: bool, p: Path) -> None:
+    """A PLY file holding only vertices ends with them (ScanFormatError if more follows)."""
+    start = raw.find(b"end_header")
+    start = raw.find(b"\n", start) + 1
+    body = raw[start:]
+    if text:
+        rows = [ln for ln in body.split(b"\n") if ln.strip()]
+        extra = len(rows) - vertex.count
+    else:
+        extra = len(body) - vertex.count * vertex.data.dtype.itemsize
+    if extra > 0:
+        unit = "line(s)" if text else "byte(s)"
+        raise ScanFormatError(
+            f"{p}: the PLY header says {vertex.count} vertices but {extra} more {unit} follow"
+        )
 
 
 def write_ply(path: PathLike, scan: Scan | np.ndarray, binary: bool = True) -> Path:
@@ -396,7 +425,7 @@ def read_npy(path: PathLike) -> Scan:
         raise ScanFormatError(f"{p}: scan file not found")
     try:
         loaded = np.load(p, allow_pickle=False)
-    except (ValueError, OSError, EOFError) as e:
+    except (ValueError, OSError, EOFError, zipfile.BadZipFile) as e:
         raise ScanFormatError(f"{p}: cannot read numpy file: {e}") from None
     try:
         if isinstance(loaded, np.ndarray):
@@ -417,7 +446,7 @@ def read_npy(path: PathLike) -> Scan:
             return scan
     except ScanFormatError:
         raise
-    except (InputError, ValueError, OSError, EOFError) as e:  # bad shape, corrupt member
+    except (InputError, ValueError, OSError, EOFError, zipfile.BadZipFile) as e:  # corrupt
         msg = str(e)
         raise ScanFormatError(msg if msg.startswith(str(p)) else f"{p}: {msg}") from None
 

@@ -30,7 +30,7 @@ import numpy as np
 from sgvloc.core.confidence import CORRECT_DEG, CORRECT_M  # a fix beyond either is wrong
 from sgvloc.core.config import LocalizerConfig
 from sgvloc.core.encoders import EncoderSpec
-from sgvloc.core.errors import EmptyScanError
+from sgvloc.core.errors import EmptyScanError, InputError
 from sgvloc.core.sequence import KittiSequence
 from sgvloc.core.tracking import Seed
 from sgvloc.server.maps import KeyframeIn, MapManager
@@ -108,10 +108,9 @@ def stream_order(n: int, kidnaps: list[tuple[int, int]], first: int = 0) -> list
     """Scan indices in streaming order: ``first``, ``first + 1``, ... with each
     ``(at, to)`` jumping from scan ``at`` straight to scan ``to`` (then on from there)."""
     jumps = dict(kidnaps)
-    order, i, seen = [], first, set()
-    while 0 <= i < n and i not in seen:
+    order, i = [], first
+    while 0 <= i < n:  # each jump is taken once, so the stream ends (a jump back revisits)
         order.append(i)
-        seen.add(i)
         i = jumps.pop(i, i + 1)
     return order
 
@@ -136,10 +135,17 @@ def eval_track(
     ``out/track.json`` and ``out/trajectory.png``; returns the report."""
     seq = KittiSequence(data)
     n = len(seq) if max_scans is None else min(len(seq), max_scans)
-    if map_until is not None:
-        map_ids = [i for i in range(n) if seq[i].time <= map_until]
+    if not 0 <= first_scan < n:
+        raise InputError(f"first_scan {first_scan} is outside the {n} scans streamed")
+    if map_until is not None:  # seconds from the sequence's first scan, as build-map --until
+        times = seq.times
+        if times is None:
+            raise InputError(f"{data} has no times.txt: map_until needs scan times")
+        map_ids = [i for i in range(n) if times[i] - times[0] <= map_until]
     else:
         map_ids = list(range(0, n, map_every))
+    if not map_ids:
+        raise InputError("the map would have no keyframe (map_until before the first scan)")
     say = progress or (lambda _msg: None)
     out.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix="sgvloc-track-") as tmp:
@@ -255,9 +261,11 @@ def summarize(
         by_mode.setdefault(r.mode, []).append(r.ms)
     kid = []
     for at, to in kidnaps:
-        if to not in order:
+        # the stream position just after the jump: the first ``to`` that follows an ``at``
+        after = [k + 1 for k in range(len(order) - 1) if order[k] == at and order[k + 1] == to]
+        if not after:
             continue
-        start = order.index(to)
+        start = after[0]
         until = None
         for j, r in enumerate(records[start:], 1):
             if r.localized and (r.error_m or 0) <= CORRECT_M and (r.error_deg or 0) <= CORRECT_DEG:

@@ -172,108 +172,115 @@ def run_loadtest(
         r = c.post("/v1/maps", json={"name": name, "encoder": spec})
         if r.status_code != 201:
             raise RuntimeError(f"cannot create map {name!r}: {r.status_code} {r.text}")
-        eye = np.eye(4)
-        for start in range(0, seed_keyframes, 10):
-            kfs = [
-                {"T_map_sensor": eye, "features": _features(rng)}
-                for _ in range(min(10, seed_keyframes - start))
-            ]
-            r = c.post(
-                f"/v1/maps/{name}/keyframes",
-                content=wire.packb({"keyframes": kfs}),
-                headers={"Content-Type": wire.MSGPACK},
-            )
-            if r.status_code != 201:
-                raise RuntimeError(f"cannot seed map {name!r}: {r.status_code} {r.text}")
-
-    kinds = {"localize": KindStats(), "insert": KindStats()}
-    samples: list[str] = []
-    lock = threading.Lock()
-    start = time.monotonic()
-    deadline = start + duration_s
-
-    def client(i: int) -> None:
-        crng = np.random.default_rng(1000 + i)
-        # bodies made ahead, so the clients measure the service, not numpy
-        loc_bodies = [wire.packb({"features": _features(crng), "refine": "none"}) for _ in range(8)]
+    # the map is deleted however the run ends (a failed seeding, an error, Ctrl-C)
+    try:
         with httpx.Client(base_url=url, headers=headers, timeout=timeout_s) as c:
-            n = 0
-            while time.monotonic() < deadline:
-                n += 1
-                if crng.random() < insert_fraction:
-                    kind, path = "insert", f"/v1/maps/{name}/keyframes"
-                    kfs = [
-                        {"key": f"c{i}-{n}-{j}", "T_map_sensor": np.eye(4), "features": f}
-                        for j, f in enumerate(_features(crng) for _ in range(batch))
-                    ]
-                    body = wire.packb({"keyframes": kfs})
-                else:
-                    kind, path = "localize", f"/v1/maps/{name}/localize"
-                    body = loc_bodies[n % len(loc_bodies)]
-                t0 = time.perf_counter()
-                try:
-                    r = c.post(path, content=body, headers={"Content-Type": wire.MSGPACK})
-                    status, text, retry = r.status_code, r.text[:200], "retry-after" in r.headers
-                except httpx.TransportError as exc:
-                    status, text, retry = 0, repr(exc), False
-                ms = (time.perf_counter() - t0) * 1e3
-                with lock:
-                    s = kinds[kind]
-                    s.requests += 1
-                    if 200 <= status < 300:
-                        s.ok += 1
-                        s.latencies_ms.append(ms)
-                    elif status in (429, 503) and retry:
-                        s.refused += 1
+            eye = np.eye(4)
+            for start in range(0, seed_keyframes, 10):
+                kfs = [
+                    {"T_map_sensor": eye, "features": _features(rng)}
+                    for _ in range(min(10, seed_keyframes - start))
+                ]
+                r = c.post(
+                    f"/v1/maps/{name}/keyframes",
+                    content=wire.packb({"keyframes": kfs}),
+                    headers={"Content-Type": wire.MSGPACK},
+                )
+                if r.status_code != 201:
+                    raise RuntimeError(f"cannot seed map {name!r}: {r.status_code} {r.text}")
+
+        kinds = {"localize": KindStats(), "insert": KindStats()}
+        samples: list[str] = []
+        lock = threading.Lock()
+        start = time.monotonic()
+        deadline = start + duration_s
+
+        def client(i: int) -> None:
+            crng = np.random.default_rng(1000 + i)
+            # bodies made ahead, so the clients measure the service, not numpy
+            loc_bodies = [
+                wire.packb({"features": _features(crng), "refine": "none"}) for _ in range(8)
+            ]
+            with httpx.Client(base_url=url, headers=headers, timeout=timeout_s) as c:
+                n = 0
+                while time.monotonic() < deadline:
+                    n += 1
+                    if crng.random() < insert_fraction:
+                        kind, path = "insert", f"/v1/maps/{name}/keyframes"
+                        kfs = [
+                            {"key": f"c{i}-{n}-{j}", "T_map_sensor": np.eye(4), "features": f}
+                            for j, f in enumerate(_features(crng) for _ in range(batch))
+                        ]
+                        body = wire.packb({"keyframes": kfs})
                     else:
-                        s.errors += 1
-                        if len(samples) < 5:
-                            samples.append(f"{kind} {status}: {text}")
-                if status in (429, 503):
-                    time.sleep(0.05)
-
-    slow = SlowStats(clients=slow_clients)
-    parsed = urlparse(url)
-    auth = f"Authorization: Bearer {api_key}\r\n" if api_key else ""
-    slow_head = (
-        f"POST /v1/maps/{name}/localize HTTP/1.1\r\nHost: {parsed.hostname}\r\n{auth}"
-        "Content-Type: application/json\r\nContent-Length: 100000\r\n\r\n"
-    ).encode()
-
-    def slow_client() -> None:
-        while time.monotonic() < deadline:
-            try:
-                with socket.create_connection((parsed.hostname, parsed.port or 80), 5) as sock:
-                    sock.sendall(slow_head)
+                        kind, path = "localize", f"/v1/maps/{name}/localize"
+                        body = loc_bodies[n % len(loc_bodies)]
+                    t0 = time.perf_counter()
+                    try:
+                        r = c.post(path, content=body, headers={"Content-Type": wire.MSGPACK})
+                        retry = "retry-after" in r.headers
+                        status, text = r.status_code, r.text[:200]
+                    except httpx.TransportError as exc:
+                        status, text, retry = 0, repr(exc), False
+                    ms = (time.perf_counter() - t0) * 1e3
                     with lock:
-                        slow.connections += 1
-                    while time.monotonic() < deadline:
-                        readable, _, _ = select.select([sock], [], [], 0.5)
-                        if readable:  # the service answered (408) or closed
-                            if sock.recv(4096).startswith(b"HTTP/1.1 408"):
-                                with lock:
-                                    slow.timed_out += 1
-                            break
-                        sock.sendall(b" ")
-                        with lock:
-                            slow.bytes_sent += 1
-            except OSError:
-                time.sleep(0.5)
+                        s = kinds[kind]
+                        s.requests += 1
+                        if 200 <= status < 300:
+                            s.ok += 1
+                            s.latencies_ms.append(ms)
+                        elif status in (429, 503) and retry:
+                            s.refused += 1
+                        else:
+                            s.errors += 1
+                            if len(samples) < 5:
+                                samples.append(f"{kind} {status}: {text}")
+                    if status in (429, 503):
+                        time.sleep(0.05)
 
-    threads = [threading.Thread(target=client, args=(i,), daemon=True) for i in range(clients)]
-    threads += [threading.Thread(target=slow_client, daemon=True) for _ in range(slow_clients)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join(duration_s + timeout_s + 30)
-    elapsed = time.monotonic() - start
-    for s in kinds.values():
-        if s.latencies_ms:
-            s.p50_ms = round(float(np.percentile(s.latencies_ms, 50)), 1)
-            s.p99_ms = round(float(np.percentile(s.latencies_ms, 99)), 1)
-    with httpx.Client(base_url=url, headers=headers, timeout=timeout_s) as c:
-        c.delete(f"/v1/maps/{name}")
-    return LoadResult(url, clients, elapsed, kinds, samples, slow)
+        slow = SlowStats(clients=slow_clients)
+        parsed = urlparse(url)
+        auth = f"Authorization: Bearer {api_key}\r\n" if api_key else ""
+        slow_head = (
+            f"POST /v1/maps/{name}/localize HTTP/1.1\r\nHost: {parsed.hostname}\r\n{auth}"
+            "Content-Type: application/json\r\nContent-Length: 100000\r\n\r\n"
+        ).encode()
+
+        def slow_client() -> None:
+            while time.monotonic() < deadline:
+                try:
+                    with socket.create_connection((parsed.hostname, parsed.port or 80), 5) as sock:
+                        sock.sendall(slow_head)
+                        with lock:
+                            slow.connections += 1
+                        while time.monotonic() < deadline:
+                            readable, _, _ = select.select([sock], [], [], 0.5)
+                            if readable:  # the service answered (408) or closed
+                                if sock.recv(4096).startswith(b"HTTP/1.1 408"):
+                                    with lock:
+                                        slow.timed_out += 1
+                                break
+                            sock.sendall(b" ")
+                            with lock:
+                                slow.bytes_sent += 1
+                except OSError:
+                    time.sleep(0.5)
+
+        threads = [threading.Thread(target=client, args=(i,), daemon=True) for i in range(clients)]
+        threads += [threading.Thread(target=slow_client, daemon=True) for _ in range(slow_clients)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(duration_s + timeout_s + 30)
+        elapsed = time.monotonic() - start
+        for s in kinds.values():
+            if s.latencies_ms:
+                s.p50_ms = round(float(np.percentile(s.latencies_ms, 50)), 1)
+                s.p99_ms = round(float(np.percentile(s.latencies_ms, 99)), 1)
+        return LoadResult(url, clients, elapsed, kinds, samples, slow)
+    finally:
+        with httpx.Client(base_url=url, headers=headers, timeout=timeout_s) as c:
+            c.delete(f"/v1/maps/{name}")
 
 
 def run_loadtest_local(*, workers: int = 2, **kwargs: Any) -> LoadResult:

@@ -411,15 +411,24 @@ def train(
     ckpt_path = out / "checkpoint.pt"
     step, history, val_hist = 0, [], []
     if resume and ckpt_path.exists():
-        ckpt = torch.load(ckpt_path, map_location=device, weights_only=False)
-        model.load_state_dict(ckpt["model"])
-        opt.load_state_dict(ckpt["optimizer"])
-        step, history, val_hist = ckpt["step"], ckpt["history"], ckpt["val"]
-        rng.bit_generator.state = ckpt["rng"]
-        torch.set_rng_state(ckpt["torch_rng"].cpu())
+        try:
+            ckpt = torch.load(ckpt_path, map_location=device, weights_only=False)
+            model.load_state_dict(ckpt["model"])
+            opt.load_state_dict(ckpt["optimizer"])
+            step, history, val_hist = ckpt["step"], ckpt["history"], ckpt["val"]
+            rng.bit_generator.state = ckpt["rng"]
+            torch.set_rng_state(ckpt["torch_rng"].cpu())
+        except (OSError, RuntimeError, KeyError, ValueError, EOFError) as exc:
+            raise InputError(
+                f"{ckpt_path}: cannot resume from this checkpoint ({exc}); move it away to "
+                "start over"
+            ) from None
         log.info("resumed from %s at step %d", ckpt_path, step)
 
     def save() -> None:
+        # written beside and renamed: a save cut short (Ctrl-C, a full disk) leaves the
+        # previous checkpoint whole
+        part = ckpt_path.with_suffix(".pt.tmp")
         torch.save(
             {
                 "model": model.state_dict(),
@@ -431,8 +440,9 @@ def train(
                 "torch_rng": torch.get_rng_state(),
                 "config": asdict(cfg),
             },
-            ckpt_path,
+            part,
         )
+        part.replace(ckpt_path)
         (out / "log.json").write_text(
             json.dumps({"config": asdict(cfg), "history": history, "val": val_hist}, indent=1)
         )
