@@ -484,9 +484,16 @@ def record_dashboard(
 
         with Client(srv.url, api_key=keys["mapper"]) as c:
             build_map(data, c, "campus", encoder="handcrafted", limit=map_keyframes, progress=False)
-            # a second, smaller map: every third keyframe
+            # a second, smaller map: every third of campus's keyframes (the limit counts
+            # the scans taken, after every)
             build_map(
-                data, c, "yard", encoder="handcrafted", limit=map_keyframes, every=3, progress=False
+                data,
+                c,
+                "yard",
+                encoder="handcrafted",
+                limit=-(-map_keyframes // 3),
+                every=3,
+                progress=False,
             )
         prom = LocalPrometheus(
             f"127.0.0.1:{srv.port}",
