@@ -28,7 +28,7 @@ from sgvloc.core.encoders.handcrafted import (
 )
 from sgvloc.core.errors import EncoderMismatchError, InputError
 from sgvloc.core.features import Features
-from sgvloc.core.preprocess import preprocess
+from sgvloc.core.preprocess import GROUND_FIT, preprocess
 
 # ---------------------------------------------------------------------------------------
 # synthetic scenes
@@ -152,6 +152,17 @@ def test_handcrafted_deterministic(scene, scene_features):
     np.testing.assert_array_equal(again.keypoints, scene_features.keypoints)
     np.testing.assert_array_equal(again.local_features, scene_features.local_features)
     assert again.encoder == scene_features.encoder
+
+
+def test_only_an_encoder_that_removes_the_ground_records_how(scene) -> None:
+    """The ground fit is part of the identity of maps that remove the ground (their
+    features depend on it) and of no other map, whose fingerprints stay as they were."""
+    plain = HandcraftedEncoder()
+    ground = HandcraftedEncoder(preprocess_config=PreprocessConfig(remove_ground=True))
+    assert "ground_fit" not in plain.identity.params
+    assert ground.identity.params["ground_fit"] == GROUND_FIT
+    a, b = ground.encode(scene), ground.encode(scene.copy())  # deterministic
+    np.testing.assert_array_equal(a.keypoints, b.keypoints)
 
 
 @pytest.mark.parametrize("deg", [37.0, 90.0, 180.0, 253.3, -11.7])

@@ -32,6 +32,29 @@ def test_voxel_downsample_keeps_one_centroid_per_cell():
     assert voxel_downsample(pts, 0.0) is pts
 
 
+def test_a_voxel_grid_too_fine_for_one_integer_key_still_averages_each_cell(rng):
+    """A 10 micrometre grid over 120 m has more cells than an int64 can number; the
+    points are grouped by their cell triples instead (a ValueError, a 500, before)."""
+    pts = rng.uniform(-60, 60, (200, 3)).astype(np.float32)
+    pts = np.r_[pts, pts[:5]]  # five points twice: one cell each
+    out = voxel_downsample(pts, 1e-5)
+    assert len(out) == 200
+    np.testing.assert_allclose(np.sort(out, axis=0), np.sort(pts[:200], axis=0), atol=1e-5)
+
+
+def test_ground_removal_is_the_same_from_several_threads_at_once(rng):
+    """Open3D's RANSAC draws from one generator per process: scans whose ground is
+    removed at the same time in several threads each lose the plane they lose alone."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    scans = [scene(np.random.default_rng(i)) for i in range(8)]
+    alone = [len(remove_ground(s, 0.2, 20.0)) for s in scans]
+    with ThreadPoolExecutor(4) as pool:
+        for _ in range(5):
+            together = list(pool.map(lambda s: len(remove_ground(s, 0.2, 20.0)), scans))
+            assert together == alone
+
+
 def test_crop_range_and_finite_filter():
     pts = np.array([[0.1, 0, 0], [5, 0, 0], [100, 0, 0], [np.nan, 0, 0], [np.inf, 1, 1]])
     cfg = PreprocessConfig(min_range=0.5, max_range=60, voxel_size=0)
@@ -73,6 +96,7 @@ def test_preprocess_with_ground_removal(rng):
         (np.zeros((5, 2), np.float32), r"\[P, 3\]"),
         (np.full((5, 3), np.nan, np.float32), "no points left"),
         (np.array([["a", "b", "c"]]), "numeric"),
+        ([[1.0, 2.0, 3.0], [1.0, 2.0]], "rectangular"),
     ],
 )
 def test_bad_scans_raise_clear_errors(scan, message):

@@ -111,8 +111,9 @@ class Features:
     def with_variants(self, start: int, blocks: np.ndarray | None) -> Features:
         """These features with ``global_variants``: the global descriptor once per row of
         ``blocks`` ``[V, B]``, its block ``[start, start + B)`` replaced by that row scaled
-        to the block's length in the descriptor (every other value left as it is); none
-        or an empty array: None."""
+        to the block's length in the descriptor (every other value left as it is; a row
+        of zeros, a centre that sees nothing, leaves the block as it is); none or an
+        empty array: None."""
         if blocks is None or len(blocks) == 0:
             return replace(self, global_variants=None)
         b = np.asarray(blocks, dtype=np.float64).reshape(len(blocks), -1)
@@ -121,7 +122,8 @@ class Features:
         norm = np.linalg.norm(b, axis=1, keepdims=True)
         rows = np.repeat(g[None], len(b), axis=0)
         length = float(np.linalg.norm(g[start:end].astype(np.float64)))
-        rows[:, start:end] = b / np.where(norm > 0, norm, 1.0) * length
+        seen = norm[:, 0] > 0  # a centre that sees nothing keeps the sensor's block
+        rows[seen, start:end] = b[seen] / norm[seen] * length
         return replace(self, global_variants=rows.astype(np.float32))
 
     @property

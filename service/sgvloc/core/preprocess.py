@@ -16,7 +16,10 @@ log = logging.getLogger(__name__)
 
 def as_points(points: np.ndarray, name: str = "scan") -> np.ndarray:
     """Validate a scan array ``[P, 3+]`` and return its xyz as float32 ``[P, 3]``."""
-    arr = np.asarray(points)
+    try:
+        arr = np.asarray(points)
+    except ValueError:  # a ragged nested list
+        raise InputError(f"{name} must be a rectangular array [P, 3+]") from None
     if arr.ndim != 2 or arr.shape[1] < 3:
         raise InputError(f"{name} must have shape [P, 3] or [P, 3+C], got {list(arr.shape)}")
     if arr.dtype.kind not in "fiu":
@@ -79,37 +82,63 @@ def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
     cells = np.floor(points / voxel_size).astype(np.int64)  # [P, 3]
     lo, hi = column_min_max(cells)
     cells -= lo
-    # one integer key per cell: np.unique on a 1-D key is several times faster than axis=0
-    key = np.ravel_multi_index(cells.T, tuple(hi - lo + 1))  # [P]
-    _, inverse = np.unique(key, return_inverse=True)
+    dims = hi - lo + 1
+    if float(np.prod(dims.astype(np.float64))) < 2.0**62:
+        # one integer key per cell: np.unique on a 1-D key is several times faster
+        key = np.ravel_multi_index(cells.T, tuple(dims))  # [P]
+        _, inverse = np.unique(key, return_inverse=True)
+    else:  # a grid too fine for one integer key (a tiny voxel over a long range)
+        _, inverse = np.unique(cells, axis=0, return_inverse=True)
+        inverse = inverse.reshape(-1)
     counts = np.bincount(inverse)
     sums = np.stack([np.bincount(inverse, weights=points[:, d]) for d in range(3)], axis=1)
     return (sums / counts[:, None]).astype(np.float32)
 
 
+#: how :func:`remove_ground` fits the plane; part of the identity of an encoder whose
+#: preprocessing removes the ground (features made another way are not comparable)
+GROUND_FIT = "numpy-ransac-200"
+#: points the plane hypotheses are scored on at most (an even subsample beyond)
+GROUND_SAMPLE = 4000
+
+
+def ground_fit(cfg: PreprocessConfig) -> dict[str, str]:
+    """What an encoder's identity records of the ground fit: nothing unless the
+    preprocessing removes the ground (so that other maps keep their fingerprints)."""
+    return {"ground_fit": GROUND_FIT} if cfg.remove_ground else {}
+
+
 def remove_ground(
     points: np.ndarray, distance: float, max_tilt_deg: float, seed: int = 0
 ) -> np.ndarray:
-    """Remove the dominant near-horizontal plane (RANSAC plane fit, Open3D).
+    """Remove the dominant near-horizontal plane (seeded RANSAC: 200 point triples,
+    scored on at most :data:`GROUND_SAMPLE` evenly spaced points; deterministic).
 
     If the best plane is tilted more than ``max_tilt_deg`` from horizontal, nothing is
     removed: a wall is not ground.
     """
     if len(points) < 50:
         return points
-    import open3d as o3d
-
-    o3d.utility.random.seed(seed)
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.astype(np.float64)))
-    plane, inliers = pcd.segment_plane(distance, ransac_n=3, num_iterations=200)
-    normal = np.asarray(plane[:3]) / max(np.linalg.norm(plane[:3]), 1e-12)
+    pts = np.asarray(points, dtype=np.float64)[:, :3]
+    sample = pts
+    if len(pts) > GROUND_SAMPLE:
+        sample = pts[np.linspace(0, len(pts) - 1, GROUND_SAMPLE).astype(np.int64)]
+    rng = np.random.default_rng(seed)
+    tri = sample[rng.integers(0, len(sample), size=(200, 3))]  # [H, 3, 3]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # [H, 3]
+    norm = np.linalg.norm(n, axis=1)
+    ok = norm > 1e-9
+    if not ok.any():
+        return points
+    n = n[ok] / norm[ok, None]
+    d = -np.einsum("ij,ij->i", n, tri[ok, 0])  # plane n . p + d = 0
+    best = int((np.abs(sample @ n.T + d) <= distance).sum(axis=0).argmax())
+    normal, offset = n[best], d[best]
     tilt = np.degrees(np.arccos(min(1.0, abs(normal[2]))))
     if tilt > max_tilt_deg:
         log.debug("largest plane tilted %.1f deg: not treated as ground", tilt)
         return points
-    keep = np.ones(len(points), dtype=bool)
-    keep[np.asarray(inliers, dtype=np.int64)] = False
-    return points[keep]
+    return points[np.abs(pts @ normal + offset) > distance]
 
 
 def preprocess(points: np.ndarray, cfg: PreprocessConfig) -> np.ndarray:

@@ -44,6 +44,7 @@ import numpy as np
 from ..config import HandcraftedEncoderConfig, PreprocessConfig
 from ..errors import EmptyScanError
 from ..features import EncoderIdentity, Features
+from ..preprocess import ground_fit
 from .base import Encoder
 
 log = logging.getLogger(__name__)
@@ -240,6 +241,7 @@ class HandcraftedEncoder(Encoder):
             version=self.VERSION,
             params={
                 "preprocess": self.preprocess_config.model_dump(),
+                **ground_fit(self.preprocess_config),
                 "encoder": c.model_dump(),
                 "cell_value": "sqrt_soft_count",
                 "normal_max_nn": NORMAL_MAX_NN,

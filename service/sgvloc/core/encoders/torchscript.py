@@ -29,6 +29,7 @@ import numpy as np
 from ..config import PreprocessConfig
 from ..errors import InputError
 from ..features import EncoderIdentity, Features
+from ..preprocess import ground_fit
 from .base import Encoder
 
 log = logging.getLogger(__name__)
@@ -101,6 +102,7 @@ class TorchScriptEncoder(Encoder):
             params={
                 "model_sha256": self.sha256,
                 "preprocess": self.preprocess_config.model_dump(),
+                **ground_fit(self.preprocess_config),
                 "global_dim": self.global_dim,
                 "local_dim": self.local_dim,
             },
