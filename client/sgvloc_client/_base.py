@@ -396,12 +396,14 @@ class BaseClient:
         localizer: Mapping[str, Any] | None,
         calibration: Mapping[str, Any] | None = None,
         self_test: Mapping[str, Any] | None = None,
+        keep_clouds: bool | None = None,
     ) -> Call[MapInfo]:
         body: dict[str, Any] = {"name": name}
         for key, value in (
             ("encoder", _shorthand(encoder, "kind")),
             ("retrieval", _shorthand(retrieval, "index")),
             ("localizer", None if localizer is None else dict(localizer)),
+            ("keep_clouds", None if keep_clouds is None else bool(keep_clouds)),
             ("calibration", None if calibration is None else dict(calibration)),
             ("self_test", None if self_test is None else dict(self_test)),
         ):

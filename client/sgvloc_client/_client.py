@@ -188,6 +188,7 @@ class Client(BaseClient):
         localizer: Mapping[str, Any] | None = None,
         calibration: Mapping[str, Any] | None = None,
         self_test: Mapping[str, Any] | None = None,
+        keep_clouds: bool | None = None,
     ) -> MapInfo:
         """Create an empty map.
 
@@ -198,11 +199,14 @@ class Client(BaseClient):
         ``rerank``, ``sgv``, ``pose``, ``verdict``); ``calibration`` a confidence model
         written by ``sgvloc calibrate`` (default: the one shipped for the encoder kind);
         ``self_test`` an encoder self-test to record with the map
-        (:func:`sgvloc.tools.self_test.self_test` makes one).
+        (:func:`sgvloc.tools.self_test.self_test` makes one); ``keep_clouds`` False keeps
+        no keyframe clouds (less memory and disk; no ICP, free-space check or tracking).
         Raises :class:`Conflict` if the name is taken.
         """
         return self._send(
-            self._create_map(name, encoder, retrieval, localizer, calibration, self_test)
+            self._create_map(
+                name, encoder, retrieval, localizer, calibration, self_test, keep_clouds
+            )
         )
 
     def list_maps(self) -> list[MapInfo]:

@@ -88,6 +88,9 @@ def test_map_lifecycle(service_url: str) -> None:
         assert (missing.value.status, missing.value.code) == (404, "not_found")
         with pytest.raises(NotFound):
             c.delete_map("lifecycle")
+        # a map that keeps no keyframe clouds
+        assert c.create_map("no-clouds", keep_clouds=False).keep_clouds is False
+        c.delete_map("no-clouds")
 
 
 def test_unknown_map_is_not_found(service_url: str) -> None:

@@ -288,6 +288,8 @@ def test_invalid_map_name(client: httpx.Client, name: str) -> None:
         {"name": "bad-enc", "encoder": {**PRECOMPUTED, "global_dim": 2**63}},
         {"name": "bad-enc", "encoder": {**PRECOMPUTED, "local_dim": 10**9}},
         {"name": "bad-enc", "localizer": {"top_k": 0}},
+        # a map's own top_k within max_top_k, as a request's
+        {"name": "bad-enc", "encoder": PRECOMPUTED, "localizer": {"top_k": MAX_TOP_K + 1}},
         {"name": "bad-enc", "localizer": {"rerank": "magic"}},
         {"name": "bad-enc", "retrieval": {"index": "lsh"}},
     ],

@@ -125,7 +125,7 @@ def test_recent_localizations_newest_first(client: httpx.Client) -> None:
 @pytest.mark.parametrize("limit", [0, 501, "x"])
 def test_limit_is_bounded(client: httpx.Client, limit: object) -> None:
     r = client.get("/v1/maps/recent-a/localizations", params={"limit": limit})
-    assert r.status_code == 422 and error_of(r)["field"] == "query.limit"
+    assert r.status_code == 422 and error_of(r)["field"] == "limit"
 
 
 def test_unknown_map_is_404(client: httpx.Client) -> None:

@@ -73,8 +73,9 @@ def error_response(
 
 def loc_to_field(loc: Sequence[Any]) -> str | None:
     """A pydantic error location as a field path: ``("keyframes", 3, "points")`` ->
-    ``keyframes[3].points``. Leading ``body`` (FastAPI) is dropped."""
-    parts = [p for p in loc if p not in ("body",)]
+    ``keyframes[3].points``. FastAPI's leading ``body``, ``query``, ``path`` or
+    ``header`` is dropped: a field is named alike wherever it was checked."""
+    parts = list(loc[1:] if loc and loc[0] in ("body", "query", "path", "header") else loc)
     out = ""
     for p in parts:
         if isinstance(p, int):

@@ -55,6 +55,14 @@ def _limit(info: ValidationInfo, name: str) -> int | None:
     return (info.context or {}).get(name)
 
 
+def _check_map_top_k(top_k: int, info: ValidationInfo) -> None:
+    """A map's default top_k within max_top_k, as a request's (else a map setting would
+    take every localize of it past the limit)."""
+    cap = _limit(info, "max_top_k")
+    if cap is not None and top_k > cap:
+        raise ValueError(f"top_k {top_k} exceeds the limit of {cap} (max_top_k)")
+
+
 def _to_ndarray(value: Any) -> np.ndarray:
     if isinstance(value, np.ndarray):
         arr = value
@@ -136,6 +144,13 @@ class MapCreate(_In):
         f"--choose-encoder writes one); JSON of at most {SELF_TEST_MAX_BYTES} bytes",
     )
 
+    @field_validator("localizer")
+    @classmethod
+    def _map_top_k(cls, v: LocalizerConfig | None, info: ValidationInfo) -> LocalizerConfig | None:
+        if v is not None:
+            _check_map_top_k(v.top_k, info)
+        return v
+
     @field_validator("self_test")
     @classmethod
     def _self_test_size(cls, v: dict[str, Any] | None) -> dict[str, Any] | None:
@@ -187,6 +202,14 @@ class MapPatch(_In):
         description="a calibration written by 'sgvloc calibrate', or 'shipped' for the one "
         "this installation ships for the map's encoder kind",
     )
+
+    @field_validator("localizer")
+    @classmethod
+    def _map_top_k(cls, v: dict[str, Any] | None, info: ValidationInfo) -> dict[str, Any] | None:
+        top_k = (v or {}).get("top_k")
+        if isinstance(top_k, int) and not isinstance(top_k, bool):
+            _check_map_top_k(top_k, info)
+        return v
 
     @field_validator("calibration")
     @classmethod
@@ -684,7 +707,7 @@ class LocalizeOut(BaseModel):
     evidence: dict[str, Any] | None = Field(
         description="what the confidence was computed from (sgv, sgv_margin, similarity, "
         "inliers, inlier_ratio, icp_fitness, icp_rmse, icp_constraint, free_space, "
-        "agreement, offset_m)"
+        "agreement, offset_m, planar)"
     )
     prior: PriorOut | None = Field(description="null when the request had no prior")
     pose: PoseOut | None
@@ -725,7 +748,10 @@ class LimitsOut(BaseModel):
         description="keypoints per feature set, and a new map's encoder num_keypoints (422)"
     )
     max_batch: int = Field(description="keyframes per insert request (422)")
-    max_top_k: int = Field(description="largest top_k of a localize request (422)")
+    max_top_k: int = Field(
+        description="largest top_k of a localize request and of a map's settings (422)"
+    )
+    max_import_bytes: int = Field(description="largest map archive an import takes (413)")
     max_inflight_localize: int = Field(description="localize requests admitted at once (429)")
     request_timeout_s: float = Field(description="longest wait for a worker thread (503)")
     retry_after_s: int = Field(description="Retry-After of 429/503 answers")
