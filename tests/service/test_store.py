@@ -259,6 +259,36 @@ def test_a_closed_store_says_so_and_a_snapshot_reads_only_its_own_map(tmp_path: 
     old.close()
 
 
+def test_the_snapshot_thread_survives_a_map_deleted_under_it(tmp_path: Path) -> None:
+    """A map deleted between the thread's listing and its save ended the thread: no
+    other map was saved after its delay any more."""
+    rng = np.random.default_rng(8)
+    m = _manager(tmp_path, snapshot_delay_s=0.2, snapshot_every=1000)
+    m.create("x", SPEC)
+    m.create("y", SPEC)
+    m.insert("x", _items(rng, 2, "x"))
+    real_list = m.list
+
+    def racing_list():
+        handles = real_list()
+        if any(h.name == "x" and h.unsaved_since is not None for h in handles):
+            if time.monotonic() - m.get("x").unsaved_since >= 0.2:
+                m.list = real_list
+                m.delete("x")  # DELETE /v1/maps/x between the listing and the save
+        return handles
+
+    m.list = racing_list
+    m.start_snapshotter()
+    deadline = time.monotonic() + 10
+    while m.list is racing_list and time.monotonic() < deadline:
+        time.sleep(0.05)
+    m.insert("y", _items(rng, 1, "y"))
+    while m.get("y").unsaved and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert m.get("y").unsaved == 0 and m._snapshotter.is_alive()
+    m.close()
+
+
 def test_schema_1_is_migrated_on_open(tmp_path: Path) -> None:
     """A map stored before positions had columns (schema 1) is migrated when loaded:
     its extent and bounding-box filters then work, nothing else changes."""

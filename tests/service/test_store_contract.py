@@ -175,12 +175,12 @@ def test_replicas_settings_changes_never_undo_each_other(managers: Factory) -> N
     assert record.last_self_test == {"format": "test"} and record.settings_version == 3
 
 
-def test_a_replica_starts_past_maps_it_cannot_load_now(
+def test_a_replica_starts_past_a_deleted_map_and_waits_for_a_silent_store(
     managers: Factory, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """One map deleted by another replica between the catalog and its load, one the
-    store does not answer for: the start-up serves the rest and is ready (it stayed
-    unready for good), and the follower loads the missing map once the store answers."""
+    store does not answer for a moment: the start-up serves every other map, and is
+    ready only once it serves them all (it stayed unready for good before)."""
     from sgvloc.server.store import StoreUnavailableError
     from sgvloc.server.store.postgres import PgBackend
 
@@ -190,9 +190,11 @@ def test_a_replica_starts_past_maps_it_cannot_load_now(
     for name in ("m1", "m2", "m3"):
         a.create(name, SPEC)
     real_open = PgBackend.open
+    silent = ["m1"]
 
     def racing_open(self, name):
-        if name == "m1":
+        if name in silent:
+            silent.remove(name)
             raise StoreUnavailableError("the store did not answer")
         if name == "m2":
             a.delete("m2")  # another replica, just now
@@ -200,10 +202,58 @@ def test_a_replica_starts_past_maps_it_cannot_load_now(
 
     monkeypatch.setattr(PgBackend, "open", racing_open)
     b = managers()
-    assert b.loaded.is_set() and {h.name for h in b.list()} == {"m3"} and not b.failed
-    monkeypatch.setattr(PgBackend, "open", real_open)
+    assert b.loaded.is_set() and {h.name for h in b.list()} == {"m1", "m3"} and not b.failed
+
+
+def test_a_follower_round_undoes_no_own_create_or_delete(
+    managers: Factory, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A map this replica makes while its follower reads the catalog is not dropped as
+    deleted elsewhere, and one it deletes is not loaded back before the delete
+    commits; a map that failed to load and was made again under its name is loaded."""
+    from sgvloc.server.store.postgres import PgBackend
+
+    a, b = managers(), managers()
+    if not a.shared:
+        pytest.skip("one process per SQLite map folder: no follower")
+    real_catalog = PgBackend.catalog
+
+    def creating_catalog(self):
+        monkeypatch.setattr(PgBackend, "catalog", real_catalog)
+        out = real_catalog(self)
+        a.create("fresh", SPEC)  # a POST /v1/maps lands on a meanwhile
+        return out
+
+    monkeypatch.setattr(PgBackend, "catalog", creating_catalog)
+    a.sync()
+    assert a.get("fresh").name == "fresh"
+    real_drop = PgBackend.drop
+
+    def syncing_drop(self, store):
+        a.sync()  # a follower round between delete's own steps
+        return real_drop(self, store)
+
+    monkeypatch.setattr(PgBackend, "drop", syncing_drop)
+    a.delete("fresh")
+    monkeypatch.setattr(PgBackend, "drop", real_drop)
+    with pytest.raises(NotFoundError):
+        a.get("fresh")
+    # b fails to load a map (say its model file is missing there); it is made again
+    a.create("m", SPEC)
+    real_load = b._load_store
+
+    def failing(store, folder, name):
+        b._load_store = real_load
+        raise RuntimeError("the encoder's model file is missing on this replica")
+
+    b._load_store = failing
     b.sync()
-    assert {h.name for h in b.list()} == {"m1", "m3"}
+    assert "m" in b.failed
+    a.delete("m")
+    a.create("m", SPEC)
+    a.insert("m", _items(np.random.default_rng(3), 2))
+    b.sync()
+    assert b.get("m").num_keyframes == 2 and "m" not in b.failed
 
 
 def test_delete_map_and_use_the_name_again(managers: Factory, rng: np.random.Generator) -> None:

@@ -292,6 +292,8 @@ class MapManager:
         self._reserved: set[str] = set()  # names being created
         self._lock = threading.Lock()
         self.failed: dict[str, str] = {}  # map folders that could not be loaded -> why
+        #: shared store: the incarnation of each map in ``failed`` when it failed
+        self._failed_incarnation: dict[str, int | None] = {}
         self.loaded = threading.Event()
         self._stop = threading.Event()
         self._snapshotter: threading.Thread | None = None
@@ -349,12 +351,17 @@ class MapManager:
             if self._stop.is_set():
                 log.warning("shutting down: maps from %r on were not loaded", name)
                 return
-            try:
-                self._load_named(name)
-            except NotFoundError:  # deleted by another replica since the catalog was read
-                continue
-            except StoreUnavailableError as exc:  # the follower loads it once it answers
-                log.warning("map %r not loaded yet: %s", name, exc)
+            wait = 0.5
+            while not self._stop.is_set():  # ready only once every map is served
+                try:
+                    self._load_named(name)
+                    break
+                except NotFoundError:  # deleted by another replica since the catalog
+                    break
+                except StoreUnavailableError as exc:
+                    log.warning("map %r: %s; trying again in %.0f s", name, exc, wait)
+                    self._stop.wait(wait)
+                    wait = min(10.0, wait * 2)
         self.loaded.set()
 
     def _load_named(self, name: str) -> None:
@@ -367,14 +374,18 @@ class MapManager:
                 return
             self._reserved.add(name)
         t0 = time.perf_counter()
+        store = None
         try:
-            handle = self._load_store(backend.open(name), None, name)
+            store = backend.open(name)
+            handle = self._load_store(store, None, name)
         except (StoreUnavailableError, NotFoundError):
             raise
         except Exception as exc:
             why = str(exc) or type(exc).__name__
             log.error("map %r could not be loaded: %s", name, why)
             self.failed[name] = why
+            # which map failed: one made again under the name is tried afresh (sync)
+            self._failed_incarnation[name] = getattr(store, "incarnation", None)
             return
         finally:
             with self._lock:
@@ -520,15 +531,19 @@ class MapManager:
         maps deleted elsewhere, apply keyframe changes and settings changes."""
         backend = self.backend
         assert isinstance(backend, SharedBackend)
-        catalog = backend.catalog()
-        with self._lock:
+        with self._lock:  # before the catalog: a map made here meanwhile is not dropped
             local = dict(self._maps)
+        catalog = backend.catalog()
         for name, handle in local.items():
             entry = catalog.get(name)
             if entry is None or entry[0] != getattr(handle.store, "incarnation", None):
                 self._forget(handle, "deleted by another replica")
-        for name in [n for n in self.failed if n not in catalog]:
-            self.failed.pop(name, None)  # a map that failed to load is gone: not degraded
+        for name in list(self.failed):
+            entry, failed_as = catalog.get(name), self._failed_incarnation.get(name)
+            if entry is None or (failed_as is not None and entry[0] != failed_as):
+                # gone (not degraded), or made again under the name: tried afresh below
+                self.failed.pop(name, None)
+                self._failed_incarnation.pop(name, None)
         for name, (_, version, settings_version) in catalog.items():
             with self._lock:
                 handle = self._maps.get(name)
@@ -539,10 +554,13 @@ class MapManager:
                     except NotFoundError:  # deleted between the catalog and the load
                         pass
                 continue
-            if version != handle.version:
-                self.sync_map(handle)
-            if settings_version != handle.record.settings_version:
-                self._refresh_settings(handle)
+            try:
+                if version != handle.version:
+                    self.sync_map(handle)
+                if settings_version != handle.record.settings_version:
+                    self._refresh_settings(handle)
+            except StoreClosedError:  # deleted since the catalog: the next round drops it
+                continue
 
     def sync_map(self, handle: MapHandle) -> None:
         """Catch one map up with the shared store now (no-op for a local store)."""
@@ -624,7 +642,12 @@ class MapManager:
                 since = handle.unsaved_since
                 due = since is not None and now - since >= self.snapshot_delay_s
                 if due and now >= handle.snapshot_retry_at:
-                    self.snapshot(handle.name)
+                    try:
+                        self.snapshot(handle.name)
+                    except NotFoundError:  # deleted since the list was taken
+                        continue
+                    except Exception:  # the loop goes on for every other map
+                        log.exception("map %r: saving the index snapshot failed", handle.name)
 
     def _scrubbed(self, why: str, folder: Path) -> str:
         """``why`` as callers may see it: the map's name, never the server's paths."""
@@ -846,20 +869,26 @@ class MapManager:
         """Delete a map and its folder; raises :class:`NotFoundError`."""
         with self._lock:
             handle = self._maps.pop(name, None)
+            if handle is not None and isinstance(self.backend, SharedBackend):
+                self._reserved.add(name)  # the follower must not load it back meanwhile
         if handle is None:
             raise NotFoundError(f"map {name!r} does not exist")
         if isinstance(self.backend, SharedBackend):
-            with handle.write_lock:
-                try:
-                    self.backend.drop(handle.store)  # one transaction; replicas follow
-                except StoreUnavailableError:
-                    with self._lock:  # nothing changed: keep serving it
-                        self._maps.setdefault(name, handle)
-                    raise
-                except NotFoundError:  # another replica deleted it meanwhile
-                    pass
-                handle.closed = True
-                handle.store.close()
+            try:
+                with handle.write_lock:
+                    try:
+                        self.backend.drop(handle.store)  # one transaction; replicas follow
+                    except StoreUnavailableError:
+                        with self._lock:  # nothing changed: keep serving it
+                            self._maps.setdefault(name, handle)
+                        raise
+                    except NotFoundError:  # another replica deleted it meanwhile
+                        pass
+                    handle.closed = True
+                    handle.store.close()
+            finally:
+                with self._lock:
+                    self._reserved.discard(name)
             self._on_change(name, None)
             log.info("deleted map %r", name)
             return
