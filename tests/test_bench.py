@@ -90,3 +90,33 @@ def test_prior_section_answers_the_same_queries_with_and_without():
         assert row[name]["localize_median_ms"] > 0 and row[name]["retrieve_median_ms"] > 0
     json.dumps(res)
     assert "same top-1" in bench.format_prior(res) and "6/6" in bench.format_prior(res)
+
+
+def test_the_earlier_pipeline_path_has_one_icp_stage() -> None:
+    """The --compare path is the one before the coarse ICP stage too."""
+    from sgvloc.core.config import PoseConfig
+    from sgvloc.core.pose import icp_stages
+    from sgvloc.tools.bench.pipeline import EARLIER_POSE
+
+    cfg = PoseConfig(**EARLIER_POSE)
+    assert icp_stages(cfg) == [(cfg.icp_max_distance, cfg.icp_iterations)]
+
+
+def test_sigterm_ends_a_command_through_its_finally_blocks(tmp_path) -> None:
+    """What bench and loadtest install: a SIGTERM runs their clean-up, as Ctrl-C does."""
+    import subprocess
+    import sys
+
+    done = tmp_path / "cleaned"
+    code = (
+        "import os, signal, time\n"
+        "from sgvloc.cli import _exit_on_sigterm\n"
+        "_exit_on_sigterm()\n"
+        "try:\n"
+        "    os.kill(os.getpid(), signal.SIGTERM)\n"
+        "    time.sleep(10)\n"
+        "finally:\n"
+        f"    open({str(done)!r}, 'w').write('ok')\n"
+    )
+    run = subprocess.run([sys.executable, "-c", code], timeout=60)
+    assert run.returncode == 143 and done.read_text() == "ok"

@@ -143,16 +143,24 @@ def test_cluster_section_through_the_cli(tmp_path: Path, postgres) -> None:
     from typer.testing import CliRunner
 
     from sgvloc.cli import app
+    from sgvloc.server.store.postgres import PgBackend
 
     out = tmp_path / "c.json"
+    store = postgres.new_database()
     args = [
         *("bench", "--only", "cluster", "--out", str(out)),
-        *("--cluster-store", postgres.new_database(), "--cluster-sizes", "300"),
+        *("--cluster-store", store, "--cluster-sizes", "300"),
         *("--cluster-visible", "5", "--cluster-duration", "0.5", "--cluster-clients", "2"),
         *("--pipeline-rounds", "1"),
     ]
     run = CliRunner().invoke(app, args)
     assert run.exit_code == 0, run.output
+    backend = PgBackend(store)  # the given store is left as it was found: empty
+    backend.start()
+    try:
+        assert backend.catalog() == {}
+    finally:
+        backend.close()
     assert "insert-to-visible" in run.output and "fetched, cold" in run.output
     res = json.loads(out.read_text())["cluster"]
     assert res["visible"]["inserts"] == 5 and 0 < res["visible"]["p50_ms"] < 5000

@@ -4,6 +4,7 @@ each command, so the client-only install can list the commands."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 from collections.abc import Callable
 from pathlib import Path
@@ -68,6 +69,19 @@ def _threads_epilog(default: str) -> str:
 
 
 ONE_THREAD = _threads_epilog("1 (measured fastest: several small calls per scan)")
+
+
+def _exit_on_sigterm() -> None:
+    """SIGTERM (``timeout``, a CI cancel, ``kill``) ends the command as Ctrl-C does, through
+    its ``finally`` blocks: a service, database cluster or folder it started is removed
+    (the default action ends Python at once and leaves them behind)."""
+    import signal
+
+    def stop(signum: int, _frame: Any) -> None:
+        raise SystemExit(128 + signum)
+
+    with contextlib.suppress(ValueError):  # not the main thread: leave the default
+        signal.signal(signal.SIGTERM, stop)
 
 
 def _cap_threads(threads: int | None, default: int = 1) -> None:
@@ -288,6 +302,7 @@ def loadtest_command(
     Retry-After are counted apart, as deliberate refusals). --slow-clients shows whether
     slow uploads hold up the others."""
     _cap_threads(threads)
+    _exit_on_sigterm()  # the service it starts and its map are cleaned up
     import httpx
 
     from .tools.loadtest import run_loadtest, run_loadtest_local
@@ -1232,6 +1247,7 @@ def bench_command(
     and load it from a second process (see sgvloc.tools.bench.http).
     """
     _cap_threads(threads)
+    _exit_on_sigterm()  # the services, clusters and folders it starts are cleaned up
     from .tools.bench import check_sections, run_bench
 
     _configure_logging("warning")

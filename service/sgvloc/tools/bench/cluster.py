@@ -60,6 +60,37 @@ def _database(store: str | None) -> Iterator[str]:
         yield cluster.new_database("bench")
 
 
+#: the maps this bench makes, besides ``bench-catchup-<size>``
+BENCH_MAPS = ("bench-visible", "bench-qps", "bench-fetch")
+
+
+def _drop_bench_maps(url: str, sizes: list[int]) -> None:
+    """Delete the maps this bench makes from the store (none other)."""
+    from sgvloc.core.errors import NotFoundError
+    from sgvloc.server.store.postgres import PgBackend
+
+    ours = {*BENCH_MAPS, *(f"bench-catchup-{n}" for n in sizes)}
+    backend = PgBackend(url)
+    backend.start()
+    try:
+        for name in set(backend.catalog()) & ours:
+            with contextlib.suppress(NotFoundError):
+                backend.drop(backend.open(name))
+    finally:
+        backend.close()
+
+
+@contextlib.contextmanager
+def _dropping_bench_maps(url: str, sizes: list[int]) -> Iterator[None]:
+    """The bench's maps removed however it ends (a given store is left as it was found,
+    and a second run does not meet the first one's maps)."""
+    _drop_bench_maps(url, sizes)
+    try:
+        yield
+    finally:
+        _drop_bench_maps(url, sizes)
+
+
 def _features(rng: np.random.Generator, keypoints: int) -> dict[str, np.ndarray]:
     g = rng.normal(size=GLOBAL_DIM).astype(np.float32)
     return {
@@ -281,7 +312,11 @@ def bench_cluster(
     sizes = [10000, 100000] if sizes is None else sizes
     data = data or FIXTURE
     result: dict[str, Any] = {"keypoints": keypoints, "global_dim": GLOBAL_DIM}
-    with _database(store) as url, tempfile.TemporaryDirectory(prefix="sgvloc-bench-") as tmp:
+    with (
+        _database(store) as url,
+        tempfile.TemporaryDirectory(prefix="sgvloc-bench-") as tmp,
+        _dropping_bench_maps(url, sizes),
+    ):
         echo("starting two replicas on the store ...")
         env = {"SGVLOC_STORE_URL": url, "SGVLOC_FOLLOW_POLL_S": "1.0"}
         replicas = [
@@ -325,6 +360,7 @@ def bench_cluster(
         result["fetch"] = _fetch_cost(url, data, rounds)
 
         result["catch_up"] = []
+        _drop_bench_maps(url, sizes)  # each catch-up loads its own map alone
         for n in sizes:
             echo(f"catch-up at {n} keyframes: writing ...")
             name = f"bench-catchup-{n}"
@@ -334,6 +370,7 @@ def bench_cluster(
                 key = "memory" if in_memory else "slim"
                 row[key] = _load(url, name, in_memory)
             result["catch_up"].append(row)
+            _drop_bench_maps(url, sizes)
             echo(
                 f"  loaded in {row['memory']['load_s']:.1f} s (features in memory), "
                 f"{row['slim']['load_s']:.1f} s (fetched per query)"

@@ -4,10 +4,10 @@ Sections (each selectable):
 
 - ``rerank``: SpectralGV (fused numba kernel and batched torch) against RANSAC-RIR and
   FGR-RIR (:mod:`sgvloc.core.pose`) on identical inputs: the same query keypoints and
-  features and the same k candidates. Each method does its own feature matching (SGV:
-  nearest neighbour per query keypoint; RIR: mutual nearest neighbours), as in the
-  localizer. SGV alone at large n with the process's peak memory (RSS high-water mark
-  of a fresh subprocess, ``resource.getrusage``).
+  features, the same k candidates and the same correspondences (SGV's nearest
+  neighbour per query keypoint, which RANSAC and FGR take as given). SGV alone at
+  large n with the process's peak memory (RSS high-water mark of a fresh subprocess,
+  ``resource.getrusage``).
 - ``retrieval``: FAISS search latency for exact (flat) and approximate (IVF, optionally
   HNSW) indexes through :class:`~sgvloc.core.retrieval.FaissIndex`, with recall@k of the
   approximate index against exact search.

@@ -543,7 +543,12 @@ def bench_http(
     bases, claim = encode_bases(db, spec)
     encode_s = time.perf_counter() - t0
     bodies = query_bodies(queries, points, max(6, len(queries)), top_k)
-    env = {"SGVLOC_MAX_INFLIGHT_LOCALIZE": str(max(4 * workers, max(clients)))}
+    # batching off in this service, also where CUDA would turn it on: the baseline of the
+    # batching comparison below
+    env = {
+        "SGVLOC_MAX_INFLIGHT_LOCALIZE": str(max(4 * workers, max(clients))),
+        "SGVLOC_BATCH_WAIT_MS": "0",
+    }
     result: dict[str, Any] = {"source": source, "keyframes": keyframes, "top_k": top_k}
     with temporary_service(work_dir, "http", workers, env) as srv, ClientProcess() as cp:
         result["server"] = {"workers": workers, "env": env, "pids": srv.pids}

@@ -43,6 +43,7 @@ EARLIER_POSE = {
     "icp_backend": "open3d",
     "icp_method": "point_to_point",
     "icp_source_voxel_m": 0.0,
+    "icp_coarse_m": 0.0,  # one ICP stage, as then (the coarse stage came later)
 }
 
 
