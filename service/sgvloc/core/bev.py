@@ -39,7 +39,15 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from .errors import EmptyScanError, InputError
-from .preprocess import all_columns, as_points, finite, in_azimuth_window, voxel_downsample
+from .preprocess import (
+    all_columns,
+    as_points,
+    even_subsample,
+    finite,
+    in_azimuth_window,
+    plane_hypotheses,
+    voxel_downsample,
+)
 
 
 class BEVRasterConfig(BaseModel):
@@ -129,16 +137,8 @@ def ground_rotation(
     pts = pts[np.einsum("ij,ij->i", pts[:, :2], pts[:, :2]) < radius * radius]
     if len(pts) < max(3, min_inliers):
         return np.eye(3), 0.0
-    if len(pts) > 4000:  # an even subsample keeps the fit cheap and deterministic
-        pts = pts[np.linspace(0, len(pts) - 1, 4000).astype(np.int64)]
-    rng = np.random.default_rng(0)
-    tri = pts[rng.integers(0, len(pts), size=(hypotheses, 3))]  # [H, 3, 3]
-    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # [H, 3]
-    norm = np.linalg.norm(n, axis=1)
-    ok = norm > 1e-9
-    n = n[ok] / norm[ok, None]
-    n *= np.where(n[:, 2] < 0, -1.0, 1.0)[:, None]
-    d = -np.einsum("ij,ij->i", n, tri[ok, 0])  # plane n . p + d = 0; d > 0: below the sensor
+    pts = even_subsample(pts, 4000)  # keeps the fit cheap and deterministic
+    n, d = plane_hypotheses(pts, hypotheses)  # d > 0: the plane passes below the sensor
     keep = (n[:, 2] >= np.cos(np.radians(max_tilt_deg))) & (d > threshold)
     if not keep.any():
         return np.eye(3), 0.0

@@ -108,6 +108,29 @@ def ground_fit(cfg: PreprocessConfig) -> dict[str, str]:
     return {"ground_fit": GROUND_FIT} if cfg.remove_ground else {}
 
 
+def even_subsample(points: np.ndarray, at_most: int) -> np.ndarray:
+    """At most ``at_most`` rows of ``points``, evenly spaced in order (deterministic)."""
+    if len(points) <= at_most:
+        return points
+    return points[np.linspace(0, len(points) - 1, at_most).astype(np.int64)]
+
+
+def plane_hypotheses(
+    points: np.ndarray, count: int, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Planes through ``count`` seeded random triples of ``points`` ``[M, 3]``: unit
+    normals ``[H, 3]`` facing up (``n_z >= 0``) and offsets ``[H]`` (``n . p + d = 0``);
+    degenerate triples are left out, so ``H <= count``."""
+    rng = np.random.default_rng(seed)
+    tri = points[rng.integers(0, len(points), size=(count, 3))]  # [count, 3, 3]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    norm = np.linalg.norm(n, axis=1)
+    ok = norm > 1e-9
+    n = n[ok] / norm[ok, None]
+    n *= np.where(n[:, 2] < 0, -1.0, 1.0)[:, None]
+    return n, -np.einsum("ij,ij->i", n, tri[ok, 0])
+
+
 def remove_ground(
     points: np.ndarray, distance: float, max_tilt_deg: float, seed: int = 0
 ) -> np.ndarray:
@@ -120,18 +143,10 @@ def remove_ground(
     if len(points) < 50:
         return points
     pts = np.asarray(points, dtype=np.float64)[:, :3]
-    sample = pts
-    if len(pts) > GROUND_SAMPLE:
-        sample = pts[np.linspace(0, len(pts) - 1, GROUND_SAMPLE).astype(np.int64)]
-    rng = np.random.default_rng(seed)
-    tri = sample[rng.integers(0, len(sample), size=(200, 3))]  # [H, 3, 3]
-    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # [H, 3]
-    norm = np.linalg.norm(n, axis=1)
-    ok = norm > 1e-9
-    if not ok.any():
+    sample = even_subsample(pts, GROUND_SAMPLE)
+    n, d = plane_hypotheses(sample, 200, seed)
+    if not len(n):
         return points
-    n = n[ok] / norm[ok, None]
-    d = -np.einsum("ij,ij->i", n, tri[ok, 0])  # plane n . p + d = 0
     best = int((np.abs(sample @ n.T + d) <= distance).sum(axis=0).argmax())
     normal, offset = n[best], d[best]
     tilt = np.degrees(np.arccos(min(1.0, abs(normal[2]))))
