@@ -32,7 +32,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, Any, TypeVar
 
 import numpy as np
 from pydantic import ValidationError
@@ -77,6 +77,7 @@ from .store import (
 )
 
 log = logging.getLogger(__name__)
+T = TypeVar("T")
 
 MAP_NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")  # whole name: fullmatch
 #: tries of a settings change on a shared store that other replicas keep changing
@@ -334,35 +335,40 @@ class MapManager:
     def _load_all_shared(self) -> None:
         backend = self.backend
         assert isinstance(backend, SharedBackend)
-        wait = 0.5
-        while not self._stop.is_set():
-            try:
-                backend.start()
-                catalog = backend.catalog()
-                break
-            except StoreUnavailableError as exc:
-                log.warning("%s; trying again in %.0f s", exc, wait)
-                self._stop.wait(wait)
-                wait = min(10.0, wait * 2)
-        else:
+
+        def catalog_now() -> dict[str, Any]:
+            backend.start()
+            return backend.catalog()
+
+        catalog = self._until_the_store_answers(catalog_now, "")
+        if catalog is None:  # stopped meanwhile
             return
         log.info("store: %s, %d map(s)", backend.describe(), len(catalog))
         for name in sorted(catalog):
             if self._stop.is_set():
                 log.warning("shutting down: maps from %r on were not loaded", name)
                 return
-            wait = 0.5
-            while not self._stop.is_set():  # ready only once every map is served
-                try:
+
+            def load(name: str = name) -> None:
+                with contextlib.suppress(NotFoundError):  # deleted elsewhere since
                     self._load_named(name)
-                    break
-                except NotFoundError:  # deleted by another replica since the catalog
-                    break
-                except StoreUnavailableError as exc:
-                    log.warning("map %r: %s; trying again in %.0f s", name, exc, wait)
-                    self._stop.wait(wait)
-                    wait = min(10.0, wait * 2)
+
+            # ready only once every map is served
+            self._until_the_store_answers(load, f"map {name!r}: ")
         self.loaded.set()
+
+    def _until_the_store_answers(self, fn: Callable[[], T], what: str) -> T | None:
+        """``fn()``, tried again with growing pauses (0.5 s doubling to 10 s) while the
+        shared store does not answer; None if the manager stops first."""
+        wait = 0.5
+        while not self._stop.is_set():
+            try:
+                return fn()
+            except StoreUnavailableError as exc:
+                log.warning("%s%s; trying again in %.0f s", what, exc, wait)
+                self._stop.wait(wait)
+                wait = min(10.0, wait * 2)
+        return None
 
     def _load_named(self, name: str) -> None:
         """Load map ``name`` from the shared store and serve it (or list it as failed;
