@@ -338,7 +338,7 @@ def read_ply(path: PathLike) -> Scan:
     are ignored."""
     import io
 
-    from plyfile import PlyData, PlyElementParseError, PlyParseError
+    from plyfile import PlyData, PlyElementParseError, PlyListProperty, PlyParseError
 
     p, raw = _read_bytes(path)
     try:
@@ -369,10 +369,10 @@ def read_ply(path: PathLike) -> Scan:
             f"{p}: PLY vertex element must come first (elements are {' '.join(names)})"
         )
     vertex = ply["vertex"]
-    for prop in vertex.properties:
-        if prop.name in ("x", "y", "z") and type(prop).__name__ == "PlyListProperty":
-            raise ScanFormatError(f"{p}: PLY property {prop.name!r} is a list, expected a number")
-    lists = any(type(prop).__name__ == "PlyListProperty" for prop in vertex.properties)
+    lists = [prop.name for prop in vertex.properties if isinstance(prop, PlyListProperty)]
+    for name in ("x", "y", "z"):
+        if name in lists:
+            raise ScanFormatError(f"{p}: PLY property {name!r} is a list, expected a number")
     if len(names) == 1 and not lists:  # nothing may follow the vertices: a header lies
         _check_ply_rest(raw, vertex, ply.text, p)
     data = vertex.data
