@@ -24,6 +24,7 @@ import json
 import logging
 import math
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -314,6 +315,14 @@ def load_checkpoint(path: str | Path) -> tuple[BEVNet, dict]:
     return model.eval(), ckpt
 
 
+def _write_whole(path: Path, write: Callable[[Path], object]) -> None:
+    """``write`` a file beside ``path`` and rename it onto ``path``: a write cut short
+    (Ctrl-C, a full disk) leaves the previous file whole."""
+    part = path.with_suffix(path.suffix + ".tmp")
+    write(part)
+    part.replace(path)
+
+
 def _plot(history: list[dict], val: list[dict], path: Path) -> None:
     try:
         import matplotlib
@@ -426,23 +435,22 @@ def train(
         log.info("resumed from %s at step %d", ckpt_path, step)
 
     def save() -> None:
-        # written beside and renamed: a save cut short (Ctrl-C, a full disk) leaves the
-        # previous checkpoint whole
-        part = ckpt_path.with_suffix(".pt.tmp")
-        torch.save(
-            {
-                "model": model.state_dict(),
-                "optimizer": opt.state_dict(),
-                "step": step,
-                "history": history,
-                "val": val_hist,
-                "rng": rng.bit_generator.state,
-                "torch_rng": torch.get_rng_state(),
-                "config": asdict(cfg),
-            },
-            part,
+        _write_whole(
+            ckpt_path,
+            lambda part: torch.save(
+                {
+                    "model": model.state_dict(),
+                    "optimizer": opt.state_dict(),
+                    "step": step,
+                    "history": history,
+                    "val": val_hist,
+                    "rng": rng.bit_generator.state,
+                    "torch_rng": torch.get_rng_state(),
+                    "config": asdict(cfg),
+                },
+                part,
+            ),
         )
-        part.replace(ckpt_path)
         (out / "log.json").write_text(
             json.dumps({"config": asdict(cfg), "history": history, "val": val_hist}, indent=1)
         )
@@ -507,9 +515,7 @@ def export_weights(checkpoint: str | Path, out: str | Path, note: str = "") -> P
         },
     }
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_suffix(out.suffix + ".tmp")
-    torch.save(blob, tmp)
-    tmp.replace(out)
+    _write_whole(out, lambda part: torch.save(blob, part))
     return out
 
 
@@ -558,7 +564,5 @@ def export_onnx(weights: str | Path, out: str | Path | None = None) -> Path:
     proto = program.model_proto
     onnx.helper.set_model_props(proto, {ONNX_WEIGHTS_KEY: file_sha256(weights)})
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_suffix(out.suffix + ".tmp")
-    onnx.save(proto, str(tmp))
-    tmp.replace(out)
+    _write_whole(out, lambda part: onnx.save(proto, str(part)))
     return out
