@@ -460,10 +460,7 @@ class SqliteMapStore(MapStore):
                     [row_values(row, int(row.id), row.created_at) for row in rows],
                 )
                 conn.execute("UPDATE meta SET value = ? WHERE key = 'version'", (str(version),))
-                conn.execute(
-                    "INSERT OR REPLACE INTO meta (key, value) VALUES ('updated_at', ?)",
-                    (utc_now(),),
-                )
+                self._written_now(conn)
                 if next_id is not None:  # AUTOINCREMENT goes on above sqlite_sequence
                     seq = self._sequence(conn)
                     if next_id - 1 > seq:
@@ -490,11 +487,16 @@ class SqliteMapStore(MapStore):
             return self._sequence(conn) + 1
 
     @staticmethod
-    def _bump_version(conn: sqlite3.Connection) -> int:
-        conn.execute("UPDATE meta SET value = CAST(value AS INTEGER) + 1 WHERE key = 'version'")
+    def _written_now(conn: sqlite3.Connection) -> None:
+        """Record the time of this write (``last_write``)."""
         conn.execute(
             "INSERT OR REPLACE INTO meta (key, value) VALUES ('updated_at', ?)", (utc_now(),)
         )
+
+    @classmethod
+    def _bump_version(cls, conn: sqlite3.Connection) -> int:
+        conn.execute("UPDATE meta SET value = CAST(value AS INTEGER) + 1 WHERE key = 'version'")
+        cls._written_now(conn)
         return int(conn.execute("SELECT value FROM meta WHERE key = 'version'").fetchone()[0])
 
 
