@@ -21,6 +21,7 @@ from sgvloc.core.confidence import (
     nearest_of_place,
     poses_agree,
     rigid_fit,
+    shared_view,
     shipped_calibration,
     spectral_pose,
 )
@@ -101,6 +102,30 @@ def test_confidence_rises_with_the_evidence(profile: str, field: str, values: li
         assert cal.confidence(dataclasses.replace(weak, icp_rmse=0.2)) >= cal.confidence(
             dataclasses.replace(weak, icp_rmse=0.6)
         )
+
+
+def test_the_shared_view_of_two_discs() -> None:
+    assert shared_view(0.0) == pytest.approx(1.0)
+    assert shared_view(50.0) == 0.0 and shared_view(80.0) == 0.0  # two radii apart
+    # one radius apart: the lens is 2/3 - sqrt(3)/(2 pi) of the disc
+    assert shared_view(10.0, radius_m=10.0) == pytest.approx(2 / 3 - 3**0.5 / (2 * np.pi))
+    views = [shared_view(d) for d in (0.0, 5.0, 10.0, 20.0, 30.0, 45.0)]
+    assert all(b < a for a, b in zip(views, views[1:], strict=False))
+
+
+def test_planar_inliers_count_more_in_a_smaller_common_view_up_to_a_bound() -> None:
+    cal = shipped_calibration("learned")
+    weak = Evidence(
+        sgv=0.06, sgv_margin=0.01, similarity=0.8, inliers=12, inlier_ratio=0.15, planar=True
+    )
+    conf = [cal.confidence(dataclasses.replace(weak, offset_m=d)) for d in (0.0, 8.0, 16.0)]
+    assert conf[0] < conf[1] < conf[2], conf
+    # from about 20 m (a common view of half the disc) the offset adds nothing more
+    far = [cal.confidence(dataclasses.replace(weak, offset_m=d)) for d in (21.0, 35.0, 60.0)]
+    assert far[0] == far[1] == far[2] > conf[2]
+    # 3-D answers do not take the offset in
+    three_d = dataclasses.replace(weak, planar=False)
+    assert cal.confidence(three_d) == cal.confidence(dataclasses.replace(three_d, offset_m=16.0))
 
 
 def test_strong_evidence_is_confident_and_weak_evidence_is_not() -> None:

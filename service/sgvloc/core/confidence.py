@@ -12,6 +12,10 @@ from evidence the pipeline has already computed, fed to a small fitted model
   chosen place explains the scan than any other;
 - ``similarity``: retrieval similarity (cosine) of the query and the top-1;
 - ``inliers`` / ``inlier_ratio``: RANSAC inliers among the feature correspondences;
+  for keypoints without height (BEV images, the ``planar`` profile) also the inliers
+  divided by the share of the view the query and the keyframe have in common at the
+  estimated offset (:func:`shared_view`, taken no lower than :data:`MIN_SHARED_VIEW`):
+  the same inliers found in a smaller common area are stronger evidence;
 - ``icp_fitness`` / ``icp_rmse``: share of query points within the ICP distance of the
   keyframe cloud after ICP, and their RMSE (metres); absent when ICP did not run;
 - ``icp_constraint``: how well the ICP fit pins the position down in its weakest
@@ -24,7 +28,8 @@ from evidence the pipeline has already computed, fed to a small fitted model
   imply the same query pose (within 2 m and 5 degrees) from their own SpectralGV inlier
   cluster (:func:`spectral_pose`), capped at :data:`AGREEMENT_CAP`;
 - ``offset_m``: the estimated distance of the query from the matched keyframe (reported,
-  not a model input: whether a long offset is suspicious depends on the map's spacing).
+  and an input only through the common view above: whether a long offset is suspicious
+  by itself depends on the map's spacing).
 
 The model is a logistic regression per profile (``icp`` when ICP ran; without ICP,
 ``none`` for 3-D keypoints and ``planar`` for keypoints without height, from BEV images:
@@ -64,6 +69,12 @@ AGREEMENT_CAP = 3
 CORRECT_M, CORRECT_DEG = 2.0, 5.0
 #: implied poses agree within the same bounds
 AGREEMENT_M, AGREEMENT_DEG = CORRECT_M, CORRECT_DEG
+#: the view of a BEV image as a disc of this radius (the kitti-bev raster's half extent)
+PLANAR_VIEW_RADIUS_M = 25.0
+#: the common view that scales the inliers is taken no lower than this share: beyond
+#: about 20 m of offset the inliers count at most twice (chosen by the cross-sequence
+#: log-loss of the training runs, docs/VERDICT.md)
+MIN_SHARED_VIEW = 0.5
 #: model inputs: name -> how it is derived from the evidence (oriented: larger = better)
 FEATURES: dict[str, Callable[[Evidence], float]] = {}
 
@@ -131,6 +142,9 @@ _feature("icp_fitness")(lambda e: e.icp_fitness or 0.0)
 _feature("neg_icp_rmse")(lambda e: -(e.icp_rmse or 0.0))
 _feature("neg_free_space")(lambda e: -(e.free_space or 0.0))
 _feature("agreement")(lambda e: e.agreement / AGREEMENT_CAP)
+_feature("log_inliers_shared")(
+    lambda e: math.log1p(e.inliers / max(shared_view(e.offset_m), MIN_SHARED_VIEW))
+)
 _feature("icp_constraint")(lambda e: e.icp_constraint or 0.0)
 
 #: the model inputs of each profile
@@ -144,7 +158,7 @@ PROFILE_FEATURES: dict[str, tuple[str, ...]] = {
         "agreement",
     ),
 }
-PROFILE_FEATURES["planar"] = PROFILE_FEATURES["none"]
+PROFILE_FEATURES["planar"] = PROFILE_FEATURES["none"] + ("log_inliers_shared",)
 PROFILE_FEATURES["icp"] = PROFILE_FEATURES["none"] + (
     "icp_fitness",
     "neg_icp_rmse",
@@ -154,6 +168,16 @@ PROFILE_FEATURES["icp"] = PROFILE_FEATURES["none"] + (
 
 
 # -- evidence ---------------------------------------------------------------------------
+
+
+def shared_view(offset_m: float, radius_m: float = PLANAR_VIEW_RADIUS_M) -> float:
+    """Share of a disc of ``radius_m`` that a second one ``offset_m`` away covers: 1 at
+    no offset, 0 from two radii apart."""
+    d = abs(float(offset_m)) / (2.0 * radius_m)  # half the distance in radii
+    if not d < 1.0:
+        return 0.0
+    # the lens of two unit-radius discs at distance 2 d, over the disc's area pi
+    return (2.0 * math.acos(d) - 2.0 * d * math.sqrt(1.0 - d * d)) / math.pi
 
 
 def rigid_fit(src: np.ndarray, dst: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
