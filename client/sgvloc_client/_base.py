@@ -65,7 +65,9 @@ class Call(Generic[T]):
     """One request ready to send and the way to read its answer.
 
     ``idempotent``: resending after a connection error cannot change the outcome, so the
-    client may retry. ``parse(status, body)`` turns a success (or a status listed in
+    client may retry; ``resend_unanswered``: also after the request was sent and its
+    answer did not come in time (False for work the service may still be doing: a resend
+    would do it again). ``parse(status, body)`` turns a success (or a status listed in
     ``passthrough``) into the result; any other error status raises an :class:`APIError`.
     """
 
@@ -76,6 +78,7 @@ class Call(Generic[T]):
     headers: Mapping[str, str] | None = None
     idempotent: bool = False
     passthrough: tuple[int, ...] = ()
+    resend_unanswered: bool = True
     #: seconds for this call instead of the client's timeout (a long-running request;
     #: None waits as long as it takes), when ``own_timeout``
     timeout: float | None = None
@@ -85,6 +88,11 @@ class Call(Generic[T]):
     def http_timeout(self) -> Any:
         """The ``timeout`` argument for httpx: this call's own, or the client's."""
         return self.timeout if self.own_timeout else httpx.USE_CLIENT_DEFAULT
+
+
+def _may_resend(call: Call[Any], exc: httpx.TransportError | None) -> bool:
+    """Whether ``call``, sent, may be sent again after ``exc`` (None: a 503 answer)."""
+    return call.idempotent and (call.resend_unanswered or not isinstance(exc, httpx.ReadTimeout))
 
 
 def _body_only(fn: Callable[[Any], T]) -> Callable[[int, Any], T]:
@@ -228,15 +236,22 @@ class BaseClient:
         return f"{self.base_urls[i]}{path}"
 
     def _failover(
-        self, call: Call[Any], attempt: int, i: int, tried: set[int], *, sent: bool
+        self,
+        call: Call[Any],
+        attempt: int,
+        i: int,
+        tried: set[int],
+        *,
+        sent: bool,
+        exc: httpx.TransportError | None = None,
     ) -> int | None:
         """The base URL to resend ``call`` to at once after try ``attempt`` failed on
-        URL ``i`` (a connection error, or a 503), or None: only with several URLs, only
-        an untried one, within ``retries``, and only for calls safe to resend, unless the
-        request was never ``sent`` (the connection was refused)."""
+        URL ``i`` (a connection error ``exc``, or a 503), or None: only with several URLs,
+        only an untried one, within ``retries``, and only for calls safe to resend, unless
+        the request was never ``sent`` (the connection was refused)."""
         if len(self.base_urls) == 1 or attempt >= self.retries:
             return None
-        if sent and not call.idempotent:
+        if sent and not _may_resend(call, exc):
             return None
         self._mark_down(i)
         n = len(self.base_urls)
@@ -298,7 +313,7 @@ class BaseClient:
         (0-based) on base URL ``i``; raises :class:`TransportError` when the call must
         not be resent."""
         tries = attempt + 1
-        if call.idempotent and isinstance(exc, _RETRYABLE) and attempt < self.retries:
+        if _may_resend(call, exc) and isinstance(exc, _RETRYABLE) and attempt < self.retries:
             return min(self.max_backoff, self.backoff * 2**attempt)
         kind = type(exc).__name__
         detail = str(exc) or kind
@@ -476,16 +491,19 @@ class BaseClient:
         kfs = [KeyframeIn.coerce(k) for k in keyframes]
         if not kfs:
             raise ValueError("keyframes is empty")
-        # Keyed inserts are idempotent on the service, so a resend is harmless.
+        # Keyed inserts are idempotent on the service, so a resend is harmless, but not
+        # after a read timeout: the service may still be encoding the batch, and a resend
+        # would encode it again on another worker.
         keyed = all(k.key is not None for k in kfs)
         body = {"keyframes": [k.to_body() for k in kfs]}
-        return self._call(
+        call = self._call(
             "POST",
             f"{_map_path(map)}/keyframes",
             _body_only(InsertResult.from_body),
             body,
             idempotent=keyed,
         )
+        return replace(call, resend_unanswered=False)
 
     def _get_keyframe(self, map: str, keyframe_id: int) -> Call[Keyframe]:
         return self._call(

@@ -54,9 +54,10 @@ class Client(BaseClient):
             None waits forever.
         retries: how many times a call is resent after a connection error or timeout,
             with exponential backoff (``backoff * 2**n`` seconds, at most
-            ``max_backoff``). Only calls that are safe to resend are: GET and DELETE,
-            localize, and inserts whose keyframes all carry a ``key``; never
-            ``create_map`` or a keyless insert. Error answers (4xx/5xx) are not retried,
+            ``max_backoff``). Only calls that are safe to resend are: GET, PATCH,
+            localize, and inserts whose keyframes all carry a ``key`` (those not after a
+            read timeout: the service may still be doing the work); never
+            ``create_map``, a DELETE or a keyless insert. Error answers (4xx/5xx) are not retried,
             except as ``retry_overloaded`` says.
         api_key: sent as ``Authorization: Bearer <key>``.
         transport: an ``httpx.BaseTransport`` to send through (tests, custom TLS).
@@ -129,7 +130,7 @@ class Client(BaseClient):
                 )
             except httpx.TransportError as exc:
                 sent = not isinstance(exc, httpx.ConnectError)
-                j = self._failover(call, attempt, i, tried, sent=sent)
+                j = self._failover(call, attempt, i, tried, sent=sent, exc=exc)
                 if j is None:
                     time.sleep(self._retry_delay(call, attempt, exc, i))
                 else:

@@ -56,6 +56,9 @@ def _exp_rotation(v: np.ndarray) -> np.ndarray:
     return np.eye(3) + math.sin(angle) * K + (1 - math.cos(angle)) * K @ K
 
 
+#: the largest seed uncertainty the service takes (seed.sigma_m); beyond it the tracker
+#: asks for a global localization instead
+MAX_SEED_SIGMA_M = 1e4
 #: fixes closer in time than this give no velocity (their registration noise, divided by
 #: a tiny interval, would read as a fast motion)
 MIN_STEP_S = 0.02
@@ -153,9 +156,12 @@ class MotionModel:
             self._pending_odom = self._odometry(odom_delta)
         dt = max(0.0, stamp - self.stamp)
         widen = self.widen**self.misses
+        sigma_m = (self.sigma_m + self.growth_m_per_s * dt) * widen
+        if sigma_m > MAX_SEED_SIGMA_M:  # no seed at all says as much: a global search
+            return None
         return Seed(
             T,
-            (self.sigma_m + self.growth_m_per_s * dt) * widen,
+            sigma_m,
             min(180.0, (self.sigma_yaw_deg + self.growth_yaw_deg_per_s * dt) * widen),
         )
 

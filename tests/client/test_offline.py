@@ -505,3 +505,49 @@ def test_async_client_retries_overloaded_answers() -> None:
             return (await c.get_map("campus")).name
 
     assert asyncio.run(main()) == "campus" and len(seen) == 3
+
+
+@pytest.mark.parametrize(
+    ("failure", "sent"),
+    [(httpx.ReadTimeout, 1), (httpx.ConnectError, 3), (httpx.RemoteProtocolError, 3)],
+)
+def test_a_keyed_insert_is_not_resent_after_a_read_timeout(failure, sent: int) -> None:
+    """A keyed insert is safe to resend, but after a read timeout the service may still
+    be encoding the batch: a resend would encode it again on another worker."""
+    calls = []
+
+    def failing(request: httpx.Request) -> httpx.Response:
+        calls.append(request.method)
+        raise failure("no answer", request=request)
+
+    kf = {"T_map_sensor": np.eye(4), "points": np.zeros((10, 3), np.float32), "key": "k1"}
+    with Client(transport=httpx.MockTransport(failing), retries=2, backoff=0.0) as c:
+        with pytest.raises(TransportError):
+            c.insert_keyframes("m", [kf])
+    assert calls == ["POST"] * sent
+
+    async def main() -> None:
+        calls.clear()
+        transport = httpx.MockTransport(failing)
+        async with AsyncClient(transport=transport, retries=2, backoff=0.0) as c:
+            with pytest.raises(TransportError):
+                await c.insert_keyframes("m", [kf])
+        assert calls == ["POST"] * sent
+
+    asyncio.run(main())
+
+
+def test_a_tracker_that_lost_the_track_for_long_asks_for_a_global_search() -> None:
+    """Each miss widens the seed; once it would pass what the service takes
+    (seed.sigma_m <= 1e4) the tracker gives no seed: a global localization."""
+    from sgvloc_client.tracking import MAX_SEED_SIGMA_M, MotionModel
+
+    t = MotionModel(max_misses=100)
+    t.pose, t.stamp = np.eye(4), 0.0
+    seeds = []
+    for k in range(1, 40):
+        t.misses = k
+        seeds.append(t.seed(0.1))
+    sigmas = [s.sigma_m for s in seeds if s is not None]
+    assert sigmas and max(sigmas) <= MAX_SEED_SIGMA_M
+    assert seeds[-1] is None

@@ -565,3 +565,20 @@ def test_torchscript_on_cuda_matches_cpu(tmp_path, scene):
     np.testing.assert_array_equal(gpu.keypoints, cpu.keypoints)
     np.testing.assert_allclose(gpu.local_features, cpu.local_features, rtol=1e-3, atol=1e-3)
     np.testing.assert_allclose(gpu.global_descriptor, cpu.global_descriptor, atol=1e-4)
+
+
+def test_repeated_keypoints_are_kept_once() -> None:
+    """Padding to a fixed count (zero keypoints with zero features) repeats one row; it is
+    kept once, as it would otherwise match itself as a perfectly consistent cluster."""
+    enc = PrecomputedEncoder("p", 4, 2)
+    rng = np.random.default_rng(0)
+    kp, lf = rng.normal(size=(5, 3)), rng.normal(size=(5, 2))
+    padded_kp = np.vstack([kp[:2], np.zeros((6, 3)), kp[2:], kp[:1]])
+    padded_lf = np.vstack([lf[:2], np.zeros((6, 2)), lf[2:], lf[:1]])
+    f = enc.from_arrays(np.ones(4), padded_kp, padded_lf)
+    assert f.num_keypoints == 6  # five distinct rows and one zero row, in their order
+    assert np.allclose(f.keypoints, np.vstack([kp[:2], np.zeros((1, 3)), kp[2:]]))
+    assert np.allclose(f.local_features, np.vstack([lf[:2], np.zeros((1, 2)), lf[2:]]))
+    # the same keypoint with another feature is another row
+    g = enc.from_arrays(np.ones(4), np.zeros((2, 3)), np.array([[0.0, 1.0], [1.0, 0.0]]))
+    assert g.num_keypoints == 2

@@ -613,3 +613,15 @@ def test_sequence_pcd_scans_dir(tmp_path, rng):
     empty.mkdir()
     with _raises_naming(empty, "no velodyne/ or scans/"):
         KittiSequence(empty)
+
+
+def test_a_ply_list_intensity_is_left_out(tmp_path):
+    """Only x, y and z must be numbers; an intensity that is a list is not one to read."""
+    p = tmp_path / "list-intensity.ply"
+    p.write_text(
+        "ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\n"
+        "property float z\nproperty list uchar float intensity\nend_header\n"
+        "1 2 3 2 4 5\n4 5 6 1 7\n"
+    )
+    scan = read_scan(p)
+    assert scan.points.tolist() == [[1, 2, 3], [4, 5, 6]] and scan.intensity is None

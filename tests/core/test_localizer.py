@@ -424,3 +424,71 @@ def test_a_query_4_m_beside_a_keyframe_retrieves_it(balm_mini_dir, offset_m, spe
         assert all(found)
     else:
         assert sum(found) < len(found) / 2
+
+
+def test_a_tracked_fit_outside_the_prior_is_not_accepted(campus):
+    """With a seed and a prior, the seeded fit must lie inside the prior's region too:
+    here the prior is 100 m away, so the answer falls back to the global search, which
+    finds no keyframe there."""
+    from sgvloc.core.prior import Prior, yaw_deg
+    from sgvloc.core.tracking import Seed
+
+    loc, _, queries, scans = campus
+    q = queries[0]
+    T = q.T_world_sensor
+    prior = Prior((T[0, 3] + 100.0, T[1, 3]), 5.0, yaw_deg=yaw_deg(T))
+    res = loc.localize(scans[q.index], prior=prior, seed=Seed(T, 1.0, 5.0))
+    assert not res.localized and res.mode == "relocalized"
+    assert res.verdict == "no_keyframe_in_prior"
+    assert "outside the prior region" in res.tracking["why"]
+    # the same seed without the prior tracks
+    assert loc.localize(scans[q.index], seed=Seed(T, 1.0, 5.0)).localized
+
+
+def test_a_failed_tracked_fit_carries_no_confidence(campus):
+    """A fit that fails a check (here a scan of one repeated point: too few points) is
+    not trusted whatever its fitness says."""
+    from sgvloc.core.tracking import Seed
+
+    loc, _, queries, _ = campus
+    T = queries[0].T_world_sensor
+    one = np.tile(np.append(T[:3, 3] + [5.0, 0.0, 0.0], 1.0), (1000, 1)).astype(np.float32)
+    one[:, :3] = (np.linalg.inv(T) @ one.T).T[:, :3]  # the point in the sensor frame
+    res = loc.localize(one, seed=Seed(T, 1.0, 5.0))
+    assert not res.localized and res.confidence == 0.0
+
+
+def test_query_expansion_gives_every_candidate_its_similarity() -> None:
+    """A keyframe that only the expanded search finds gets its own cosine similarity,
+    not NaN (which an answer cannot carry)."""
+    rng = np.random.default_rng(2)
+    enc = PrecomputedEncoder("p", 3, 8)
+    loc = Localizer(enc, LocalizerConfig(qe_k=1))
+    kp, f = rng.uniform(-20, 20, (64, 3)), rng.normal(size=(64, 8))
+    for x, g in enumerate(([1, 0.3, 0], [0.6, 0, 0.8], [0.55, 0.835, 0])):
+        T = np.eye(4)
+        T[0, 3] = 10.0 * x
+        loc.add_keyframe(T, features=enc.from_arrays(np.array(g, float), kp, f))
+    query = enc.from_arrays(np.array([1.0, 0.0, 0.0]), kp, f)
+    res = loc.localize(features=query, top_k=2, rerank_method="average-qe")
+    found = [c for c in res.reranked if c.retrieval_rank == -1]  # by the expansion only
+    assert [c.keyframe_id for c in found] == [3]  # ids count from 1
+    assert found[0].similarity == pytest.approx(0.55 / np.linalg.norm([0.55, 0.835]), abs=1e-5)
+
+
+def test_a_keyframe_without_keypoints_leaves_other_queries_alone() -> None:
+    """Features with no keypoints may come with local features of any width ([0, 0]);
+    they take the encoder's width, so that a query retrieving them still answers."""
+    rng = np.random.default_rng(3)
+    enc = PrecomputedEncoder("p", 16, 8)
+    loc = Localizer(enc)
+    kfs = [enc.from_arrays(rng.normal(size=16), rng.normal(size=(40, 3)), rng.normal(size=(40, 8)))]
+    loc.add_keyframe(np.eye(4), features=kfs[0])
+    empty = enc.from_arrays(rng.normal(size=16), np.zeros((0, 3)), np.zeros((0, 0)))
+    assert empty.local_features.shape == (0, 8)
+    loc.add_keyframe(np.eye(4), features=empty)
+    for method in ("none", "sgv"):
+        res = loc.localize(features=kfs[0], rerank_method=method)
+        assert res.localized, res.reason
+    res = loc.localize(features=empty)  # a query without keypoints: no estimate, no error
+    assert res.verdict == "no_estimate"

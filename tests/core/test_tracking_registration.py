@@ -74,3 +74,10 @@ def test_scan_cloud_drops_non_finite_and_far_points() -> None:
     assert set(out[:, 0]) == {0, 1, *range(4, 13)}
     with pytest.raises(InputError, match="usable points"):
         scan_cloud(pts[:11], cfg)
+
+
+def test_a_seed_takes_numpy_numbers_but_not_booleans() -> None:
+    seed = Seed(np.eye(4), np.float32(1.5), np.int64(5))
+    assert seed.sigma_m == 1.5 and isinstance(seed.sigma_m, float) and seed.sigma_yaw_deg == 5.0
+    with pytest.raises(InputError, match="sigma_m"):
+        Seed(np.eye(4), True, 5.0)

@@ -192,3 +192,42 @@ def test_cli_lists_filters_and_deletes(server, client: httpx.Client) -> None:
     assert run.returncode == 1 and "does not exist" in run.stderr
     run = _sgvloc("map", "keyframes", "arc-cli", "--bbox", "1,2", url=server.url)
     assert run.returncode == 2 and "--bbox" in run.stderr
+
+
+@pytest.mark.parametrize(
+    ("spec", "localizer", "field"),
+    [
+        (
+            {"kind": "precomputed", "name": "egonn", "global_dim": 16, "local_dim": 8},
+            {"top_k": 1000},
+            "localizer.top_k",
+        ),
+        (
+            {"kind": "handcrafted", "handcrafted": {"num_keypoints": 20000}},
+            {},
+            "encoder.handcrafted.num_keypoints",
+        ),
+    ],
+)
+def test_an_archive_past_this_servers_limits_is_refused(
+    client: httpx.Client, tmp_path: Path, spec: dict, localizer: dict, field: str
+) -> None:
+    """An archive made where the limits are wider (or by the library, which has none)
+    meets this server's max_top_k and max_keypoints, as a new map would."""
+    from sgvloc.core.config import LocalizerConfig
+    from sgvloc.core.encoders import EncoderSpec
+    from sgvloc.server.maps import MapManager
+    from sgvloc.server.store import open_backend
+
+    manager = MapManager(tmp_path / "maps", backend=open_backend(None))
+    manager.load_all()
+    try:
+        manager.create("wide", EncoderSpec.model_validate(spec), LocalizerConfig(**localizer))
+        with manager.export_archive("wide") as stream:
+            data = b"".join(stream)
+    finally:
+        manager.close()
+    r = client.post("/v1/map-archives", params={"name": "arc-wide"}, content=data, headers=TAR)
+    assert r.status_code == 422, r.text
+    assert error_of(r)["field"] == field
+    assert client.get("/v1/maps/arc-wide").status_code == 404

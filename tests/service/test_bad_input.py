@@ -142,9 +142,9 @@ def test_scan_with_nothing_to_describe(client: httpx.Client, balm_map: BalmMap) 
     """Points all beyond the encoder's range: empty after preprocessing."""
     far = _scan() + np.array([500.0, 0, 0, 0], np.float32)
     r = _insert(client, "balm", {"T_map_sensor": EYE, "points": far})
-    _expect(r, 422, "invalid_input", "keyframes[0].points")
+    _expect(r, 422, "empty_scan", "keyframes[0].points")
     r = post_msgpack(client, "/v1/maps/balm/localize", {"points": far})
-    _expect(r, 422, "invalid_input", "points")
+    _expect(r, 422, "empty_scan", "points")
 
 
 @pytest.mark.usefixtures("unchanged")
@@ -466,3 +466,88 @@ def test_unknown_rerank_method(client: httpx.Client, pre_map: str) -> None:
 def test_unknown_route_and_method(client: httpx.Client) -> None:
     _expect(client.get("/v2/maps"), 404, "not_found")
     _expect(client.put("/v1/maps"), 405, "method_not_allowed")
+
+
+def _json(c: httpx.Client, method: str, path: str, body: dict) -> httpx.Response:
+    """``body`` as JSON text: a lone surrogate travels as its escape, as any client's
+    JSON may send it (MessagePack cannot carry one)."""
+    text = json.dumps(wire.to_jsonable(body))
+    return c.request(method, path, content=text, headers={"Content-Type": "application/json"})
+
+
+@pytest.mark.usefixtures("unchanged")
+@pytest.mark.parametrize(
+    ("extra", "field"),
+    [
+        ({"key": "k\ud800"}, "keyframes[0].key"),
+        ({"metadata": {"sequence": "s\udfff"}}, "keyframes[0].metadata.sequence"),
+        ({"metadata": {"tags": {"a": "b\ud800"}}}, "keyframes[0].metadata.tags.a"),
+    ],
+)
+def test_text_with_a_lone_surrogate_is_refused(
+    client: httpx.Client, pre_map: str, extra, field
+) -> None:
+    """Neither store can write such text nor can an answer carry it: refused up front."""
+    feats = random_features(np.random.default_rng(2))
+    body = {"keyframes": [{"T_map_sensor": EYE, "features": feats, **extra}]}
+    r = _json(client, "POST", f"/v1/maps/{pre_map}/keyframes", body)
+    _expect(r, 422, "invalid_input", field)
+    assert client.get(f"/v1/maps/{pre_map}/keyframes").status_code == 200
+
+
+def _deep(levels: int) -> dict:
+    out: dict = {"a": 1}
+    for _ in range(levels):
+        out = {"a": out}
+    return out
+
+
+@pytest.mark.parametrize(
+    ("self_test", "fragment"),
+    [
+        ({"note": "x\ud800"}, "lone surrogate"),
+        (_deep(100), "nested deeper than 32 levels"),
+        ({"note": "x\x00"}, "NUL"),
+    ],
+)
+def test_a_self_test_a_store_could_not_give_back_is_refused(
+    client: httpx.Client, self_test: dict, fragment: str
+) -> None:
+    """A recorded self-test is answered by every map listing: one that could not be
+    written back out would break GET /v1/maps for everyone."""
+    body = {"name": "st-bad", "encoder": PRECOMPUTED, "self_test": self_test}
+    err = _expect(_json(client, "POST", "/v1/maps", body), 422, "invalid_input", "self_test")
+    assert fragment in err["message"]
+    assert client.get("/v1/maps/st-bad").status_code == 404
+    assert client.get("/v1/maps").status_code == 200
+
+
+def test_a_calibration_sent_as_msgpack_arrays_is_taken(client: httpx.Client) -> None:
+    """MessagePack bodies decode arrays into NumPy; a calibration whose weights arrive
+    that way is the same calibration (the SDK's default wire format sends it so)."""
+    from sgvloc.core.confidence import shipped_calibration
+
+    cal = shipped_calibration("precomputed").to_dict()
+    for model in cal["models"].values():
+        for k in ("mean", "scale", "weights"):
+            model[k] = np.asarray(model[k], np.float64)
+    body = {"name": "cal-np", "encoder": PRECOMPUTED, "calibration": cal}
+    r = post_msgpack(client, "/v1/maps", body)
+    try:
+        assert r.status_code == 201, r.text
+        info = client.get("/v1/maps/cal-np").json()
+        assert info["calibration"]["fingerprint"] == cal["fingerprint"]
+        r = _json(client, "PATCH", "/v1/maps/cal-np", {"calibration": {**cal, "name": "\ud800"}})
+        _expect(r, 422, "invalid_input", "calibration")
+    finally:
+        client.delete("/v1/maps/cal-np")
+
+
+@pytest.mark.usefixtures("unchanged")
+@pytest.mark.parametrize("top_k", ["5000", 5000.0])
+def test_a_map_top_k_over_the_limit_is_refused_however_written(
+    client: httpx.Client, pre_map: str, top_k
+) -> None:
+    r = client.request("PATCH", f"/v1/maps/{pre_map}", json={"localizer": {"top_k": top_k}})
+    err = _expect(r, 422, "invalid_input", "localizer")
+    assert "max_top_k" in err["message"]

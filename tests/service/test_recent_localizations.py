@@ -61,6 +61,16 @@ def test_the_ring_keeps_the_newest_per_map() -> None:
         RecentLocalizations(size=0)
 
 
+def test_an_answer_of_a_deleted_map_is_not_recorded() -> None:
+    """A localize that ends after its map was deleted must not seed the ring of a map
+    made since under the same name."""
+    ring = RecentLocalizations(size=3)
+    ring.record("a", _result(1), alive=lambda: True)
+    ring.on_change("a", None)  # deleted
+    ring.record("a", _result(2), alive=lambda: False)  # the old map's late answer
+    assert ring.newest("a") == []
+
+
 def _map_with_keyframes(c: httpx.Client, name: str, rng: np.random.Generator) -> list[dict]:
     r = c.post("/v1/maps", json={"name": name, "encoder": PRECOMPUTED})
     assert r.status_code == 201, r.text

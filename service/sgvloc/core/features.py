@@ -102,6 +102,16 @@ class Features:
             )
         if local_dim is not None and k.shape[0] > 0 and f.shape[1] != local_dim:
             raise InputError(f"local_features has dimension {f.shape[1]}, expected {local_dim}")
+        if k.shape[0] == 0 and local_dim is not None:
+            f = np.zeros((0, local_dim), dtype=np.float32)  # no rows: the encoder's width
+        if k.shape[0] > 1:
+            # a keypoint repeated with its feature (padding to a fixed count, say) adds no
+            # evidence but would match itself as a perfectly consistent cluster in SGV
+            rows = np.concatenate([k, f], axis=1)
+            _, first = np.unique(rows, axis=0, return_index=True)
+            if len(first) < len(rows):
+                keep = np.sort(first)
+                k, f = k[keep], f[keep]
         g64 = g.astype(np.float64)  # float32 squares overflow from ~1e19 and vanish below 1e-19
         norm = float(np.linalg.norm(g64))
         if norm == 0.0:

@@ -376,7 +376,8 @@ def read_ply(path: PathLike) -> Scan:
     if len(names) == 1 and not lists:  # nothing may follow the vertices: a header lies
         _check_ply_rest(raw, vertex, ply.text, p)
     data = vertex.data
-    return _scan_from_columns(lambda nm: data[nm], list(data.dtype.names), p, len(data))
+    columns = [nm for nm in data.dtype.names if nm not in lists]  # a list intensity: none
+    return _scan_from_columns(lambda nm: data[nm], columns, p, len(data))
 
 
 def _check_ply_rest(raw: bytes, vertex: Any, text: bool, p: Path) -> None:

@@ -418,7 +418,7 @@ class Localizer:
                     raise InputError(f"min_confidence must be in [0, 1], got {min_confidence}")
                 threshold = min_confidence
             tracked = self._track(scan, seed)
-            if tracked.T_map_sensor is not None:
+            if tracked.ok:  # a fit that failed a check keeps confidence 0
                 tracked.confidence = tracked_confidence(tracked)
             if tracked.ok and tracked.confidence < threshold:
                 tracked.ok = False  # a fit the confidence does not trust: as a failed one
@@ -426,11 +426,18 @@ class Localizer:
                     f"the fit's confidence {tracked.confidence:.2f} is below min_confidence "
                     f"{threshold:g}"
                 )
+            outside = None
+            if tracked.ok and prior is not None:  # the request's prior bounds the fit too
+                outside = prior.rejects(tracked.T_map_sensor)
+                if outside:
+                    tracked.ok, tracked.why = False, f"outside the prior region: {outside}"
             if tracked.ok:
-                return self._tracked_answer(tracked, t_start, threshold)
+                return self._tracked_answer(tracked, t_start, threshold, prior)
             tcfg = self.config.tracking
             if tcfg.fallback == "none":
-                return self._tracked_answer(tracked, t_start, threshold)
+                return self._tracked_answer(
+                    tracked, t_start, threshold, prior, "outside_prior" if outside else None
+                )
             if prior is None:
                 k = tcfg.seed_sigmas
                 prior = Prior(
@@ -450,7 +457,9 @@ class Localizer:
                 )
             except EmptyScanError as exc:  # the fit's answer stands, with why no fallback
                 tracked.why += f"; no global fallback: {exc}"
-                return self._tracked_answer(tracked, t_start, threshold)
+                return self._tracked_answer(
+                    tracked, t_start, threshold, prior, "outside_prior" if outside else None
+                )
             result.mode, result.tracking = "relocalized", tracked.to_dict()
             result.timings_ms["track"] = tracked.timings_ms["track"]
             result.timings_ms["total"] = _ms(t_start)
@@ -668,17 +677,28 @@ class Localizer:
         return out
 
     def _tracked_answer(
-        self, tracked: TrackResult, t_start: float, min_confidence: float
+        self,
+        tracked: TrackResult,
+        t_start: float,
+        min_confidence: float,
+        prior: Prior | None = None,
+        code: str | None = None,
     ) -> LocalizationResult:
         """The answer of a seeded fit: accepted (``tracked.ok``, its confidence at least
-        ``min_confidence``) or, with ``fallback: none`` or a scan the global fallback cannot
-        describe, not."""
+        ``min_confidence``, inside the request's ``prior`` region) or, with ``fallback:
+        none`` or a scan the global fallback cannot describe, not (verdict ``code``,
+        default ``tracking_failed``)."""
         T = tracked.T_map_sensor
         T_kf = None
         if T is not None and tracked.T_map_nearest is not None:
             T_kf = np.linalg.inv(tracked.T_map_nearest) @ T
         localized, reason, confidence = tracked.ok, tracked.why, tracked.confidence
         timings = {"track": tracked.timings_ms["track"], "total": _ms(t_start)}
+        prior_info = None
+        if prior is not None:
+            with self._lock.read():
+                inside = len(self._grid.within(prior))
+            prior_info = {"used": True, "keyframes_in_radius": int(inside)}
         return LocalizationResult(
             localized,
             reason,
@@ -689,11 +709,12 @@ class Localizer:
             "none",
             timings,
             tracked.map_version,
-            verdict="localized" if localized else "tracking_failed",
+            verdict="localized" if localized else code or "tracking_failed",
             confidence=confidence,
             min_confidence=min_confidence,
             T_map_sensor_estimate=T,
             T_keyframe_sensor_estimate=T_kf,
+            prior=prior_info,
             mode="tracked",
             tracking=tracked.to_dict(),
         )

@@ -9,7 +9,7 @@ from collections.abc import Callable
 import numpy as np
 
 from .config import PreprocessConfig
-from .errors import InputError
+from .errors import EmptyScanError, InputError
 
 log = logging.getLogger(__name__)
 
@@ -159,7 +159,8 @@ def remove_ground(
 def preprocess(points: np.ndarray, cfg: PreprocessConfig) -> np.ndarray:
     """Run the whole clean-up on a raw scan ``[P, 3+]`` and return ``[M, 3]`` float32.
 
-    Raises :class:`InputError` if the scan is malformed or nothing is left.
+    Raises :class:`InputError` if the scan is malformed or empty, :class:`EmptyScanError`
+    if nothing is left (every point out of range: a blocked sensor, say).
     """
     pts = as_points(points)
     if len(pts) == 0:
@@ -170,7 +171,7 @@ def preprocess(points: np.ndarray, cfg: PreprocessConfig) -> np.ndarray:
     if cfg.remove_ground:
         pts = remove_ground(pts, cfg.ground_distance, cfg.ground_max_tilt_deg)
     if len(pts) == 0:
-        raise InputError(
+        raise EmptyScanError(
             f"scan has no points left after preprocessing (range {cfg.min_range}-"
             f"{cfg.max_range} m, finite values only)"
         )

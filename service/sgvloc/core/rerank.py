@@ -139,10 +139,13 @@ def _query_expansion(
     hits = index.search(expanded / np.linalg.norm(expanded), len(retrieved), among=among)[0]
     rank_of = {c.keyframe_id: c.retrieval_rank for c in retrieved}
     sim_of = {c.keyframe_id: c.similarity for c in retrieved}
-    cands = [
-        Candidate(h.id, sim_of.get(h.id, float("nan")), rank_of.get(h.id, -1), h.similarity)
-        for h in hits
-    ]
+
+    def similarity(i: int) -> float:  # a keyframe only the expanded search found: its cosine
+        if i in sim_of:
+            return sim_of[i]
+        return float(query.global_descriptor @ features_of(i).global_descriptor)
+
+    cands = [Candidate(h.id, similarity(h.id), rank_of.get(h.id, -1), h.similarity) for h in hits]
     return RerankOutput(method, cands, info={"expanded": True, "weights": weights.tolist()})
 
 

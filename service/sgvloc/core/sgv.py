@@ -759,14 +759,19 @@ def sgv_rerank_scores(
         raise InputError(
             f"got {len(cand_kps)} candidate keypoint sets but {len(cand_feats)} feature sets"
         )
+    kps = [np.asarray(a, dtype=np.float32) for a in cand_kps]
+    fts = [np.asarray(a, dtype=np.float32) for a in cand_feats]
+    if not len(qk):  # no query keypoints: the width of the candidates' features will do
+        width = next((f.shape[1] for f in fts if f.ndim == 2 and len(f)), qf.shape[1])
+        qf = np.zeros((0, width), dtype=np.float32)
     n, dim, k = qk.shape[0], qf.shape[1], len(cand_kps)
 
     # Pad the candidates: [k, Nc_max, 3] keypoints, [k, Nc_max, D] features, [k, Nc_max] mask.
-    kps = [np.asarray(a, dtype=np.float32) for a in cand_kps]
-    fts = [np.asarray(a, dtype=np.float32) for a in cand_feats]
     for i, (a, f) in enumerate(zip(kps, fts, strict=True)):
         if a.ndim != 2 or a.shape[1] != 3:
             raise InputError(f"cand_kps[{i}] must have shape [Nc, 3], got {list(a.shape)}")
+        if f.ndim == 2 and not len(a) and not len(f):  # no keypoints: any width is empty
+            fts[i] = f = np.zeros((0, dim), dtype=np.float32)
         if f.ndim != 2 or f.shape != (a.shape[0], dim):
             raise InputError(
                 f"cand_feats[{i}] must have shape [{a.shape[0]}, {dim}], got {list(f.shape)}"

@@ -16,6 +16,7 @@ from __future__ import annotations
 import functools
 import json
 import math
+import numbers
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -44,8 +45,10 @@ class Seed:
         object.__setattr__(self, "T_map_sensor", T)
         for name in ("sigma_m", "sigma_yaw_deg"):
             value = getattr(self, name)
-            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+            real = isinstance(value, numbers.Real) and not isinstance(value, bool | np.bool_)
+            if not (real and math.isfinite(value) and value > 0):
                 raise InputError(f"seed.{name} must be a positive number, got {value!r}")
+            object.__setattr__(self, name, float(value))
         if self.sigma_yaw_deg > 180:
             raise InputError(f"seed.sigma_yaw_deg must be at most 180, got {self.sigma_yaw_deg}")
 

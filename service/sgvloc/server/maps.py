@@ -187,6 +187,8 @@ def _encoder_features(
             f"uses encoder {ident.name!r} with global_dim={encoder.global_dim}, "
             f"local_dim={encoder.local_dim}: they come from another encoder"
         )
+    if not feats.num_keypoints and d != encoder.local_dim:  # no rows: the encoder's width
+        feats = replace(feats, local_features=np.zeros((0, encoder.local_dim), np.float32))
     encoder.check(feats)
     return feats
 
@@ -1294,14 +1296,16 @@ class MapManager:
         *,
         fix_spec: Callable[[EncoderSpec], EncoderSpec] | None = None,
         check_name: Callable[[str], None] | None = None,
+        check_settings: Callable[[LocalizerConfig], None] | None = None,
     ) -> MapHandle:
         """Create a map from an archive, under ``name`` or the archived name.
 
         Ids, keys, metadata, creation times, version, settings and calibration are kept.
         The archive's encoder must build here with the same fingerprint (else
         :class:`EncoderMismatchError`); ``fix_spec`` may adjust its spec first (the
-        service confines model paths); ``check_name`` may refuse the final name (by
-        raising) before anything is built. A damaged or foreign archive raises
+        service confines model paths); ``check_name`` may refuse the final name and
+        ``check_settings`` the archived localizer settings (by raising) before anything is
+        built. A damaged or foreign archive raises
         :class:`~sgvloc.server.archive.ArchiveError` and leaves nothing behind.
         """
         header, chunks = read_archive(fileobj)
@@ -1311,6 +1315,8 @@ class MapManager:
         if check_name is not None:
             check_name(name)
         spec = fix_spec(record.encoder_spec) if fix_spec else record.encoder_spec
+        if check_settings is not None:
+            check_settings(record.localizer_config)
         with at_field("encoder"):
             encoder = make_encoder(spec)
         if encoder.identity.fingerprint != record.encoder_fingerprint:

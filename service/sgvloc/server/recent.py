@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import threading
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from typing import Any
@@ -69,10 +70,16 @@ class RecentLocalizations:
         self._rings: dict[str, deque[RecentLocalization]] = {}
         self._lock = threading.Lock()
 
-    def record(self, name: str, result: LocalizationResult) -> None:
-        """Remember one answer of map ``name`` (the oldest falls out past ``size``)."""
+    def record(
+        self, name: str, result: LocalizationResult, alive: Callable[[], bool] | None = None
+    ) -> None:
+        """Remember one answer of map ``name`` (the oldest falls out past ``size``), unless
+        ``alive()`` says the map that answered is gone (deleted while the answer was made:
+        a map of the same name made since must not inherit it)."""
         entry = RecentLocalization.of(result)
-        with self._lock:
+        with self._lock:  # a delete closes the map before it drops the ring
+            if alive is not None and not alive():
+                return
             ring = self._rings.get(name)
             if ring is None:
                 ring = self._rings[name] = deque(maxlen=self.size)

@@ -34,7 +34,8 @@ async def get_manager(request: Request) -> MapManager:
     """The map manager, once every map is loaded (503 ``unavailable`` before)."""
     manager: MapManager = request.app.state.manager
     if not manager.loaded.is_set():
-        raise ApiError(503, "unavailable", "maps are still loading; retry shortly")
+        settings: Settings = request.app.state.settings
+        raise busy(503, "unavailable", "maps are still loading; retry shortly", settings)
     return manager
 
 

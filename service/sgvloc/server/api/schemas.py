@@ -20,6 +20,8 @@ from pydantic import (
     ConfigDict,
     Field,
     StrictInt,
+    TypeAdapter,
+    ValidationError,
     ValidationInfo,
     WithJsonSchema,
     field_validator,
@@ -39,6 +41,40 @@ from ..settings import Settings
 
 #: bound of a map's recorded self-test (JSON bytes)
 SELF_TEST_MAX_BYTES = 16384
+#: deepest nesting of a free-form JSON object a map records (self-test, calibration)
+JSON_MAX_DEPTH = 32
+_INT = TypeAdapter(int)
+
+
+def plain_json(value: Any, depth: int = 0) -> Any:
+    """``value`` as plain JSON data that every store can keep and every answer can carry:
+    arrays (MessagePack bodies decode into NumPy) become lists, NumPy scalars numbers;
+    ValueError for other types, non-finite numbers, text that is not valid Unicode or
+    holds NUL, or nesting deeper than :data:`JSON_MAX_DEPTH`."""
+    if depth > JSON_MAX_DEPTH:
+        raise ValueError(f"nested deeper than {JSON_MAX_DEPTH} levels")
+    if isinstance(value, np.ndarray | np.generic):
+        value = value.tolist()
+    if value is None or isinstance(value, bool):
+        return value
+    if isinstance(value, int):
+        return value
+    if isinstance(value, float):
+        if not np.isfinite(value):
+            raise ValueError("holds a number that is not finite")
+        return value
+    if isinstance(value, str):
+        return _no_nul(value)
+    if isinstance(value, list | tuple):
+        return [plain_json(v, depth + 1) for v in value]
+    if isinstance(value, dict):
+        out = {}
+        for k, v in value.items():
+            if not isinstance(k, str):
+                raise ValueError(f"has a key of type {type(k).__name__}; keys must be text")
+            out[_no_nul(k)] = plain_json(v, depth + 1)
+        return out
+    raise ValueError(f"holds a value of type {type(value).__name__}, not JSON data")
 
 
 def limits(settings: Settings) -> dict[str, int]:
@@ -151,10 +187,15 @@ class MapCreate(_In):
             _check_map_top_k(v.top_k, info)
         return v
 
+    @field_validator("self_test", "calibration", mode="before")
+    @classmethod
+    def _plain(cls, v: Any) -> Any:
+        return plain_json(v) if isinstance(v, dict) else v
+
     @field_validator("self_test")
     @classmethod
     def _self_test_size(cls, v: dict[str, Any] | None) -> dict[str, Any] | None:
-        if v is not None and len(json.dumps(v)) > SELF_TEST_MAX_BYTES:
+        if v is not None and len(json.dumps(v).encode()) > SELF_TEST_MAX_BYTES:
             raise ValueError(f"longer than {SELF_TEST_MAX_BYTES} bytes as JSON")
         return v
 
@@ -207,7 +248,11 @@ class MapPatch(_In):
     @classmethod
     def _map_top_k(cls, v: dict[str, Any] | None, info: ValidationInfo) -> dict[str, Any] | None:
         top_k = (v or {}).get("top_k")
-        if isinstance(top_k, int) and not isinstance(top_k, bool):
+        if top_k is not None and not isinstance(top_k, bool):
+            try:  # as the merged settings will read it ("500" and 500.0 are 500 there)
+                top_k = _INT.validate_python(top_k)
+            except ValidationError:
+                return v  # the merge names what is wrong with it
             _check_map_top_k(top_k, info)
         return v
 
@@ -216,7 +261,7 @@ class MapPatch(_In):
     def _calibration(cls, v: Any) -> Any:
         if v is not None and v != "shipped" and not isinstance(v, dict):
             raise ValueError("must be a calibration object or 'shipped'")
-        return v
+        return plain_json(v) if isinstance(v, dict) else v
 
     @model_validator(mode="after")
     def _something(self) -> MapPatch:
@@ -363,6 +408,10 @@ def _no_nul(v: str) -> str:
     # stores keep text in PostgreSQL too, which refuses NUL in text and in jsonb
     if "\x00" in v:
         raise ValueError("must not contain a NUL character")
+    try:  # a lone surrogate (JSON "\ud800") can be neither stored nor answered
+        v.encode("utf-8")
+    except UnicodeEncodeError:
+        raise ValueError("must be valid Unicode text (it holds a lone surrogate)") from None
     return v
 
 

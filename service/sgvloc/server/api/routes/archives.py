@@ -19,6 +19,7 @@ import anyio
 from fastapi import APIRouter, Depends, Query, Request, Response
 from fastapi.responses import StreamingResponse
 
+from sgvloc.core.config import LocalizerConfig
 from sgvloc.core.encoders import EncoderSpec
 
 from ..auth import authorize, principal_of
@@ -27,7 +28,7 @@ from ..deps import ManagerDep, MapName, SettingsDep, WorkerDep
 from ..errors import ApiError
 from ..openapi import error_responses
 from ..schemas import MapInfo
-from .maps import confine_model_path, map_info
+from .maps import check_keypoint_budget, confine_model_path, map_info
 
 router = APIRouter(tags=["maps"], dependencies=[Depends(authorize)])
 
@@ -161,7 +162,18 @@ async def import_map(
         # a model file is looked up by its name in this server's models directory
         if spec.model_path is not None:
             spec = spec.model_copy(update={"model_path": Path(spec.model_path).name})
-        return confine_model_path(spec, settings.models_dir) or spec
+        check_keypoint_budget(spec, settings.max_keypoints)  # this server's limits, as
+        return confine_model_path(spec, settings.models_dir) or spec  # for a new map
+
+    def check_settings(cfg: LocalizerConfig) -> None:
+        if cfg.top_k > settings.max_top_k:
+            raise ApiError(
+                422,
+                "invalid_input",
+                f"the archived map's top_k {cfg.top_k} exceeds the limit of "
+                f"{settings.max_top_k} (max_top_k)",
+                "localizer.top_k",
+            )
 
     def check_name(final: str) -> None:  # the archived name, for a key bound to maps
         if not caller.may_use_map(final):
@@ -169,7 +181,9 @@ async def import_map(
 
     def work() -> MapInfo:
         with open(spool, "rb") as f:
-            handle = manager.import_archive(f, name, fix_spec=fix_spec, check_name=check_name)
+            handle = manager.import_archive(
+                f, name, fix_spec=fix_spec, check_name=check_name, check_settings=check_settings
+            )
         return map_info(handle)
 
     try:

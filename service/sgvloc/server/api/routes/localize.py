@@ -157,7 +157,7 @@ async def localize(
         await _caught_up(manager, map_name, min_map_version, settings.catch_up_wait_s)
 
     def work() -> LocalizeOut:
-        manager.get(map_name)
+        handle = manager.get(map_name)
         req = LocalizeBody.model_validate(body.decode(), context=limits(settings))
         result = manager.localize(
             map_name,
@@ -171,7 +171,8 @@ async def localize(
             seed=None if req.seed is None else req.seed.to_seed(),
         )
         metrics.observe_localization(result, map_name, key_name)
-        request.app.state.recent.record(map_name, result)  # for the status page
+        # for the status page
+        request.app.state.recent.record(map_name, result, lambda: not handle.closed)
         return localize_out(map_name, result)
 
     return encode(request, await worker.run(work, deadline_at=deadline_at))
