@@ -40,11 +40,12 @@ def _answer(m: MapManager, name: str, q: FeaturesIn) -> tuple:
 def source(tmp_path: Path) -> MapManager:
     rng = np.random.default_rng(11)
     m = _manager(tmp_path / "a")
-    m.create("src", SPEC)
+    m.create("src", SPEC, self_test={"chosen": "egonn", "figures": [{"recall_at_1": 93.0}]})
     ids = m.insert("src", _items(rng, 300, "k")).ids  # two archive chunks
     m.delete_keyframe("src", ids[5])
     m.insert("src", _items(rng, 3))  # keyless ones too
     m.update_settings("src", {"top_k": 7})
+    m.record_self_test("src", {"figures": {"recall_at_1": 90.0}})  # a settings change too
     yield m
     m.close()
 
@@ -57,8 +58,9 @@ def test_round_trip_is_exact(source: MapManager, tmp_path: Path) -> None:
     dest.import_archive(io.BytesIO(data), "copy")
     a, b = source.get("src"), dest.get("copy")
     assert (b.version, b.num_keyframes) == (a.version, a.num_keyframes) == (3, 302)
-    assert b.record == replace(a.record, name="copy")
-    assert b.record.settings_version == 1 and b.record.localizer_config.top_k == 7
+    assert b.record == replace(a.record, name="copy")  # the self-tests too
+    assert b.record.self_test["chosen"] == "egonn" and b.record.last_self_test is not None
+    assert b.record.settings_version == 2 and b.record.localizer_config.top_k == 7
     with a.store.snapshot() as (_, _, rows):
         rows_a = list(rows)
     with b.store.snapshot() as (_, _, rows):

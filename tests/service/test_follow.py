@@ -130,3 +130,165 @@ def test_store_urls_and_passwords(tmp_path: Path) -> None:
         open_backend("mysql://x")
     with pytest.raises(StoreError, match="password file"):
         open_backend("postgresql://u@h/db", password_file=tmp_path / "missing")
+
+
+def test_one_map_that_cannot_catch_up_holds_back_no_other(
+    pair: tuple[MapManager, MapManager], url: str, rng: np.random.Generator
+) -> None:
+    """Settings this replica cannot read (written by a newer version, say) fail that map's
+    catch-up and the round, but every other map is followed all the same."""
+    import json
+
+    a, b = pair
+    a.create("one", SPEC)
+    a.create("two", SPEC)
+    b.sync()
+    with psycopg.connect(url) as conn:
+        meta = conn.execute("SELECT meta FROM sgvloc_maps WHERE name = 'one'").fetchone()[0]
+        cfg = json.loads(meta["localizer_config"])
+        cfg["pose"]["a_newer_setting"] = 1
+        conn.execute(
+            "UPDATE sgvloc_maps SET meta = meta || %s::jsonb, "
+            "settings_version = settings_version + 1 WHERE name = 'one'",
+            (json.dumps({"localizer_config": json.dumps(cfg)}),),
+        )
+    a.create("three", SPEC)
+    version = a.insert("two", feature_keyframes(rng, 3, "t")).map_version
+    with pytest.raises(StoreError, match="map 'one'"):
+        b.sync()
+    assert sorted(h.name for h in b.list()) == ["one", "three", "two"]
+    assert b.get("two").version == version
+
+
+def test_a_write_waits_for_a_lock_held_elsewhere_only_so_long(
+    url: str, tmp_path: Path, rng: np.random.Generator
+) -> None:
+    """Another session holding the map's row lock (a replica stuck mid-write) fails the
+    write with StoreUnavailableError (503) after the lock timeout instead of hanging it,
+    and the write lock it held is free again."""
+    from sgvloc.server.store.postgres import PgBackend
+
+    m = MapManager(tmp_path / "m", backend=PgBackend(url, lock_timeout_s=0.5))
+    m.load_all()
+    try:
+        m.create("m", SPEC)
+        with psycopg.connect(url) as stuck:
+            stuck.execute("SELECT version FROM sgvloc_maps WHERE name = 'm' FOR UPDATE")
+            with pytest.raises(StoreUnavailableError):
+                m.insert("m", feature_keyframes(rng, 1, "a"))
+        assert m.insert("m", feature_keyframes(rng, 1, "b")).map_version == 1
+    finally:
+        m.close()
+
+
+def test_a_replica_removes_only_uploads_a_crash_left(url: str, tmp_path: Path) -> None:
+    """With a shared store the maps folder holds uploads being spooled: an old one is a
+    crash's leftover, a fresh one may be another request's."""
+    import os
+
+    folder = tmp_path / "r" / "maps"
+    folder.mkdir(parents=True)
+    old, fresh = folder / ".tmp-import-aaaa-1", folder / ".tmp-import-bbbb-2"
+    old.write_bytes(b"x")
+    fresh.write_bytes(b"y")
+    os.utime(old, (time.time() - 7200, time.time() - 7200))
+    m = MapManager(folder, backend=open_backend(url))
+    m.load_all()
+    m.close()
+    assert not old.exists() and fresh.exists()
+
+
+def test_a_long_import_is_not_taken_for_a_crash_leftover(
+    pair: tuple[MapManager, MapManager], url: str, tmp_path: Path, rng, monkeypatch
+) -> None:
+    """A replica starting up removes staged imports older than an hour; one still being
+    filled counts from its latest chunk, not from when it began."""
+    import io
+
+    from sgvloc.server import maps as maps_module
+    from sgvloc.server.archive import CHUNK
+
+    a, _ = pair
+    a.create("src", SPEC)
+    a.insert("src", feature_keyframes(rng, CHUNK + 5, "k"))  # two chunks
+    with a.export_archive("src") as blocks:
+        data = b"".join(blocks)
+    checked = {"n": 0}
+    real = maps_module.MapManager._check_archived
+
+    def slow_import(encoder, row) -> None:
+        checked["n"] += 1
+        if checked["n"] == 1:  # as if the import had begun over an hour ago
+            with psycopg.connect(url) as conn:
+                conn.execute(
+                    "UPDATE sgvloc_maps SET made = now() - interval '2 hours' "
+                    "WHERE starts_with(name, '.tmp-')"
+                )
+        if checked["n"] == CHUNK + 1:  # the first chunk is in; another replica starts
+            other = MapManager(tmp_path / "c", backend=open_backend(url))
+            other.load_all()
+            other.close()
+        real(encoder, row)
+
+    monkeypatch.setattr(maps_module.MapManager, "_check_archived", staticmethod(slow_import))
+    handle = a.import_archive(io.BytesIO(data), "copy")
+    assert handle.num_keyframes == CHUNK + 5
+
+
+def test_concurrent_exports_take_one_connection_each(url: str, tmp_path: Path, rng) -> None:
+    """An export reads its whole state, next id included, in one transaction: as many
+    exports as the pool has connections run at once."""
+    m = MapManager(tmp_path / "e", backend=open_backend(url, pool_size=2))
+    m.load_all()
+    try:
+        m.create("m", SPEC)
+        m.insert("m", feature_keyframes(rng, 20, "k"))
+        go, out = threading.Event(), []
+
+        def export() -> None:
+            go.wait()
+            try:
+                with m.export_archive("m") as blocks:
+                    for _ in blocks:
+                        time.sleep(0.05)  # a client downloading
+                out.append("ok")
+            except Exception as exc:
+                out.append(type(exc).__name__)
+
+        threads = [threading.Thread(target=export) for _ in range(2)]
+        for t in threads:
+            t.start()
+        go.set()
+        for t in threads:
+            t.join(60)
+        assert out == ["ok", "ok"]
+    finally:
+        m.close()
+
+
+def test_a_filtered_delete_survives_a_keyframe_deleted_elsewhere_meanwhile(
+    pair: tuple[MapManager, MapManager], rng, monkeypatch
+) -> None:
+    """The match and the delete are two transactions: a keyframe another replica deletes
+    in between is matched again, not a 404 that deletes nothing."""
+    from sgvloc.server.store import KeyframeFilter
+
+    a, b = pair
+    a.create("m", SPEC)
+    a.insert("m", feature_keyframes(rng, 6, "drive/"))
+    b.sync()
+    store = a.get("m").store
+    real = store.matching_ids
+    raced = []
+
+    def match_then_race(where):
+        out = real(where)
+        if not raced:
+            raced.append(out[0])
+            b.delete_keyframe("m", out[0])  # replica b, between the match and the delete
+        return out
+
+    monkeypatch.setattr(store, "matching_ids", match_then_race)
+    deleted, version = a.delete_keyframes("m", KeyframeFilter(key_prefix="drive/"))
+    assert deleted == 5 and a.get("m").num_keyframes == 0
+    assert a.get("m").version == version == 3

@@ -142,8 +142,10 @@ def test_names_leftovers_and_deletion(tmp_path: Path) -> None:
     m.close()
     leftover = tmp_path / "maps" / ".tmp-b-1234"
     leftover.mkdir()
+    spooled = tmp_path / "maps" / ".tmp-import-1a2b3c4d-xyz"  # an upload a crash left
+    spooled.write_bytes(b"part of an archive")
     m2 = _manager(tmp_path)
-    assert not leftover.exists()
+    assert not leftover.exists() and not spooled.exists()
     m2.delete("a")
     assert not (tmp_path / "maps" / "a").exists()
     with pytest.raises(NotFoundError):
@@ -363,3 +365,30 @@ def test_a_map_stored_before_a_setting_existed_keeps_its_answers(tmp_path: Path)
     assert json.loads(text)["retrieval"]["offset_m"] == 0.0
     assert json.loads(text)["pose"]["min_icp_constraint"] == 0.0
     assert json.loads(text)["pose"]["icp_coarse_m"] == 0.0
+
+
+def test_a_reload_while_a_map_is_deleted_does_not_load_it_back(tmp_path: Path) -> None:
+    """The delete waits for the map's write lock (an insert or snapshot holds it); a
+    reload meanwhile must not load the folder about to be removed, which would serve a
+    map whose acknowledged inserts vanish at the next restart."""
+    import threading
+
+    rng = np.random.default_rng(0)
+    m = _manager(tmp_path)
+    m.create("m", SPEC)
+    m.insert("m", _items(rng, 3))
+    handle = m.get("m")
+    handle.write_lock.acquire()  # a write under way
+    deleting = threading.Thread(target=m.delete, args=("m",))
+    deleting.start()
+    deadline = time.monotonic() + 10
+    while "m" in [h.name for h in m.list()] and time.monotonic() < deadline:
+        time.sleep(0.01)
+    with pytest.raises(ConflictError, match="deleted"):
+        m.reload("m")
+    handle.write_lock.release()
+    deleting.join()
+    assert m.list() == [] and not (m.maps_dir / "m").exists()
+    with pytest.raises(NotFoundError):
+        m.insert("m", _items(rng, 1))
+    m.close()

@@ -68,6 +68,8 @@ def _manifest(record: MapRecord, version: int, count: int, next_id: int | None) 
             "calibration": None if record.calibration is None else record.calibration.to_dict(),
             "settings_version": record.settings_version,
             "settings_updated_at": record.settings_updated_at,
+            "self_test": record.self_test,
+            "last_self_test": record.last_self_test,
         },
         "version": int(version),
         "keyframes": int(count),
@@ -175,6 +177,12 @@ class ArchiveHeader:
     next_id: int | None = None  # the id the map's next insert gets (None: not recorded)
 
 
+def _object_or_none(value: Any, name: str) -> dict[str, Any] | None:
+    if value is None or isinstance(value, dict):
+        return value
+    raise TypeError(f"{name} is a {type(value).__name__}, not an object")
+
+
 def _header(manifest: dict[str, Any]) -> ArchiveHeader:
     if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
         raise ArchiveError(f"not an sgvloc map archive ({MANIFEST} names no {FORMAT!r} format)")
@@ -198,6 +206,8 @@ def _header(manifest: dict[str, Any]) -> ArchiveHeader:
             else Calibration.from_dict(m["calibration"]),
             settings_version=int(m.get("settings_version", 0)),
             settings_updated_at=m.get("settings_updated_at"),
+            self_test=_object_or_none(m.get("self_test"), "self_test"),
+            last_self_test=_object_or_none(m.get("last_self_test"), "last_self_test"),
         )
         version, count = int(manifest["version"]), int(manifest["keyframes"])
         next_id = manifest.get("next_id")

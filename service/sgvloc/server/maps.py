@@ -84,6 +84,8 @@ MAP_NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")  # whole name: full
 SETTINGS_TRIES = 5
 _TMP_PREFIX = ".tmp-"
 _TRASH_PREFIX = ".deleted-"
+#: a spooled upload untouched this long (seconds) was left by a crash
+SPOOL_ABANDONED_S = 3600.0
 
 
 # -- inputs ------------------------------------------------------------------------------
@@ -307,14 +309,10 @@ class MapManager:
         """Load every map folder; a map that fails is logged and listed in ``failed``.
         With a shared store: connect (waiting while it cannot be reached) and load every
         map it holds."""
+        self._remove_leftovers()
         if self.shared:
             self._load_all_shared()
             return
-        self.maps_dir.mkdir(parents=True, exist_ok=True)
-        for leftover in self.maps_dir.iterdir():
-            if leftover.name.startswith((_TMP_PREFIX, _TRASH_PREFIX)):
-                log.info("removing leftover folder %s", leftover)
-                shutil.rmtree(leftover, ignore_errors=True)
         for folder in sorted(p for p in self.maps_dir.iterdir() if p.is_dir()):
             if self._stop.is_set():
                 log.warning("shutting down: maps from %r on were not loaded", folder.name)
@@ -333,6 +331,28 @@ class MapManager:
                 continue
             self._serve_loaded(handle, t0)
         self.loaded.set()
+
+    def _remove_leftovers(self) -> None:
+        """Remove what a crash left in the maps folder: half-built and deleted map folders
+        and spooled uploads (files). With a shared store the folder holds only uploads,
+        and only those untouched for :data:`SPOOL_ABANDONED_S` go (an upload being
+        received is written to all the time)."""
+        self.maps_dir.mkdir(parents=True, exist_ok=True)
+        now = time.time()
+        for leftover in self.maps_dir.iterdir():
+            if not leftover.name.startswith((_TMP_PREFIX, _TRASH_PREFIX)):
+                continue
+            try:
+                if leftover.is_dir() and not leftover.is_symlink():
+                    if self.shared:
+                        continue
+                    log.info("removing leftover folder %s", leftover)
+                    shutil.rmtree(leftover, ignore_errors=True)
+                elif not self.shared or now - leftover.stat().st_mtime > SPOOL_ABANDONED_S:
+                    log.info("removing leftover file %s", leftover)
+                    leftover.unlink(missing_ok=True)
+            except OSError as exc:
+                log.warning("could not remove leftover %s: %s", leftover, exc)
 
     def _load_all_shared(self) -> None:
         backend = self.backend
@@ -552,6 +572,7 @@ class MapManager:
                 # gone (not degraded), or made again under the name: tried afresh below
                 self.failed.pop(name, None)
                 self._failed_incarnation.pop(name, None)
+        problems = []  # one map that cannot catch up holds back none of the others
         for name, (_, version, settings_version) in catalog.items():
             with self._lock:
                 handle = self._maps.get(name)
@@ -569,6 +590,12 @@ class MapManager:
                     self._refresh_settings(handle)
             except StoreClosedError:  # deleted since the catalog: the next round drops it
                 continue
+            except (StoreUnavailableError, *backend.errors):  # the store itself: the round
+                raise
+            except Exception as exc:  # this map's data (settings of a newer version, ...)
+                problems.append(f"map {name!r}: {exc}")
+        if problems:  # counted as a failed round, after every other map caught up
+            raise StoreError("; ".join(problems))
 
     def sync_map(self, handle: MapHandle) -> None:
         """Catch one map up with the shared store now (no-op for a local store)."""
@@ -672,7 +699,9 @@ class MapManager:
         :class:`MapUnavailableError` if it still cannot be loaded."""
         with self._lock:
             if name in self._maps or name in self._reserved:
-                raise ConflictError(f"map {name!r} is loaded (or being created); nothing to reload")
+                raise ConflictError(
+                    f"map {name!r} is loaded (or being created or deleted); nothing to reload"
+                )
             self._reserved.add(name)
         folder = self.maps_dir / name
         try:
@@ -877,13 +906,13 @@ class MapManager:
         """Delete a map and its folder; raises :class:`NotFoundError`."""
         with self._lock:
             handle = self._maps.pop(name, None)
-            if handle is not None and isinstance(self.backend, SharedBackend):
-                self._reserved.add(name)  # the follower must not load it back meanwhile
+            if handle is not None:  # neither the follower nor a reload loads it meanwhile
+                self._reserved.add(name)
         if handle is None:
             raise NotFoundError(f"map {name!r} does not exist")
-        if isinstance(self.backend, SharedBackend):
-            try:
-                with handle.write_lock:
+        try:
+            with handle.write_lock:
+                if isinstance(self.backend, SharedBackend):
                     try:
                         self.backend.drop(handle.store)  # one transaction; replicas follow
                     except StoreUnavailableError:
@@ -894,19 +923,18 @@ class MapManager:
                         pass
                     handle.closed = True
                     handle.store.close()
-            finally:
-                with self._lock:
-                    self._reserved.discard(name)
-            self._on_change(name, None)
-            log.info("deleted map %r", name)
-            return
-        with handle.write_lock:
-            handle.closed = True
-            handle.store.close()
-            assert handle.path is not None
-            trash = self.maps_dir / f"{_TRASH_PREFIX}{name}-{uuid.uuid4().hex[:8]}"
-            handle.path.rename(trash)  # one atomic step; the rest is clean-up
-        shutil.rmtree(trash, ignore_errors=True)
+                    trash = None
+                else:
+                    handle.closed = True
+                    handle.store.close()
+                    assert handle.path is not None
+                    trash = self.maps_dir / f"{_TRASH_PREFIX}{name}-{uuid.uuid4().hex[:8]}"
+                    handle.path.rename(trash)  # one atomic step; the rest is clean-up
+        finally:
+            with self._lock:
+                self._reserved.discard(name)
+        if trash is not None:
+            shutil.rmtree(trash, ignore_errors=True)
         self._on_change(name, None)
         log.info("deleted map %r", name)
 
@@ -1243,10 +1271,18 @@ class MapManager:
         with handle.write_lock:
             if handle.closed:
                 raise NotFoundError(f"map {name!r} does not exist")
-            ids = handle.store.matching_ids(where)
-            if not ids:
-                return 0, handle.version
-            version = handle.store.delete(ids)
+            for attempt in range(3):
+                ids = handle.store.matching_ids(where)
+                if not ids:
+                    return 0, handle.version
+                try:
+                    version = handle.store.delete(ids)
+                    break
+                except NotFoundError:
+                    # another replica deleted one of them between the match and the
+                    # delete (nothing was deleted): match again
+                    if not self.shared or attempt == 2:
+                        raise
             self._remove_own(handle, ids, version)
         self._on_change(name, handle.num_keyframes)
         log.info("map %r: deleted %d keyframes (version %d)", name, len(ids), version)
@@ -1282,9 +1318,7 @@ class MapManager:
         read from one consistent state of the store; writers are not blocked."""
         handle = self.get(name)
         try:
-            with handle.store.snapshot() as (version, count, rows):
-                # read after the snapshot: at least its next id (ids only grow)
-                next_id = handle.store.next_id()
+            with handle.store.archive_snapshot() as (version, count, next_id, rows):
                 yield write_archive(handle.record, version, count, rows, next_id)
         except StoreClosedError:
             raise NotFoundError(f"map {name!r} does not exist") from None

@@ -13,7 +13,7 @@ import io
 import json
 from abc import ABC, abstractmethod
 from collections.abc import Iterator
-from contextlib import AbstractContextManager
+from contextlib import AbstractContextManager, contextmanager
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -363,6 +363,14 @@ class MapStore(ABC):
         """A consistent read of the whole map without blocking writers: ``(version,
         count, keyframes in id order)``, valid inside the ``with`` block; ``slim``: rows
         without keypoints, local features and cloud."""
+
+    @contextmanager
+    def archive_snapshot(self) -> Iterator[tuple[int, int, int, Iterator[KeyframeRow]]]:
+        """:meth:`snapshot` and the map's :meth:`next_id` of that state (read after the
+        snapshot here, so at least its next id: ids only grow): ``(version, count,
+        next_id, keyframes)``, for an archive."""
+        with self.snapshot() as (version, count, rows):
+            yield version, count, self.next_id(), rows
 
     @abstractmethod
     def insert_exact(

@@ -161,6 +161,15 @@ _INSERT = (
 )
 
 
+#: longest wait for a row lock another session holds (seconds)
+LOCK_TIMEOUT_S = 30
+#: longest single statement (seconds): far above any insert of max_batch keyframes
+STATEMENT_TIMEOUT_S = 120
+#: longest a transaction may sit idle (seconds): an export streams inside one, as fast
+#: as its client reads
+IDLE_IN_TRANSACTION_S = 600
+
+
 class PgBackend(SharedBackend):
     """Every map in one PostgreSQL database, through a connection pool."""
 
@@ -173,6 +182,7 @@ class PgBackend(SharedBackend):
         pool_size: int = 8,
         timeout_s: float = 3.0,
         password: str | None = None,
+        lock_timeout_s: float = LOCK_TIMEOUT_S,
     ) -> None:
         self.url = url
         self.timeout_s = timeout_s
@@ -182,6 +192,14 @@ class PgBackend(SharedBackend):
             "tcp_user_timeout": int(timeout_s * 1000) * 3,
             "keepalives_idle": 10,
             "application_name": "sgvloc",
+            # a lock held elsewhere (another replica's stuck write) or a statement that
+            # never ends fails the call (503) instead of holding the map's write lock for
+            # good; a transaction left idle (an export whose client went away) is ended
+            "options": (
+                f"-c lock_timeout={int(lock_timeout_s * 1000)} "
+                f"-c statement_timeout={STATEMENT_TIMEOUT_S * 1000} "
+                f"-c idle_in_transaction_session_timeout={IDLE_IN_TRANSACTION_S * 1000}"
+            ),
         }
         if password is not None:
             connect["password"] = password
@@ -537,8 +555,11 @@ class PgMapStore(MapStore):
             return int(cur.fetchone()[0])
 
     @contextmanager
-    def snapshot(self, slim: bool = False) -> Iterator[tuple[int, int, Iterator[KeyframeRow]]]:
-        """One REPEATABLE READ transaction: the version and every row of one state."""
+    def _snapshot(
+        self, slim: bool = False
+    ) -> Iterator[tuple[psycopg.Cursor, int, int, Iterator[KeyframeRow]]]:
+        """One REPEATABLE READ transaction: its cursor, the version and every row of
+        one state."""
         with self._tx(read_snapshot=True) as cur:
             version = self._meta(cur)[2]
             cur.execute("SELECT count(*) FROM sgvloc_keyframes WHERE map_id = %s", (self.map_id,))
@@ -550,12 +571,27 @@ class PgMapStore(MapStore):
                     yield from (keyframe_row(r) for r in page)
                     last = int(page[-1][0])
 
-            yield version, count, rows()
+            yield cur, version, count, rows()
+
+    @contextmanager
+    def snapshot(self, slim: bool = False) -> Iterator[tuple[int, int, Iterator[KeyframeRow]]]:
+        with self._snapshot(slim) as (_, version, count, rows):
+            yield version, count, rows
+
+    @contextmanager
+    def archive_snapshot(self) -> Iterator[tuple[int, int, int, Iterator[KeyframeRow]]]:
+        """As the base class, the next id read in the snapshot's own transaction (one
+        connection per export, however many run at once)."""
+        with self._snapshot() as (cur, version, count, rows):
+            yield version, count, self._next_id(cur), rows
 
     def next_id(self) -> int:
         with self._tx() as cur:
-            cur.execute("SELECT next_id FROM sgvloc_maps WHERE map_id = %s", (self.map_id,))
-            row = cur.fetchone()
+            return self._next_id(cur)
+
+    def _next_id(self, cur: psycopg.Cursor) -> int:
+        cur.execute("SELECT next_id FROM sgvloc_maps WHERE map_id = %s", (self.map_id,))
+        row = cur.fetchone()
         if row is None:
             raise StoreClosedError(f"map {self.name!r} was deleted")
         return int(row[0])
@@ -655,8 +691,8 @@ class PgMapStore(MapStore):
                 [(self.map_id, *row_values(row, int(row.id), row.created_at)) for row in rows],
             )
             top = max([current - 1, (next_id or 1) - 1, *(int(r.id) for r in rows)])
-            cur.execute(
-                "UPDATE sgvloc_maps SET version = %s, next_id = %s, updated_at = %s "
-                "WHERE map_id = %s",
+            cur.execute(  # made: a staged map being filled is not a crash's leftover
+                "UPDATE sgvloc_maps SET version = %s, next_id = %s, updated_at = %s, "
+                "made = now() WHERE map_id = %s",
                 (int(version), top + 1, utc_now(), self.map_id),
             )

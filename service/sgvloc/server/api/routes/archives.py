@@ -18,6 +18,7 @@ from typing import Annotated
 import anyio
 from fastapi import APIRouter, Depends, Query, Request, Response
 from fastapi.responses import StreamingResponse
+from starlette.background import BackgroundTask
 
 from sgvloc.core.config import LocalizerConfig
 from sgvloc.core.encoders import EncoderSpec
@@ -64,10 +65,13 @@ async def export_map(map_name: MapName, manager: ManagerDep) -> StreamingRespons
         yield first
         yield from stream
 
+    # a client that goes away mid-download leaves the stream unfinished: closing it after
+    # the answer ends, however it ends, ends the snapshot's transaction now
     return StreamingResponse(
         rest(),
         media_type=ARCHIVE_TYPE,
         headers={"Content-Disposition": f'attachment; filename="{map_name}.sgvmap.tar"'},
+        background=BackgroundTask(stream.close),
     )
 
 
