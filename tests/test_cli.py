@@ -179,3 +179,44 @@ def test_bad_arguments_are_one_line_usage_errors(tmp_path: Path) -> None:
         assert run.exit_code == 2, (args, run.output)
         assert option in run.output and "Traceback" not in run.output, (args, run.output)
     assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize(
+    ("args", "words"),
+    [
+        (["calibrate", "--out", "{tmp}", "--from", "x.json"], "is a folder; name a file"),
+        (["eval", "--data", "{tmp}", "--out", "{tmp}/afile"], "is a file; name a folder"),
+        (["bench", "--only", "rerank", "--out", "{tmp}/afile/b.json"], "cannot make"),
+        (["loadtest", "--json", "{tmp}/afile/x/y.json"], "cannot make"),
+        (["calibrate-track", "--data", "{tmp}", "--out", "{tmp}"], "is a folder"),
+        (["calibrate-track", "--data", "{tmp}@30:10", "--out", "{tmp}/m.json"], "0 <= A < B"),
+        (["calibrate-track", "--data", "{tmp}@x", "--out", "{tmp}/m.json"], "DIR@N"),
+        (["synth", "{tmp}/afile"], "is a file; name a folder"),
+    ],
+)
+def test_arguments_a_command_cannot_use_are_refused_before_the_work(
+    tmp_path: Path, args: list[str], words: str
+) -> None:
+    """Long commands write their results at the end: an output path they could not write,
+    or a scan span they could not read, is a usage error at once, not a traceback after
+    the work."""
+    (tmp_path / "afile").write_text("")
+    res = sgvloc(*(a.format(tmp=tmp_path) for a in args))
+    assert res.returncode == 2, res.stdout + res.stderr
+    assert words in res.stdout + res.stderr
+
+
+@pytest.mark.parametrize(
+    ("args", "words"),
+    [
+        (["bench", "--only", "rerank", "--ks", "0"], "Invalid value for --ks"),
+        (["bench", "--only", "http", "--http-clients", "0,2"], "at least 1"),
+        (["bench", "--only", "tracking", "--track-data", "{tmp}"], "bench: "),
+    ],
+)
+def test_bench_values_it_cannot_use_are_usage_errors(
+    tmp_path: Path, args: list[str], words: str
+) -> None:
+    res = sgvloc(*(a.format(tmp=tmp_path) for a in args), "--out", str(tmp_path / "b.json"))
+    assert res.returncode == 2, res.stdout + res.stderr
+    assert words in res.stdout + res.stderr and "Traceback" not in res.stderr

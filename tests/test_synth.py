@@ -1,6 +1,7 @@
 """The synthetic town: deterministic for a seed; its poses agree with its scans."""
 
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -126,6 +127,17 @@ def test_bev_images_of_a_scan_sequence(small, tmp_path):
     )
     again = CliRunner().invoke(app, ["bev-images", str(small), str(out)])
     assert again.exit_code == 1 and "overwrite" in again.output
+    # overwritten by a shorter sequence: no image of the longer one is left
+    shorter = tmp_path / "shorter"
+    shutil.copytree(small, shorter)
+    for path in KittiSequence(shorter).paths[3:]:
+        path.unlink()
+    for name in ("poses.txt", "times.txt"):
+        rows = (shorter / name).read_text().splitlines()[:3]
+        (shorter / name).write_text("\n".join(rows) + "\n")
+    res = CliRunner().invoke(app, ["bev-images", str(shorter), str(out), "--overwrite"])
+    assert res.exit_code == 0, res.output
+    assert len(open_sequence(out).paths) == 3
 
 
 @pytest.mark.parametrize("pattern", ["spinning", "rosette"])

@@ -4,7 +4,6 @@ each command, so the client-only install can list the commands."""
 
 from __future__ import annotations
 
-import contextlib
 import json
 from collections.abc import Callable
 from pathlib import Path
@@ -72,16 +71,42 @@ ONE_THREAD = _threads_epilog("1 (measured fastest: several small calls per scan)
 
 
 def _exit_on_sigterm() -> None:
-    """SIGTERM (``timeout``, a CI cancel, ``kill``) ends the command as Ctrl-C does, through
-    its ``finally`` blocks: a service, database cluster or folder it started is removed
-    (the default action ends Python at once and leaves them behind)."""
-    import signal
+    """SIGTERM ends the command through its ``finally`` blocks (what it started is removed):
+    :func:`sgvloc.tools.service_process.exit_on_sigterm`."""
+    from .tools.service_process import exit_on_sigterm
 
-    def stop(signum: int, _frame: Any) -> None:
-        raise SystemExit(128 + signum)
+    exit_on_sigterm()
 
-    with contextlib.suppress(ValueError):  # not the main thread: leave the default
-        signal.signal(signal.SIGTERM, stop)
+
+def _output_file(path: Path | None, option: str) -> None:
+    """Before any work: a usage error for an output file the command could not write at
+    its end (its path is a folder, or its folder cannot be made or written)."""
+    if path is None:
+        return
+    if path.is_dir():
+        raise typer.BadParameter(f"{path} is a folder; name a file", param_hint=option)
+    _writable_folder(path.parent, option)
+
+
+def _output_folder(path: Path, option: str) -> None:
+    """Before any work: a usage error for an output folder that is a file or cannot be
+    made or written."""
+    if path.exists() and not path.is_dir():
+        raise typer.BadParameter(f"{path} is a file; name a folder", param_hint=option)
+    _writable_folder(path, option)
+
+
+def _writable_folder(folder: Path, option: str) -> None:
+    import os
+
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise typer.BadParameter(
+            f"cannot make {folder}: {exc.strerror}", param_hint=option
+        ) from None
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise typer.BadParameter(f"{folder} is not writable", param_hint=option)
 
 
 def _cap_threads(threads: int | None, default: int = 1) -> None:
@@ -284,7 +309,11 @@ def loadtest_command(
     ] = 0.2,
     workers: Annotated[int, typer.Option(min=1, help="--workers of a started service")] = 2,
     api_key: Annotated[
-        str | None, typer.Option(help="bearer token (mapper or admin)", envvar="SGVLOC_API_KEY")
+        str | None,
+        typer.Option(
+            help="bearer token: admin (a mapper key runs the test but cannot delete its map)",
+            envvar="SGVLOC_API_KEY",
+        ),
     ] = None,
     json_out: Annotated[Path | None, typer.Option("--json", help="write the figures here")] = None,
     slow_clients: Annotated[
@@ -303,6 +332,7 @@ def loadtest_command(
     slow uploads hold up the others."""
     _cap_threads(threads)
     _exit_on_sigterm()  # the service it starts and its map are cleaned up
+    _output_file(json_out, "--json")
     import httpx
 
     from .tools.loadtest import run_loadtest, run_loadtest_local
@@ -436,6 +466,7 @@ def build_map_command(
     see them: stop it first, or use --url.
     """
     _cap_threads(threads)
+    _output_file(self_test_out, "--self-test-out")
     import sgvloc_client
 
     from .core.errors import SgvlocError
@@ -574,11 +605,37 @@ def _frames(text: str | None, option: str = "--frames") -> tuple[int, int | None
         ) from None
 
 
-def _int_list(text: str) -> list[int]:
+def _scan_span(spec: str, option: str) -> tuple[Path, int, int | None]:
+    """``DIR``, ``DIR@N`` (its first N scans) or ``DIR@A:B`` (scans A..B-1) as
+    ``(DIR, A, B or None)``; a usage error naming ``option`` otherwise."""
+    path, at, span = spec.partition("@")
+    a, _, b = span.rpartition(":")
     try:
-        return [int(x) for x in text.split(",") if x.strip()]
+        first, end = int(a or 0), (int(b) if b else None)
     except ValueError:
-        raise typer.BadParameter(f"expected comma-separated integers, got {text!r}") from None
+        first, end = -1, None
+    if not path or (at and not b) or first < 0 or (end is not None and end <= first):
+        raise typer.BadParameter(
+            f"{spec!r}: give DIR, DIR@N or DIR@A:B with scan numbers 0 <= A < B",
+            param_hint=option,
+        )
+    return Path(path), first, end
+
+
+def _int_list(text: str, option: str | None = None, *, positive: bool = False) -> list[int]:
+    """Comma-separated integers; ``positive``: one or more, each at least 1 (a usage error
+    naming ``option`` otherwise)."""
+    try:
+        values = [int(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise typer.BadParameter(
+            f"expected comma-separated integers, got {text!r}", param_hint=option
+        ) from None
+    if positive and (not values or min(values) < 1):
+        raise typer.BadParameter(
+            f"expected one or more integers of at least 1, got {text!r}", param_hint=option
+        )
+    return values
 
 
 @app.command("eval", epilog=ONE_THREAD)
@@ -634,7 +691,12 @@ def eval_command(
     ] = "",
     refine: Annotated[str, typer.Option(help="pose refinement after RANSAC: icp | none")] = "icp",
     max_queries: Annotated[
-        int | None, typer.Option(min=1, help="evaluate at most N queries")
+        int | None,
+        typer.Option(
+            min=1,
+            help="evaluate at most N in-coverage queries and at most N out-of-coverage "
+            "ones (every --foreign scan is kept)",
+        ),
     ] = None,
     query_stride: Annotated[int, typer.Option(min=1, help="evaluate every n-th query")] = 1,
     encoder: EncoderOpt = None,
@@ -698,6 +760,7 @@ def eval_command(
     a reliability diagram).
     """
     _cap_threads(threads)
+    _output_folder(out, "--out")
     from .core.errors import SgvlocError
     from .tools.evaluation.command import evaluate
 
@@ -789,6 +852,8 @@ def eval_track_command(
     the service's seeded localize with the SDK's motion model, compare with the ground
     truth (errors, availability, wrong fixes, time per mode, kidnap recovery)."""
     _cap_threads(threads)
+    _exit_on_sigterm()  # the map folder it builds is removed
+    _output_folder(out, "--out")
     from .core.encoders import EncoderSpec
     from .core.errors import SgvlocError
     from .tools.build_map import parse_encoder
@@ -874,6 +939,8 @@ def calibrate_track_command(
     fitness and RMSE) on sequences with ground truth, from seeds perturbed near and far;
     report it on held-out sequences. Ship the result as sgvloc/calibration/tracking.json."""
     _cap_threads(threads)
+    _output_file(out, "--out")
+    _output_file(samples_file, "--samples")
     from .core.config import VerdictConfig
     from .core.encoders import EncoderSpec
     from .core.errors import SgvlocError
@@ -888,12 +955,18 @@ def calibrate_track_command(
         enc = None if spec is None else EncoderSpec.model_validate(spec)
         options = dict(map_every=map_every, encoder=enc, draws=draws)
 
+        spans = {d: _scan_span(d, "--data") for d in data}
+        spans.update({d: _scan_span(d, "--check") for d in check or []})
+
         def samples(spec: str, seed: int) -> list[dict[str, float]]:
-            path, _, span = spec.partition("@")  # DIR, DIR@N or DIR@A:B
-            a, _, b = span.rpartition(":")
-            first, n = int(a or 0), int(b) if b else max_scans
+            path, first, end = spans[spec]
             return track_samples(
-                Path(path), first_scan=first, max_scans=n, seed=seed, progress=say, **options
+                path,
+                first_scan=first,
+                max_scans=end or max_scans,
+                seed=seed,
+                progress=say,
+                **options,
             )
 
         if samples_file is not None and samples_file.is_file():
@@ -952,7 +1025,10 @@ def calibrate_command(
         ),
     ] = None,
     max_queries: Annotated[
-        int | None, typer.Option(min=1, help="at most N queries per sequence")
+        int | None,
+        typer.Option(
+            min=1, help="per sequence, at most N in-coverage and N out-of-coverage queries"
+        ),
     ] = None,
     query_stride: Annotated[int, typer.Option(min=1, help="every n-th query")] = 1,
     encoder: EncoderOpt = None,
@@ -976,6 +1052,7 @@ def calibrate_command(
     not report on.
     """
     _cap_threads(threads)
+    _output_file(out, "--out")
     from .core.confidence import Calibration, shipped_calibration
     from .core.config import LocalizerConfig
     from .core.encoders import EncoderSpec
@@ -1059,6 +1136,7 @@ def synth_command(
     its range and the spacing of the scans (keyframes).
     """
     _cap_threads(threads)
+    _output_folder(out, "OUT")
     from .core.errors import SgvlocError
     from .tools.synth import SynthConfig, generate
 
@@ -1103,6 +1181,7 @@ def bev_images_command(
 ) -> None:
     """Write a scan sequence as kitti-bev images (imgs/*.png, pose.txt, times.txt)."""
     _cap_threads(threads)
+    _output_folder(out, "OUT")
     from .core.errors import SgvlocError
     from .tools.bev_images import export_bev_images
 
@@ -1248,18 +1327,24 @@ def bench_command(
     """
     _cap_threads(threads)
     _exit_on_sigterm()  # the services, clusters and folders it starts are cleaned up
+    _output_file(out, "--out")
+    from .core.errors import SgvlocError
     from .tools.bench import check_sections, run_bench
 
     _configure_logging("warning")
     options = {k: v for k, v in ctx.params.items() if k not in ("only", "out", "threads")}
     for key in ("ks", "ns", "large_ns", "sizes", "scan_sizes", "http_clients",
                 "scale_sizes", "scale_clients", "prior_sizes", "cluster_sizes"):  # fmt: skip
-        options[key] = _int_list(options[key])
+        options[key] = _int_list(options[key], "--" + key.replace("_", "-"), positive=True)
     try:
         sections = check_sections([x.strip() for x in only.split(",") if x.strip()])
     except ValueError as exc:
         raise typer.BadParameter(str(exc), param_hint="--only") from None
-    run_bench(sections, options, out, typer.echo)
+    try:
+        run_bench(sections, options, out, typer.echo)
+    except (ValueError, SgvlocError) as exc:  # data or values a section cannot use
+        typer.echo(f"bench: {exc}", err=True)
+        raise typer.Exit(2) from None
 
 
 @app.command("train", epilog=_threads_epilog("every usable core (one large torch job)"))

@@ -407,3 +407,24 @@ def test_scans_the_encoder_cannot_describe_are_skipped(
         keys = [kf.key for kf in c.list_keyframes("sparse").keyframes]
         assert sorted(keys) == [f"seq/{i:06d}" for i in (0, 2, 3, 5)]
         c.delete_map("sparse")
+
+
+def test_another_sequence_in_a_folder_of_the_same_name_is_refused(
+    tmp_path: Path, balm_mini_dir: Path
+) -> None:
+    """Keys name a sequence by its folder: a second drive in a folder of the same name
+    must not be skipped scan by scan as "already present"."""
+    import shutil
+
+    data_dir = tmp_path / "data"
+    build_map(balm_mini_dir, data_dir, "m", limit=2, progress=False)
+    other = tmp_path / "elsewhere" / balm_mini_dir.name
+    shutil.copytree(balm_mini_dir, other)
+    poses = np.loadtxt(other / "poses.txt").reshape(-1, 3, 4)
+    poses[:, :, 3] += [100.0, 0.0, 0.0]  # the same scans, 100 m away
+    np.savetxt(other / "poses.txt", poses.reshape(-1, 12))
+    with pytest.raises(ConflictError, match="100.00 m from this sequence's pose"):
+        build_map(other, data_dir, "m", limit=3, progress=False)
+    # the same sequence again resumes
+    rest = build_map(balm_mini_dir, data_dir, "m", limit=3, progress=False)
+    assert (rest.created, rest.existing) == (1, 2)

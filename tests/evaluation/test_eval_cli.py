@@ -57,6 +57,10 @@ def test_eval_writes_table_json_and_plot_with_every_method(first_run):
     cfg = report["config"]
     assert cfg["min_gap"] == 30 and cfg["topk"] == [2, 3] and cfg["encoder_fingerprint"]
     assert report["timings"]["feature_cache"]["misses"] == 15
+    # the report is readable as the figures beside it are (the umask's mode), no temp left
+    mode = (out / "eval.json").stat().st_mode & 0o777
+    assert mode == (out / "ntopk.png").stat().st_mode & 0o777
+    assert not list(out.glob("*.tmp"))
 
 
 def test_eval_reports_local_matches_and_sgv_score_separation(first_run, balm_mini_dir):

@@ -255,3 +255,15 @@ def test_the_readme_tracking_example_runs(server) -> None:
     lines = run.stdout.splitlines()
     assert len(lines) == 15 and all("localized=True" in line for line in lines[1:]), lines
     assert any(" tracked " in line for line in lines), lines  # scans 3-8 s apart: few
+
+
+@pytest.mark.parametrize("kidnap", [(5, 100), (30, 5), (-1, 5)])
+def test_eval_track_refuses_a_kidnap_the_stream_never_takes(
+    balm_mini_dir, tmp_path, kidnap
+) -> None:
+    from sgvloc.core.errors import InputError
+    from sgvloc.tools.eval_track import eval_track
+
+    with pytest.raises(InputError, match="never takes this jump"):
+        eval_track(balm_mini_dir, tmp_path, map_every=2, kidnaps=[kidnap], max_scans=20)
+    assert not (tmp_path / "track.json").exists()

@@ -33,6 +33,8 @@ def export_bev_images(
     if imgs.exists() and any(imgs.iterdir()) and not overwrite:
         raise InputError(f"{out}: already holds images (imgs/); pass overwrite")
     imgs.mkdir(parents=True, exist_ok=True)
+    for old in imgs.glob("*.png"):  # overwrite: an image beyond this sequence is no one's
+        old.unlink()
     for i, frame in enumerate(tqdm(seq, desc="bev-images", unit="scan", disable=not progress)):
         if not cv2.imwrite(str(imgs / f"{i:06d}.png"), rasterize(frame.scan().points).image):
             raise InputError(f"{imgs}: cannot write image {i}")

@@ -99,6 +99,10 @@ class KeyframeSink(Protocol):
         """``(keyframes, version)`` of the map now."""
         ...
 
+    def positions(self, name: str, key_prefix: str) -> dict[str, np.ndarray]:
+        """Key -> position ``[3]`` of the map's keyframes whose key starts so."""
+        ...
+
     def close(self) -> None:
         """Release what the sink opened (and save what must be saved)."""
         ...
@@ -215,6 +219,13 @@ class ClientSink:
         info = self.client.get_map(name)
         return info.keyframes, info.version
 
+    def positions(self, name: str, key_prefix: str) -> dict[str, np.ndarray]:
+        return {
+            k.key: np.asarray(k.position, np.float64)
+            for k in self.client.iter_keyframes(name, key_prefix=key_prefix)
+            if k.key is not None
+        }
+
     def close(self) -> None:
         if self._owned:
             self.client.close()
@@ -298,11 +309,48 @@ class DataDirSink:
         handle = self.manager.get(name)
         return handle.num_keyframes, handle.version
 
+    def positions(self, name: str, key_prefix: str) -> dict[str, np.ndarray]:
+        from sgvloc.server.store import KeyframeFilter
+
+        out: dict[str, np.ndarray] = {}
+        after = 0
+        while page := self.manager.list_keyframes(
+            name, KeyframeFilter(key_prefix=key_prefix), after_id=after
+        ):
+            out.update((k.key, k.T_map_sensor[:3, 3]) for k in page if k.key is not None)
+            after = page[-1].id
+        return out
+
     def close(self) -> None:
         self.manager.close()  # saves the snapshot of every changed map
 
 
 # -- the build -----------------------------------------------------------------------------
+
+#: a keyframe already in the map under a scan's key lies this close to the scan's pose (m)
+RESUME_TOLERANCE_M = 0.01
+
+
+def _check_resumed_poses(
+    sink: KeyframeSink, name: str, prefix: str, seq: KittiSequence, frames: list[int]
+) -> None:
+    """Refuse to resume into keyframes of another sequence: keys name the sequence by
+    its folder, so a different drive in a folder of the same name would be skipped scan
+    by scan as "already present". Each scan whose key the map holds must sit where the
+    map has it."""
+    held = sink.positions(name, f"{prefix}/")
+    if not held:
+        return
+    for i in frames:
+        key = f"{prefix}/{seq.paths[i].stem}"
+        if key in held:
+            off = float(np.linalg.norm(held[key] - seq.poses[i][:3, 3]))
+            if off > RESUME_TOLERANCE_M:
+                raise ConflictError(
+                    f"map {name!r} holds keyframe {key!r} {off:.2f} m from this sequence's "
+                    f"pose of that scan: is this another sequence in a folder also named "
+                    f"{prefix!r}? Build it into another map, or from a folder of another name"
+                )
 
 
 _EMPTY_SCAN_FIELD = re.compile(r"keyframes\[(\d+)\]\.points")
@@ -394,6 +442,7 @@ def build_map(
     skipped: list[str] = []
     try:
         sink.ensure_map(map_name, create, spec, self_test)
+        _check_resumed_poses(sink, map_name, prefix, seq, frames)
         with tqdm(
             total=len(frames), desc=f"build-map {map_name}", unit="scan", disable=not progress
         ) as bar:

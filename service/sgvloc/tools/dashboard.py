@@ -36,7 +36,7 @@ import numpy as np
 
 from sgvloc_client import wire
 
-from .service_process import ServiceProcess, free_port
+from .service_process import ServiceProcess, exit_on_sigterm, free_port
 
 log = logging.getLogger(__name__)
 
@@ -528,6 +528,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--data", type=Path, default=Path("tests/fixtures/balm_mini"))
     parser.add_argument("--seconds", type=float, default=120.0)
     args = parser.parse_args(argv)
+    exit_on_sigterm()  # the service, Prometheus and folder it starts are removed
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     logging.getLogger("httpx").setLevel(logging.WARNING)
     run = record_dashboard(args.out, data=args.data, seconds=args.seconds)

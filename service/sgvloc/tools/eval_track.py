@@ -137,6 +137,14 @@ def eval_track(
     n = len(seq) if max_scans is None else min(len(seq), max_scans)
     if not 0 <= first_scan < n:
         raise InputError(f"first_scan {first_scan} is outside the {n} scans streamed")
+    order = stream_order(n, kidnaps or [], first_scan)
+    steps = set(zip(order, order[1:], strict=False))
+    for at, to in kidnaps or []:  # a jump the stream never takes measures nothing
+        if not (0 <= at < n and 0 <= to < n and (at, to) in steps):
+            raise InputError(
+                f"kidnap {at}:{to}: the stream of scans {first_scan}..{n - 1} never takes "
+                "this jump (both scans must be streamed, AT reached before the stream ends)"
+            )
     if map_until is not None:  # seconds from the sequence's first scan, as build-map --until
         times = seq.times
         if times is None:
@@ -163,7 +171,6 @@ def eval_track(
                 insert_skipping_empty(insert, batch, skipped)
                 say(f"map: {min(start + 20, len(map_ids))}/{len(map_ids)} keyframes")
             map_ids = [i for i in map_ids if str(i) not in set(skipped)]
-            order = stream_order(n, kidnaps or [], first_scan)
             report = _stream(seq, order, map_ids, manager, kidnaps or [], coverage_m, motion, say)
             report.map_scans_skipped = len(skipped)
         finally:

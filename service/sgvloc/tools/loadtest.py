@@ -279,8 +279,20 @@ def run_loadtest(
                 s.p99_ms = round(float(np.percentile(s.latencies_ms, 99)), 1)
         return LoadResult(url, clients, elapsed, kinds, samples, slow)
     finally:
-        with httpx.Client(base_url=url, headers=headers, timeout=timeout_s) as c:
-            c.delete(f"/v1/maps/{name}")
+        try:
+            with httpx.Client(base_url=url, headers=headers, timeout=timeout_s) as c:
+                r = c.delete(f"/v1/maps/{name}")
+            left = None if r.status_code in (204, 404) else f"HTTP {r.status_code}"
+        except httpx.HTTPError as exc:
+            left = type(exc).__name__
+        if left is not None:  # deleting a map takes an admin key; say what is left behind
+            log.warning(
+                "the load test's map %r is left on the service (%s deleting it): delete it "
+                "with an admin key (DELETE /v1/maps/%s)",
+                name,
+                left,
+                name,
+            )
 
 
 def run_loadtest_local(*, workers: int = 2, **kwargs: Any) -> LoadResult:

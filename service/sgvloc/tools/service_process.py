@@ -21,6 +21,19 @@ import httpx
 
 log = logging.getLogger(__name__)
 
+
+def exit_on_sigterm() -> None:
+    """SIGTERM (``timeout``, a CI cancel, ``kill``) ends the command as Ctrl-C does, through
+    its ``finally`` blocks: a service, database cluster or folder it started is removed
+    (the default action ends Python at once and leaves them behind)."""
+
+    def stop(signum: int, _frame: object) -> None:
+        raise SystemExit(128 + signum)
+
+    with contextlib.suppress(ValueError):  # not the main thread: leave the default
+        signal.signal(signal.SIGTERM, stop)
+
+
 STARTUP_TIMEOUT_S = 300.0
 
 

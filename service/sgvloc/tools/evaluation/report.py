@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 import math
 import os
-import tempfile
+import uuid
 from pathlib import Path
 from typing import Any
 
@@ -131,7 +131,7 @@ def diagnostics_table(result: EvalResult) -> str:
         )
         + " |",
         "",
-        f"SGV scores of the first {sc['k']} retrieved candidates (true: within "
+        f"SGV scores of the candidates re-ranked at top-k {sc['k']} (true: within "
         f"{sc['threshold_m']:g} m):",
         "",
         "| candidates | count | mean | p10 | p50 | p90 |",
@@ -170,10 +170,16 @@ def write_json(result: EvalResult, path: str | os.PathLike) -> Path:
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
     text = json.dumps(report_dict(result), indent=1)
-    fd, tmp = tempfile.mkstemp(dir=p.parent, suffix=".tmp")
-    with os.fdopen(fd, "w") as fh:
-        fh.write(text)
-    os.replace(tmp, p)
+    # beside it under a name of this process, opened as any file (the umask's mode, not
+    # mkstemp's owner-only one: a report is read by others)
+    tmp = p.with_name(f".{p.name}.{os.getpid()}-{uuid.uuid4().hex[:8]}.tmp")
+    try:
+        with open(tmp, "x") as fh:
+            fh.write(text)
+        os.replace(tmp, p)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
     return p
 
 

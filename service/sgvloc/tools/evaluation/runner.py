@@ -622,9 +622,10 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
         )
         + "; repeatability = share of query keypoints with any keypoint that close, "
         "chance = expected ratio of random matching",
-        f"SGV scores: the sgv method's score of the first {k_scores} retrieved candidates per "
-        f"query, true = within {cfg.thresholds[0]:g} m; AUC pooled over all queries and as "
-        "the mean of per-query AUCs",
+        f"SGV scores: the sgv method's score of every candidate it re-ranks at top-k "
+        f"{k_scores} (the first {k_scores} of each descriptor block, merged) per query, true "
+        f"= within {cfg.thresholds[0]:g} m; AUC pooled over all queries and as the mean of "
+        "per-query AUCs",
     ]
     if cache.fov_deg:
         notes.insert(
