@@ -173,7 +173,7 @@ PROFILE_FEATURES["icp"] = PROFILE_FEATURES["none"] + (
 def shared_view(offset_m: float, radius_m: float = PLANAR_VIEW_RADIUS_M) -> float:
     """Share of a disc of ``radius_m`` that a second one ``offset_m`` away covers: 1 at
     no offset, 0 from two radii apart."""
-    d = abs(float(offset_m)) / (2.0 * radius_m)  # half the distance in radii
+    d = abs(float(offset_m)) / (2.0 * radius_m)  # the offset over two radii: 0 to 1
     if not d < 1.0:
         return 0.0
     # the lens of two unit-radius discs at distance 2 d, over the disc's area pi

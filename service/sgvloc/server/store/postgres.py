@@ -260,6 +260,10 @@ class PgBackend(SharedBackend):
         if self.pool.closed:
             self.pool.open(wait=False)
         with self.transaction() as cur:
+            # a migration of a large store may take long, and so may waiting for another
+            # replica's: no time limits in this one transaction
+            cur.execute("SET LOCAL statement_timeout = 0")
+            cur.execute("SET LOCAL lock_timeout = 0")
             # one replica at a time creates or migrates the schema
             cur.execute("SELECT pg_advisory_xact_lock(hashtext('sgvloc_schema'))")
             cur.execute("CREATE TABLE IF NOT EXISTS sgvloc_schema (version INT NOT NULL)")
