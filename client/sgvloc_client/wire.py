@@ -90,6 +90,8 @@ def _from_wire(obj: Any, where: str = "body") -> Any:
             return decode_array(obj, where)
         return {k: _from_wire(v, f"{where}.{k}") for k, v in obj.items()}
     if isinstance(obj, list):
+        if not any(isinstance(v, dict | list) for v in obj):  # numbers: nothing inside
+            return obj
         return [_from_wire(v, f"{where}[{i}]") for i, v in enumerate(obj)]
     return obj
 
@@ -111,9 +113,10 @@ def container_budget(size: int, bytes_per_container: int) -> int:
     return size // bytes_per_container + 10_000
 
 
-def unpackb(data: bytes, max_bytes: int | None = None) -> Any:
+def unpackb(data: bytes, max_bytes: int | None = None, max_list_len: int | None = None) -> Any:
     """Parse MessagePack into the same structure with ndarrays restored (read-only views).
-    Refuses a body holding more maps and lists than :func:`container_budget` allows."""
+    Refuses a body holding more maps and lists than :func:`container_budget` allows, or
+    a list of more than ``max_list_len`` items."""
     if max_bytes is not None and len(data) > max_bytes:
         raise WireError(f"body has {len(data)} bytes, limit is {max_bytes}")
     budget = container_budget(len(data), MSGPACK_BYTES_PER_CONTAINER)
@@ -131,11 +134,20 @@ def unpackb(data: bytes, max_bytes: int | None = None) -> Any:
 
     try:
         obj = msgpack.unpackb(
-            data, raw=False, strict_map_key=True, object_hook=counted, list_hook=counted
+            data,
+            raw=False,
+            strict_map_key=True,
+            object_hook=counted,
+            list_hook=counted,
+            max_array_len=len(data) if max_list_len is None else max_list_len,
         )
     except WireError:
         raise
     except (msgpack.ExtraData, msgpack.FormatError, msgpack.StackError, ValueError) as exc:
+        if "max_array_len" in str(exc):
+            raise WireError(
+                f"body holds a list of more than {max_list_len} items: longer than any field"
+            ) from None
         raise WireError(f"body is not valid MessagePack: {exc}") from None
     return _from_wire(obj)
 

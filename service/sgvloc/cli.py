@@ -969,18 +969,21 @@ def calibrate_track_command(
                 **options,
             )
 
+        trained_on = list(data)
         if samples_file is not None and samples_file.is_file():
             saved = json.loads(samples_file.read_text())
             train, held = saved["train"], saved["check"]
+            trained_on = saved.get("data", trained_on)  # what the samples came from
         else:
             train = [s for d in data for s in samples(d, 0)]
             held = {d: samples(d, 1) for d in check or []}
             if samples_file is not None:
-                samples_file.write_text(json.dumps({"train": train, "check": held}))
+                saved = {"data": trained_on, "train": train, "check": held}
+                samples_file.write_text(json.dumps(saved))
         model = fit_track_confidence(
             train,
             {
-                "data": list(data),
+                "data": trained_on,
                 "map_every": map_every,
                 "draws": draws,
                 "tracking": _tracking_registration(),

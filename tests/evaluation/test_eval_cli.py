@@ -243,6 +243,21 @@ def test_eval_crops_every_scan_to_a_field_of_view(balm_mini_dir, tmp_path, first
     full = first_run[1]["matches"]
     assert report["split"]["queries"] == first_run[1]["split"]["queries"] == 3
     assert report["matches"]["query_keypoints_mean"] < full["query_keypoints_mean"]
+    # a true match shares the view: within 5 m and facing within 90 degrees of the query
+    poses = KittiSequence(balm_mini_dir).poses
+    heading = np.degrees(np.arctan2(poses[:, 1, 0], poses[:, 0, 0]))
+    checked = 0
+    for recs in report["per_query"].values():
+        for r in recs:
+            if r["rank@5m"] is not None:
+                kf = r["ranked"][r["rank@5m"] - 1]
+                turn = abs((heading[kf] - heading[r["query"]] + 180.0) % 360.0 - 180.0)
+                assert (
+                    turn <= 90.0
+                    and np.linalg.norm(poses[kf][:3, 3] - poses[r["query"]][:3, 3]) <= 5.0
+                )
+                checked += 1
+    assert checked
     narrow = [a if a != "180" else "70" for a in args[:-1]]
     res = CliRunner().invoke(app, [*narrow, str(tmp_path / "n")])
     assert res.exit_code == 0, res.output

@@ -79,6 +79,11 @@ def test_leave_out_split_hides_the_querys_own_stretch_both_ways():
     assert 19 in s.dropped and 20 in s.dropped
     with pytest.raises(InputError, match="leave_out"):
         make_split(times, pos, leave_out=-1.0)
+    # a scan with no other scan the gap away has nothing to search: no query at all, not
+    # a negative (as the map's leave-out self-test plans it)
+    times = np.arange(10, dtype=np.float64)  # 0..9 s
+    s = make_split(times, np.zeros((10, 3)), leave_out=6.0, threshold=5.0)
+    assert set(s.queries) | set(s.dropped) == {0, 1, 2, 3, 6, 7, 8, 9}
 
 
 def test_a_narrow_view_needs_a_database_scan_facing_the_same_way():

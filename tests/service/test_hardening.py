@@ -11,12 +11,17 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
+import msgpack
 import numpy as np
 import pytest
 from conftest import Server
 from svc_helpers import PRECOMPUTED, error_of, post_msgpack, random_features
 
 from sgvloc.core.encoders.learned import shipped_weights_path
+from sgvloc_client import wire
+
+_JSON = {"Content-Type": "application/json"}
+_MSGPACK = {"Content-Type": wire.MSGPACK}
 
 EYE = np.eye(4).tolist()
 
@@ -187,9 +192,9 @@ def make_map(c: httpx.Client, name: str, count: int, keypoints: int, rng) -> Non
 
 @pytest.fixture(scope="module")
 def strict_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
-    """A server with one localize slot, a 1 s compute deadline, a 2 s body deadline and
-    a 1.5 s header deadline, holding map ``heavy`` (30 keyframes of 2000 keypoints) and
-    map ``light``."""
+    """A server with one localize slot, a 1 s compute deadline, a 2 s body deadline,
+    a 1.5 s header deadline and JSON bodies of at most 1 MiB, holding map ``heavy`` (30
+    keyframes of 2000 keypoints) and map ``light``."""
     root = tmp_path_factory.mktemp("strict")
     env = {
         "SGVLOC_MAX_INFLIGHT_LOCALIZE": "1",
@@ -197,6 +202,7 @@ def strict_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
         "SGVLOC_BODY_TIMEOUT_S": "2.0",
         "SGVLOC_HEADER_TIMEOUT_S": "1.5",
         "SGVLOC_MAX_TOP_K": "100",
+        "SGVLOC_MAX_JSON_BODY_BYTES": str(1 << 20),
     }
     srv = Server(root / "data", root / "server.log", env=env)
     srv.start()
@@ -423,3 +429,68 @@ def test_trickled_headers_are_cut_off(strict_server: Server) -> None:
             assert received.startswith(b"HTTP/1.1 200"), received[:100]
     with httpx.Client(base_url=strict_server.url) as c:  # normal requests are unaffected
         assert c.get("/v1/maps").status_code == 200
+
+
+def test_large_bodies_go_as_msgpack_and_no_list_is_longer_than_a_field(
+    strict_server: Server,
+) -> None:
+    """Parsing JSON holds the interpreter for the whole body: a JSON body is bounded by
+    max_json_body_bytes (1 MiB here), while the same points as MessagePack pass. A
+    MessagePack list longer than any field could be is refused before it is walked."""
+    import json
+
+    pts = np.random.default_rng(0).uniform(-20, 20, (50_000, 3)).round(3)
+    with httpx.Client(base_url=strict_server.url, timeout=60) as c:
+        text = json.dumps({"points": pts.tolist()})
+        assert len(text) > 1 << 20
+        r = c.post("/v1/maps/light/localize", content=text, headers=_JSON)
+        assert r.status_code == 413 and "MessagePack" in error_of(r)["message"], r.text
+        r = post_msgpack(c, "/v1/maps/light/localize", {"points": pts.astype(np.float32)})
+        assert r.status_code != 413, r.text
+        flat = msgpack.packb({"points": [0] * 600_000})  # past max_points (500 000)
+        r = c.post("/v1/maps/light/localize", content=flat, headers=_MSGPACK)
+        assert r.status_code == 400 and "longer than any field" in error_of(r)["message"]
+
+
+def test_an_answer_before_the_body_ends_the_connection_in_time(strict_server: Server) -> None:
+    """A request answered before its body was read (here 405) must not hold its
+    connection while the client trickles the body: it is closed within header_timeout_s
+    of the answer."""
+    sock = socket.create_connection(("127.0.0.1", strict_server.port))
+    try:
+        sock.sendall(
+            b"POST /healthz HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+            b"Content-Length: 100000\r\n\r\n"
+        )
+        sock.settimeout(5)
+        assert sock.recv(4096).startswith(b"HTTP/1.1 405")
+        sock.settimeout(0.05)
+        closed, t0 = False, time.monotonic()
+        while time.monotonic() - t0 < 20 and not closed:
+            try:
+                sock.sendall(b"x")
+                closed = sock.recv(100) == b""
+            except TimeoutError:
+                pass
+            except OSError:
+                closed = True
+            time.sleep(0.3)
+        assert closed, "a connection trickling an unread body was never closed"
+    finally:
+        sock.close()
+
+
+def test_a_client_that_goes_away_mid_body_is_not_a_server_error(strict_server: Server) -> None:
+    """Half a body and a closed socket: nobody to answer, no 500 counted or logged."""
+    for _ in range(2):
+        sock = socket.create_connection(("127.0.0.1", strict_server.port))
+        sock.sendall(
+            b"POST /v1/maps/light/localize HTTP/1.1\r\nHost: x\r\n"
+            b"Content-Type: application/msgpack\r\nContent-Length: 100000\r\n\r\n" + b"\x00" * 500
+        )
+        time.sleep(0.3)
+        sock.close()
+    time.sleep(0.5)
+    with httpx.Client(base_url=strict_server.url) as c:
+        metrics = c.get("/metrics").text
+    assert 'route="/v1/maps/{map}/localize",status="500"' not in metrics

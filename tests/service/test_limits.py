@@ -41,6 +41,7 @@ def test_config_reports_the_limits(client: httpx.Client) -> None:
     cfg = r.json()
     assert cfg["limits"] == {
         "max_body_bytes": MAX_BODY_BYTES,
+        "max_json_body_bytes": 8 * 1024 * 1024,
         "max_points": MAX_POINTS,
         "max_keypoints": 4096,
         "max_batch": MAX_BATCH,

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import httpx
 import numpy as np
+import pytest
 from svc_helpers import PRECOMPUTED, error_of, post_msgpack, random_features
 
 
@@ -60,3 +61,19 @@ def test_delete_map(client: httpx.Client, server) -> None:
     # the name can be used again, for a fresh empty map
     r = client.post("/v1/maps", json={"name": "m-del", "encoder": PRECOMPUTED})
     assert r.status_code == 201 and r.json()["keyframes"] == 0
+
+
+def test_only_input_errors_are_laid_on_the_field() -> None:
+    """A localize's deadline (or a store's error) is no fault of its points: at_field
+    names the field for input errors only."""
+    from sgvloc.core.errors import DeadlineExceeded, InputError
+    from sgvloc.server.maps import at_field
+
+    with pytest.raises(InputError, match="^points: bad") as bad:
+        with at_field("points"):
+            raise InputError("bad")
+    assert getattr(bad.value, "field", None) == "points"
+    with pytest.raises(DeadlineExceeded, match="^stopped at retrieval$") as late:
+        with at_field("points"):
+            raise DeadlineExceeded("stopped at retrieval")
+    assert getattr(late.value, "field", None) is None

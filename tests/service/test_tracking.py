@@ -267,3 +267,19 @@ def test_eval_track_refuses_a_kidnap_the_stream_never_takes(
     with pytest.raises(InputError, match="never takes this jump"):
         eval_track(balm_mini_dir, tmp_path, map_every=2, kidnaps=[kidnap], max_scans=20)
     assert not (tmp_path / "track.json").exists()
+
+
+def test_availability_and_correct_availability() -> None:
+    """Availability counts every accepted fix of a covered scan, wrong ones too; correct
+    availability only those within 2 m and 5 degrees."""
+    from sgvloc.tools.eval_track import ScanRecord, summarize
+
+    def rec(i: int, err: float | None) -> ScanRecord:
+        return ScanRecord(i, 0.1 * i, "tracked", err is not None, True, err, 0.5, 1.0, True,
+                          [0.0, 0.0], [0.0, 0.0])  # fmt: skip
+
+    records = [rec(i, 0.1) for i in range(5)] + [rec(5 + i, 180.0) for i in range(5)]
+    records.append(rec(10, None))  # not localized
+    r = summarize(records, 4, 0, [], list(range(11)))
+    assert r.availability == pytest.approx(10 / 11)
+    assert r.correct_availability == pytest.approx(5 / 11) and r.wrong_accepted == 5

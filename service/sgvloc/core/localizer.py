@@ -446,6 +446,7 @@ class Localizer:
                     yaw_deg=yaw_deg(seed.T_map_sensor),
                     yaw_tolerance_deg=min(180.0, max(k * seed.sigma_yaw_deg, 30.0)),
                 )
+            check_deadline("the global fallback")  # the fit may have used the time up
             try:
                 result = self.localize(
                     scan,
@@ -493,6 +494,7 @@ class Localizer:
         t = time.perf_counter()
         query_cloud = cloud
         if features is None:
+            check_deadline("encoding")
             query_cloud = self.encoder.prepare(scan)
             query = self.encoder.encode_query(query_cloud, cfg.retrieval.centres())
         else:

@@ -146,10 +146,11 @@ def field_error(exc: SgvlocError, where: str) -> SgvlocError:
 
 @contextmanager
 def at_field(where: str) -> Iterator[None]:
-    """Re-raise engine errors inside the block as naming the request field ``where``."""
+    """Re-raise input errors inside the block as naming the request field ``where`` (a
+    deadline, a conflict or a store's error is no field's fault)."""
     try:
         yield
-    except SgvlocError as exc:
+    except (InputError, EncoderMismatchError) as exc:
         raise field_error(exc, where) from None
 
 

@@ -79,11 +79,24 @@ def _header_timeout_protocol(header_timeout_s: float):  # uvicorn is imported la
                 self._header_timer.cancel()
                 self._header_timer = None
 
+        def _answered_unread(self) -> bool:
+            """The answer went out before the request's body was read (401, 405, 413,
+            415): whatever the client still sends is of no use."""
+            return self.conn.our_state is h11.DONE and self.conn.their_state is h11.SEND_BODY
+
         def _header_timeout(self) -> None:
             self._header_timer = None
-            if self.conn.their_state is h11.IDLE and not self.transport.is_closing():
+            if self.transport.is_closing():
+                return
+            if self.conn.their_state is h11.IDLE:
                 log.info(
                     "closing a connection whose request headers took over %g s", header_timeout_s
+                )
+                self.transport.close()
+            elif self._answered_unread():
+                log.info(
+                    "closing a connection still sending a body %g s after its answer",
+                    header_timeout_s,
                 )
                 self.transport.close()
 
@@ -93,7 +106,9 @@ def _header_timeout_protocol(header_timeout_s: float):  # uvicorn is imported la
 
         def handle_events(self) -> None:
             super().handle_events()
-            if self.conn.their_state is not h11.IDLE:  # the headers are complete
+            # the headers are complete, unless the answer is out and only an unread body
+            # is still arriving (its trickle must not keep the connection open)
+            if self.conn.their_state is not h11.IDLE and not self._answered_unread():
                 self._disarm_header_timer()
 
         def on_response_complete(self) -> None:

@@ -92,6 +92,12 @@ class Settings(BaseSettings):
     )
     batch_max: int = Field(16, ge=1, le=256, description="dynamic batching: largest batch")
     max_body_bytes: int = Field(64 * 1024 * 1024, ge=1024, description="413 above this")
+    max_json_body_bytes: int = Field(
+        8 * 1024 * 1024,
+        ge=1024,
+        description="413 above this for a JSON body (parsing JSON holds the interpreter for "
+        "the whole body; large bodies go as MessagePack, whose arrays are bytes)",
+    )
     max_batch: int = Field(1000, ge=1, description="keyframes per insert request")
     max_import_bytes: int = Field(
         64 * 1024**3,

@@ -8,7 +8,8 @@ HTTP routes call), then every scan of the sequence is localized in order by the 
 
 Figures: per-scan position and rotation error of every accepted fix (median, p95, ATE),
 availability (share of scans within ``coverage_m`` of a map keyframe that were
-localized), wrong fixes accepted (beyond 2 m or 5 deg), time per scan by mode, global
+localized, right or wrong; ``correct_availability``: localized within 2 m and 5 deg),
+wrong fixes accepted (beyond 2 m or 5 deg), time per scan by mode, global
 relocalizations, and with ``kidnap`` the scans until a correct fix after each jump. A
 trajectory plot (ground truth and fixes coloured by mode) goes next to the JSON.
 """
@@ -76,6 +77,9 @@ class TrackReport:
     kidnaps: list[dict[str, Any]] = field(default_factory=list)
     scans: list[ScanRecord] = field(default_factory=list)
     map_scans_skipped: int = 0  # map scans the encoder found nothing to describe in
+    #: share of the covered scans localized within 2 m and 5 deg (availability counts
+    #: every accepted fix, wrong ones too)
+    correct_availability: float = 0.0
 
 
 @dataclass
@@ -250,6 +254,16 @@ def _pct(values: list[float], q: float) -> float | None:
     return float(np.percentile(values, q)) if values else None
 
 
+def _correct(r: ScanRecord) -> bool:
+    """A fix accepted within 2 m and 5 degrees of the truth."""
+    return bool(
+        r.localized
+        and r.error_m is not None
+        and r.error_m <= CORRECT_M
+        and (r.error_deg or 0.0) <= CORRECT_DEG
+    )
+
+
 def summarize(
     records: list[ScanRecord],
     map_scans: int,
@@ -275,7 +289,7 @@ def summarize(
         start = after[0]
         until = None
         for j, r in enumerate(records[start:], 1):
-            if r.localized and (r.error_m or 0) <= CORRECT_M and (r.error_deg or 0) <= CORRECT_DEG:
+            if _correct(r):
                 until = j
                 break
         kid.append({"from_scan": at, "to_scan": to, "scans_until_correct_fix": until})
@@ -286,6 +300,7 @@ def summarize(
         in_coverage=len(covered),
         localized=len(fixes),
         availability=sum(r.localized for r in covered) / len(covered) if covered else 0.0,
+        correct_availability=sum(_correct(r) for r in covered) / len(covered) if covered else 0.0,
         median_error_m=_pct(errs, 50),
         p95_error_m=_pct(errs, 95),
         p95_error_deg=_pct(rots, 95),
@@ -366,7 +381,8 @@ def report_lines(r: TrackReport) -> list[str]:
         )
         + f"; streamed {r.streamed} scans, {r.in_coverage} within coverage; localized "
         f"{r.localized}",
-        f"availability {r.availability:.1%}; position error median {f(r.median_error_m, 'm')}, "
+        f"availability {r.availability:.1%} ({r.correct_availability:.1%} correct); position "
+        f"error median {f(r.median_error_m, 'm')}, "
         f"p95 {f(r.p95_error_m, 'm')}, ATE {f(r.ate_m, 'm')}; rotation p95 "
         f"{f(r.p95_error_deg, 'deg', 2)}",
         f"wrong fixes accepted (> {CORRECT_M:g} m or {CORRECT_DEG:g} deg): {r.wrong_accepted}; "

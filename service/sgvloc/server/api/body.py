@@ -19,6 +19,7 @@ import numpy as np
 from fastapi import Request
 from fastapi.responses import Response
 from pydantic import BaseModel
+from starlette.requests import ClientDisconnect
 
 from sgvloc_client import wire
 
@@ -45,6 +46,8 @@ class RawBody:
 
     data: bytes
     content_type: str
+    #: longest list (MessagePack) a body may hold; None: no bound
+    max_list_len: int | None = None
 
     def decode(self) -> Any:
         """Parse the body; arrays become ndarrays (MessagePack) or nested lists (JSON)."""
@@ -52,7 +55,7 @@ class RawBody:
             raise ApiError(400, "bad_body", "the request body is empty")
         try:
             if self.content_type in MSGPACK_TYPES:
-                return wire.unpackb(self.data)
+                return wire.unpackb(self.data, max_list_len=self.max_list_len)
             # each object or array costs tens of bytes in memory however few it takes in
             # the body ("{}," is three): a body of little else is refused before parsing
             n = self.data.count(b"{") + self.data.count(b"[")
@@ -72,10 +75,18 @@ class RawBody:
             raise ApiError(400, "bad_body", f"body cannot be decoded: {exc}") from None
 
 
-async def read_body(request: Request, limit: int, timeout_s: float | None = None) -> RawBody:
-    """Read the whole body, at most ``limit`` bytes within ``timeout_s`` seconds; 415 for
-    a media type other than JSON or MessagePack, 413 beyond the limit, 408 (and the
-    connection closed) when the body is not complete in time."""
+async def read_body(
+    request: Request,
+    limit: int,
+    timeout_s: float | None = None,
+    *,
+    json_limit: int | None = None,
+    max_list_len: int | None = None,
+) -> RawBody:
+    """Read the whole body, at most ``limit`` bytes (``json_limit`` for JSON) within
+    ``timeout_s`` seconds; 415 for a media type other than JSON or MessagePack, 413
+    beyond the limit, 408 (and the connection closed) when the body is not complete in
+    time, 400 when the client goes away before it is."""
     ctype = media_type(request.headers.get("content-type"))
     if ctype not in MSGPACK_TYPES + JSON_TYPES:
         raise ApiError(
@@ -84,17 +95,27 @@ async def read_body(request: Request, limit: int, timeout_s: float | None = None
             f"Content-Type {ctype or '(none)'!r} is not supported: send "
             f"{wire.JSON!r} or {wire.MSGPACK!r}",
         )
+    what = "the limit"
+    if ctype in JSON_TYPES and json_limit is not None and json_limit < limit:
+        limit, what = json_limit, "the limit for JSON (send MessagePack for large bodies)"
     declared = request.headers.get("content-length")
     if declared is not None and declared.isdigit() and int(declared) > limit:
         raise ApiError(
-            413, "payload_too_large", f"body has {int(declared)} bytes, the limit is {limit}"
+            413, "payload_too_large", f"body has {int(declared)} bytes, {what} is {limit}"
         )
     buf = bytearray()
     with anyio.move_on_after(timeout_s) as scope:
-        async for chunk in request.stream():
-            buf += chunk
-            if len(buf) > limit:
-                raise ApiError(413, "payload_too_large", f"body exceeds the limit of {limit} bytes")
+        try:
+            async for chunk in request.stream():
+                buf += chunk
+                if len(buf) > limit:
+                    raise ApiError(
+                        413, "payload_too_large", f"body exceeds {what} of {limit} bytes"
+                    )
+        except ClientDisconnect:  # nobody to answer: not the service's error
+            raise ApiError(
+                400, "bad_body", "the client closed the connection before the body was complete"
+            ) from None
     if scope.cancelled_caught:
         raise ApiError(
             408,
@@ -102,7 +123,7 @@ async def read_body(request: Request, limit: int, timeout_s: float | None = None
             f"the body did not arrive within body_timeout_s={timeout_s:g} s",
             headers={"Connection": "close"},
         )
-    return RawBody(bytes(buf), ctype)
+    return RawBody(bytes(buf), ctype, max_list_len)
 
 
 def wants_msgpack(request: Request) -> bool:

@@ -118,7 +118,8 @@ class Admission:
 
 
 async def admit_localize(request: Request) -> AsyncIterator[None]:
-    """Take a localize slot for the request (before its body is read), or 429."""
+    """Take a localize slot for the request (after its body arrived: the route reads the
+    body first, so a slow upload holds no slot), or 429."""
     admission: Admission = request.app.state.admission
     settings: Settings = request.app.state.settings
     if admission.inflight >= admission.limit:
@@ -139,9 +140,17 @@ async def admit_localize(request: Request) -> AsyncIterator[None]:
 async def get_body(
     request: Request, settings: Annotated[Settings, Depends(get_settings)]
 ) -> RawBody:
-    """The raw request body, within ``max_body_bytes`` (413) and ``body_timeout_s`` (408)
-    and of a known type (415)."""
-    return await read_body(request, settings.max_body_bytes, settings.body_timeout_s)
+    """The raw request body, within ``max_body_bytes`` (``max_json_body_bytes`` for JSON;
+    413) and ``body_timeout_s`` (408) and of a known type (415); its lists hold at most
+    as many items as the largest field may (``max_points``, ``max_batch``,
+    ``max_keypoints``)."""
+    return await read_body(
+        request,
+        settings.max_body_bytes,
+        settings.body_timeout_s,
+        json_limit=settings.max_json_body_bytes,
+        max_list_len=max(settings.max_points, settings.max_batch, settings.max_keypoints, 65536),
+    )
 
 
 SettingsDep = Annotated[Settings, Depends(get_settings)]

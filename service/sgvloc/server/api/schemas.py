@@ -792,6 +792,7 @@ class LimitsOut(BaseModel):
     """The request limits and admission settings in force."""
 
     max_body_bytes: int = Field(description="413 above this")
+    max_json_body_bytes: int = Field(description="413 above this for a JSON body")
     max_points: int = Field(description="points per scan (422)")
     max_keypoints: int = Field(
         description="keypoints per feature set, and a new map's encoder num_keypoints (422)"

@@ -212,7 +212,8 @@
     }
     if (generation !== state.generation) return;
     const samples = parseMetrics(text);
-    const verdicts = family(samples, "sgvloc_localiz", "verdict") || {};
+    // by key, not by map: a deleted map's series go, these counters since the start stay
+    const verdicts = family(samples, "sgvloc_localize_by_key", "verdict") || {};
     let localized = 0;
     let other = 0;
     for (const [verdict, n] of Object.entries(verdicts)) {

@@ -27,18 +27,25 @@ MAX_RTE_M, MAX_RRE_DEG = CORRECT_M, CORRECT_DEG
 
 
 def first_true_rank(
-    ranked_positions: np.ndarray, query_position: np.ndarray, radius: float
+    ranked_positions: np.ndarray,
+    query_position: np.ndarray,
+    radius: float,
+    eligible: np.ndarray | None = None,
 ) -> int | None:
     """1-based rank of the first candidate within ``radius`` metres of the query, or None.
 
     ``ranked_positions``: ``[k, 3]`` candidate positions, best first; ``query_position``:
-    ``[3]`` ground-truth position of the query.
+    ``[3]`` ground-truth position of the query; ``eligible``: ``[k]`` which candidates may
+    count at all (``--fov``: those facing the query's way), default all.
     """
     pos = np.asarray(ranked_positions, dtype=np.float64).reshape(-1, 3)  # [k, 3]
     if len(pos) == 0:
         return None
     d = np.linalg.norm(pos - np.asarray(query_position, dtype=np.float64)[None], axis=1)  # [k]
-    hits = np.flatnonzero(d <= radius)
+    near = d <= radius
+    if eligible is not None:
+        near &= np.asarray(eligible, dtype=bool).reshape(-1)
+    hits = np.flatnonzero(near)
     return int(hits[0]) + 1 if len(hits) else None
 
 

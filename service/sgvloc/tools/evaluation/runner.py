@@ -222,6 +222,18 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
     if cfg.frames is not None:
         seq = seq.frames(*cfg.frames)
     poses = seq.poses  # [F, 4, 4] T_world_sensor
+    headings = np.degrees(np.arctan2(poses[:, 1, 0], poses[:, 0, 0]))  # [F]
+    max_turn = cfg.fov / 2.0 if cfg.fov and cfg.fov < 360.0 else None
+
+    def facing(ids: Any, gt: np.ndarray) -> np.ndarray | None:
+        """Which of scans ``ids`` face the query's way closely enough to share its view
+        (the coverage rule of ``--fov``); None without one: every scan may count."""
+        if max_turn is None:
+            return None
+        q_heading = np.degrees(np.arctan2(gt[1, 0], gt[0, 0]))
+        diff = headings[np.asarray(ids, dtype=np.int64)] - q_heading
+        return np.abs((diff + 180.0) % 360.0 - 180.0) <= max_turn
+
     split = make_split(
         seq.times,
         poses[:, :3, 3],
@@ -234,8 +246,8 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
         query_stride=cfg.query_stride,
         max_queries=cfg.max_queries,
         negatives=cfg.negatives,
-        headings_deg=np.degrees(np.arctan2(poses[:, 1, 0], poses[:, 0, 0])),
-        max_heading_deg=cfg.fov / 2.0 if cfg.fov and cfg.fov < 360.0 else None,
+        headings_deg=headings,
+        max_heading_deg=max_turn,
     )
     if len(split.queries) == 0 and len(split.negatives) == 0 and not cfg.foreign:
         raise InputError(f"{cfg.data}: no query has a database scan within {split.threshold} m")
@@ -491,13 +503,20 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
                     rec["foreign"] = cfg.foreign[src - 1]
                 for thr in cfg.thresholds:
                     rec[f"rank@{thr:g}m"] = (
-                        first_true_rank(poses[ids, :3, 3], gt[:3, 3], thr) if covered else None
+                        first_true_rank(poses[ids, :3, 3], gt[:3, 3], thr, facing(ids, gt))
+                        if covered
+                        else None
                     )
                 # the ceiling's rank: in the candidates re-ranking started from (query
                 # expansion answers from a search of its own)
                 start_ids = [c.keyframe_id for c in start]
                 rec["start_rank"] = (
-                    first_true_rank(poses[start_ids, :3, 3], gt[:3, 3], cfg.thresholds[0])
+                    first_true_rank(
+                        poses[start_ids, :3, 3],
+                        gt[:3, 3],
+                        cfg.thresholds[0],
+                        facing(start_ids, gt),
+                    )
                     if covered
                     else None
                 )
@@ -509,6 +528,9 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
 
         # encoder diagnostics: matches on the true pair, SGV scores of true/false candidates
         d = np.linalg.norm(poses[visible, :3, 3] - gt[:3, 3], axis=1)
+        seen = facing(visible, gt)  # the true pair shares the query's view (--fov)
+        if seen is not None and seen.any():
+            d = np.where(seen, d, np.inf)
         db = int(visible[int(np.argmin(d))])
         T_db_q = np.linalg.inv(poses[db]) @ gt
         fd = feats[db]
@@ -526,12 +548,15 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
             sgv_out = rerank("sgv", fq, candidates(k_scores), feats.__getitem__, index, loc_cfg)
         ids = [c.keyframe_id for c in sgv_out.candidates]
         dist = np.linalg.norm(poses[ids, :3, 3] - gt[:3, 3], axis=1) if ids else np.zeros(0)
+        true = dist <= cfg.thresholds[0]
+        if ids and (seen_ids := facing(ids, gt)) is not None:
+            true &= seen_ids
         score_recs.append(
             {
                 "query": q,
                 "ids": ids,
                 "scores": [float(c.score) for c in sgv_out.candidates],
-                "true": [bool(x) for x in dist <= cfg.thresholds[0]],
+                "true": [bool(x) for x in true],
             }
         )
     t_queries = time.perf_counter() - t_queries

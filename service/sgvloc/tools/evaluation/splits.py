@@ -164,7 +164,10 @@ def make_split(
         if leave_out <= 0:
             raise InputError(f"leave_out must be positive, got {leave_out}")
         mode = "leave-out"
-        candidates = np.arange(len(t))
+        # only scans with a database at all (another scan at least the gap away), as the
+        # map's leave-out self-test plans them (sgvloc.core.leave_out.plan)
+        far = np.maximum(t - t.min(initial=0.0), t.max(initial=0.0) - t) >= leave_out
+        candidates = np.flatnonzero(far)
     elif db_until is not None:
         mode = "time"
         candidates = np.flatnonzero(t > db_until)

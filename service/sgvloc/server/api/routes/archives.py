@@ -19,6 +19,7 @@ import anyio
 from fastapi import APIRouter, Depends, Query, Request, Response
 from fastapi.responses import StreamingResponse
 from starlette.background import BackgroundTask
+from starlette.requests import ClientDisconnect
 
 from sgvloc.core.config import LocalizerConfig
 from sgvloc.core.encoders import EncoderSpec
@@ -91,6 +92,12 @@ async def _spool(request: Request, folder: Path, limit: int, idle_s: float) -> P
                         chunk = await chunks.__anext__()
                     except StopAsyncIteration:
                         break
+                    except ClientDisconnect:  # nobody to answer: not the service's error
+                        raise ApiError(
+                            400,
+                            "bad_body",
+                            "the client closed the connection before the archive was complete",
+                        ) from None
                 if scope.cancelled_caught:
                     raise ApiError(
                         408,

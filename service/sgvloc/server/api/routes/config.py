@@ -37,6 +37,7 @@ async def get_config(request: Request, settings: SettingsDep) -> Response:
             version=__version__,
             limits=LimitsOut(
                 max_body_bytes=s.max_body_bytes,
+                max_json_body_bytes=s.max_json_body_bytes,
                 max_points=s.max_points,
                 max_keypoints=s.max_keypoints,
                 max_batch=s.max_batch,
