@@ -170,3 +170,10 @@ def test_a_narrow_field_of_view_has_the_configured_extent(tmp_path, pattern):
         assert np.median(gap) > 0.05
     with pytest.raises(ValueError, match="fov_down_deg"):
         SynthConfig(fov_up_deg=-30.0, fov_down_deg=-25.0)
+
+
+def test_a_range_that_reaches_nothing_is_refused(tmp_path):
+    with pytest.raises(ValueError, match="min_range_m"):
+        SynthConfig(min_range_m=3.0, max_range_m=2.0)
+    with pytest.raises(InputError, match="holds no point"):
+        generate(tmp_path / "s", SynthConfig(scans=2, max_range_m=2.0), progress=False)

@@ -149,6 +149,8 @@ class MotionModel:
         _check_stamp(stamp)
         if self.lost or self.stamp is None or stamp - self.stamp > self.max_gap_s:
             return None
+        if stamp < self.stamp - MIN_STEP_S:  # before the last fix (a clock reset, a bag
+            return None  # played again): what the track says is of another time
         T = self.predict(stamp, odom_delta)
         if T is None:
             return None
@@ -176,8 +178,8 @@ class MotionModel:
         if consecutive and stamp - self.stamp >= MIN_STEP_S:  # motion between consecutive fixes
             self._delta = np.linalg.inv(self.pose) @ T
             self._delta_dt = stamp - self.stamp
-        elif not consecutive:  # after misses the last motion is stale: assume none
-            self._delta, self._delta_dt = None, 0.0
+        elif not consecutive or stamp < self.stamp:  # after misses, or back in time: the
+            self._delta, self._delta_dt = None, 0.0  # last motion is stale, assume none
         self.pose, self.stamp, self.misses = T, float(stamp), 0
         self._pending_odom = None
 

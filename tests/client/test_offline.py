@@ -551,3 +551,13 @@ def test_a_tracker_that_lost_the_track_for_long_asks_for_a_global_search() -> No
     sigmas = [s.sigma_m for s in seeds if s is not None]
     assert sigmas and max(sigmas) <= MAX_SEED_SIGMA_M
     assert seeds[-1] is None
+
+
+def test_a_scan_stamped_before_the_last_fix_gets_no_seed() -> None:
+    """A clock reset or a bag played again: what the track knows is of another time."""
+    from sgvloc_client.tracking import MotionModel
+
+    m = MotionModel()
+    m.pose, m.stamp = np.eye(4), 100.0
+    assert m.seed(100.1) is not None
+    assert m.seed(0.0) is None and m.seed(-5000.0) is None

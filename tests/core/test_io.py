@@ -625,3 +625,23 @@ def test_a_ply_list_intensity_is_left_out(tmp_path):
     )
     scan = read_scan(p)
     assert scan.points.tolist() == [[1, 2, 3], [4, 5, 6]] and scan.intensity is None
+
+
+def test_a_pcd_may_pad_with_several_underscore_fields(tmp_path):
+    """PCL's padding fields are all named "_" (Ouster's layout has several): not a field
+    named twice."""
+    rec = np.zeros(2, dtype=[(n, "<f4") for n in ("x", "y", "z", "p1", "intensity", "p2")])
+    rec["x"], rec["y"], rec["z"], rec["intensity"] = [1, 4], [2, 5], [3, 6], [0.5, 0.25]
+    head = (
+        "VERSION .7\nFIELDS x y z _ intensity _\nSIZE 4 4 4 4 4 4\nTYPE F F F F F F\n"
+        "COUNT 1 1 1 1 1 1\nWIDTH 2\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS 2\nDATA binary\n"
+    )
+    p = tmp_path / "padded.pcd"
+    p.write_bytes(head.encode() + rec.tobytes())
+    scan = read_scan(p)
+    assert scan.points.tolist() == [[1, 2, 3], [4, 5, 6]]
+    assert scan.intensity.tolist() == [0.5, 0.25]
+    twice = tmp_path / "twice.pcd"
+    twice.write_bytes(head.replace("x y z _ intensity _", "x y z x intensity _").encode())
+    with _raises_naming(twice, "names a field twice"):
+        read_scan(twice)

@@ -280,6 +280,11 @@ def test_onnx_runtime_needs_an_export_of_these_weights(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="exported from other weights"):
         LearnedEncoder(model_path=weights, runtime="onnx")
     assert LearnedEncoder(model_path=weights).runtime == "torch"
+    # a damaged export: auto runs torch, "onnx" says why it cannot
+    (tmp_path / "other.onnx").write_bytes(b"not an ONNX model")
+    with pytest.raises(InputError, match="cannot be loaded"):
+        LearnedEncoder(model_path=weights, runtime="onnx")
+    assert LearnedEncoder(model_path=weights).runtime == "torch"
     with pytest.raises(InputError, match="runtime must be one of"):
         LearnedEncoder(runtime="tensorrt")
 

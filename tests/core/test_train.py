@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -195,6 +196,13 @@ def test_tiny_training_lowers_the_loss_and_checkpoints(seq: Sequence, tmp_path: 
     assert state2["step"] == 9 and len(state2["history"]) == 9
     assert state2["history"][:8] == state["history"]
     assert not list(tmp_path.glob("*.tmp"))  # saved beside, then renamed
+    # a resume continues the same training: other settings are refused, not half applied
+    with pytest.raises(InputError, match="lr 0.003 -> 1e-05"):
+        train([seq], tmp_path, replace(tiny_config(10), lr=1e-5), progress=False)
+    # an exported weights file (or anything else) is not a checkpoint
+    weights = export_weights(ckpt, tmp_path / "w.pt")
+    with pytest.raises(InputError, match="not a training checkpoint"):
+        load_checkpoint(weights)
     # a checkpoint cut short (a save interrupted before saves were atomic) is a clear error
     ckpt.write_bytes(ckpt.read_bytes()[:20_000])
     with pytest.raises(InputError, match="cannot resume from this checkpoint"):
@@ -276,3 +284,15 @@ def test_training_can_start_from_exported_weights(seq: Sequence, tmp_path: Path)
     wrong = TrainConfig(**{**cfg.__dict__, "width": 16})
     with pytest.raises(InputError, match="do not fit"):
         train([seq], tmp_path / "c", wrong, progress=False)
+
+
+def test_validation_does_not_change_the_training_run(seq: Sequence, tmp_path: Path) -> None:
+    """Validating draws nothing from the random state training goes on with: the same
+    seed trains the same model with validation as without."""
+    cfg = replace(tiny_config(4), val_every=2)
+    with_val = train([seq], tmp_path / "a", cfg, [seq], progress=False)
+    without = train([seq], tmp_path / "b", cfg, None, progress=False)
+    (a, sa), (b, sb) = load_checkpoint(with_val), load_checkpoint(without)
+    assert [h["total"] for h in sa["history"]] == [h["total"] for h in sb["history"]]
+    for pa, pb in zip(a.state_dict().values(), b.state_dict().values(), strict=True):
+        assert torch.equal(pa, pb)

@@ -211,7 +211,8 @@ def _pcd_header(raw: bytes, p: Path) -> tuple[Any, list[str], bytes]:
     fields = lines.get("FIELDS", [])
     if not fields:
         raise ScanFormatError(f"{p}: not a valid PCD file: the header has no FIELDS")
-    if len(set(fields)) != len(fields):
+    named = [f for f in fields if f != "_"]  # "_" pads, and may come more than once
+    if len(set(named)) != len(named):
         raise ScanFormatError(f"{p}: PCD FIELDS names a field twice: {' '.join(fields)}")
     lines.setdefault("COUNT", ["1"] * len(fields))
     for key in ("SIZE", "TYPE", "COUNT"):

@@ -98,6 +98,10 @@ class SynthConfig(BaseModel):
             raise ValueError(
                 f"fov_down_deg ({self.fov_down_deg}) must be below fov_up_deg ({self.fov_up_deg})"
             )
+        if self.min_range_m >= self.max_range_m:
+            raise ValueError(
+                f"min_range_m ({self.min_range_m}) must be below max_range_m ({self.max_range_m})"
+            )
         return self
 
 
@@ -439,6 +443,12 @@ def generate(
         it = tqdm(it, desc="synth", unit="scan")
     for i in it:
         scan = lidar.scan(poses[i], np.random.default_rng([cfg.seed, 3, i]))
+        if not len(scan):  # a sequence of empty scans is of no use to anyone
+            raise InputError(
+                f"scan {i} holds no point: nothing within {cfg.min_range_m:g}-"
+                f"{cfg.max_range_m:g} m of the sensor (max_range_m too short to reach the "
+                "ground and the buildings?)"
+            )
         write_kitti_bin(vel / f"{i:06d}.bin", scan)
         points += len(scan)
     with open(root / "poses.txt", "w") as fh:

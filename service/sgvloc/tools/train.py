@@ -307,12 +307,23 @@ def build_model(cfg: TrainConfig) -> BEVNet:
 
 
 def load_checkpoint(path: str | Path) -> tuple[BEVNet, dict]:
-    """Model (eval mode, CPU) and the checkpoint dictionary from ``checkpoint.pt``."""
-    ckpt = torch.load(path, map_location="cpu", weights_only=False)
-    cfg = TrainConfig(**ckpt["config"])
-    model = build_model(cfg)
-    model.load_state_dict(ckpt["model"])
+    """Model (eval mode, CPU) and the checkpoint dictionary from ``checkpoint.pt``;
+    :class:`InputError` for a file that is not one (exported weights, say)."""
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=False)
+        cfg = TrainConfig(**ckpt["config"])
+        model = build_model(cfg)
+        model.load_state_dict(ckpt["model"])
+    except (OSError, RuntimeError, KeyError, TypeError, ValueError, EOFError) as exc:
+        raise InputError(
+            f"{path}: not a training checkpoint ({type(exc).__name__}: {exc}); exported "
+            "weights go to --init or a map's model_path"
+        ) from None
     return model.eval(), ckpt
+
+
+#: settings a resumed run may change: how long it runs and how often it reports
+RESUMABLE_CHANGES = frozenset({"steps", "val_every", "checkpoint_every", "device"})
 
 
 def _write_whole(path: Path, write: Callable[[Path], object]) -> None:
@@ -354,7 +365,17 @@ def _plot(history: list[dict], val: list[dict], path: Path) -> None:
 def _validate(
     model: BEVNet, val: list[Sequence], cfg: TrainConfig, device: torch.device
 ) -> dict[str, float]:
-    """Loss and the share of correct descriptor nearest neighbours on fixed val batches."""
+    """Loss and the share of correct descriptor nearest neighbours on fixed val batches.
+    Draws nothing from torch's random state that training goes on with (validating, or
+    when, must not change the training run)."""
+    with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
+        torch.manual_seed(12345)
+        return _validate_batches(model, val, cfg, device)
+
+
+def _validate_batches(
+    model: BEVNet, val: list[Sequence], cfg: TrainConfig, device: torch.device
+) -> dict[str, float]:
     rng = np.random.default_rng(12345)
     model.eval()
     totals, correct = [], []
@@ -422,11 +443,23 @@ def train(
     if resume and ckpt_path.exists():
         try:
             ckpt = torch.load(ckpt_path, map_location=device, weights_only=False)
+            was = ckpt["config"]
+            changed = sorted(
+                k for k, v in asdict(cfg).items() if k not in RESUMABLE_CHANGES and was.get(k) != v
+            )
+            if changed:  # the checkpoint's optimiser, RNG and weights would override them
+                raise InputError(
+                    f"{ckpt_path}: the run was started with other settings "
+                    f"({', '.join(f'{k} {was.get(k)!r} -> {asdict(cfg)[k]!r}' for k in changed)}); "
+                    "a resumed run continues the same training: use another OUT or --no-resume"
+                )
             model.load_state_dict(ckpt["model"])
             opt.load_state_dict(ckpt["optimizer"])
             step, history, val_hist = ckpt["step"], ckpt["history"], ckpt["val"]
             rng.bit_generator.state = ckpt["rng"]
             torch.set_rng_state(ckpt["torch_rng"].cpu())
+        except InputError:
+            raise
         except (OSError, RuntimeError, KeyError, ValueError, EOFError) as exc:
             raise InputError(
                 f"{ckpt_path}: cannot resume from this checkpoint ({exc}); move it away to "

@@ -130,13 +130,17 @@ class OnnxNet:
         return session
 
     @staticmethod
-    def weights_sha256(path: Path) -> str:
-        """The weights SHA-256 recorded in an ONNX export ("" when absent)."""
+    def weights_sha256(path: Path) -> str | None:
+        """The weights SHA-256 recorded in an ONNX export ("" when absent); None when the
+        file cannot be loaded (truncated, not ONNX)."""
         import onnxruntime as ort
 
         opts = ort.SessionOptions()
         opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_DISABLE_ALL
-        sess = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+        try:
+            sess = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+        except Exception:  # onnxruntime's own errors share no public base class
+            return None
         return sess.get_modelmeta().custom_metadata_map.get(ONNX_WEIGHTS_KEY, "")
 
     def __call__(self, x: Any) -> tuple[Any, Any, Any]:
@@ -167,7 +171,9 @@ def _pick_runtime(runtime: str, device: str, weights: Path | None, sha256: str) 
         why = "onnxruntime is not installed"
     elif not path.is_file():
         why = f"no ONNX export at {str(path)!r} (make one with 'sgvloc export-onnx')"
-    elif OnnxNet.weights_sha256(path) != sha256:
+    elif (recorded := OnnxNet.weights_sha256(path)) is None:
+        why = f"{str(path)!r} cannot be loaded (damaged, or not an ONNX model)"
+    elif recorded != sha256:
         why = f"{str(path)!r} was exported from other weights"
     if not why:
         return path
