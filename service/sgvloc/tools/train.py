@@ -444,8 +444,10 @@ def train(
         try:
             ckpt = torch.load(ckpt_path, map_location=device, weights_only=False)
             was = ckpt["config"]
-            changed = sorted(
-                k for k, v in asdict(cfg).items() if k not in RESUMABLE_CHANGES and was.get(k) != v
+            changed = sorted(  # a setting the checkpoint does not record is its default
+                k
+                for k, v in asdict(cfg).items()
+                if k not in RESUMABLE_CHANGES and k in was and was[k] != v
             )
             if changed:  # the checkpoint's optimiser, RNG and weights would override them
                 raise InputError(
