@@ -492,3 +492,39 @@ def test_a_keyframe_without_keypoints_leaves_other_queries_alone() -> None:
         assert res.localized, res.reason
     res = loc.localize(features=empty)  # a query without keypoints: no estimate, no error
     assert res.verdict == "no_estimate"
+
+
+def test_a_settings_change_during_a_localization_is_not_mixed_into_it(monkeypatch) -> None:
+    """The answer uses one settings change's config and calibration: a change landing
+    after the localization read its settings applies to the next one only."""
+    import sgvloc.core.localizer as localizer_module
+    from sgvloc.core.confidence import Calibration, shipped_calibration
+
+    rng = np.random.default_rng(4)
+    enc = PrecomputedEncoder("p", 16, 8)
+    loc = Localizer(enc)
+    feats = enc.from_arrays(rng.normal(size=16), rng.normal(size=(60, 3)), rng.normal(size=(60, 8)))
+    for x in (0.0, 20.0):
+        T = np.eye(4)
+        T[0, 3] = x
+        loc.add_keyframe(T, features=feats)
+    before = loc.localize(features=feats)
+    never = shipped_calibration("precomputed").to_dict()
+    for model in never["models"].values():
+        model["bias"] = -50.0  # confidence ~0 whatever the evidence
+    never = Calibration.from_dict(never)
+    real = localizer_module.check_deadline
+
+    def change_meanwhile(stage: str) -> None:
+        if stage == "retrieval" and not swapped:  # after the settings were read
+            swapped.append(stage)
+            loc.update_settings(loc.config.model_copy(update={"top_k": 1}), never)
+        real(stage)
+
+    swapped: list[str] = []
+    monkeypatch.setattr(localizer_module, "check_deadline", change_meanwhile)
+    during = loc.localize(features=feats)
+    assert swapped and during.confidence == before.confidence  # the settings it started with
+    assert len(during.retrieved) == len(before.retrieved) == 2
+    after = loc.localize(features=feats)
+    assert after.confidence < 1e-6 and len(after.retrieved) == 1

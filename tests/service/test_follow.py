@@ -292,3 +292,19 @@ def test_a_filtered_delete_survives_a_keyframe_deleted_elsewhere_meanwhile(
     deleted, version = a.delete_keyframes("m", KeyframeFilter(key_prefix="drive/"))
     assert deleted == 5 and a.get("m").num_keyframes == 0
     assert a.get("m").version == version == 3
+
+
+def test_a_key_another_replica_stored_is_answered_after_its_write(
+    pair: tuple[MapManager, MapManager], rng
+) -> None:
+    """created: false for a key another replica stored: the answer's version is one that
+    holds the key on this replica (read-your-writes with min_map_version)."""
+    a, b = pair
+    a.create("m", SPEC)
+    b.sync()
+    items = feature_keyframes(rng, 1, "k")
+    first = a.insert("m", items)
+    again = b.insert("m", items)  # b has not synced: its copy is at version 0
+    assert again.created == [False] and again.ids == first.ids
+    assert again.map_version == first.map_version == b.get("m").version
+    assert b.get("m").localizer.keyframe_ids() == first.ids

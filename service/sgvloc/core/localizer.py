@@ -465,7 +465,8 @@ class Localizer:
             result.timings_ms["track"] = tracked.timings_ms["track"]
             result.timings_ms["total"] = _ms(t_start)
             return result
-        cfg = self.config
+        with self._lock.read():  # one settings change's config and calibration, not a mix
+            cfg, calibration = self.config, self.calibration
         top_k = cfg.top_k if top_k is None else top_k
         method = check_method(rerank_method or cfg.rerank)
         refine = refine or cfg.pose.refine
@@ -563,7 +564,7 @@ class Localizer:
             ranked = [c.keyframe_id for c in out.candidates]
             spectral = None
             if out.sgv is not None and cfg.sgv.tie_tolerance > 0:
-                spectral = self._spectral(query, retrieved, out, ranked, whole)
+                spectral = self._spectral(query, retrieved, out, ranked, whole, cfg)
                 order = nearest_of_place(
                     ranked,
                     spectral,
@@ -591,7 +592,7 @@ class Localizer:
             has_estimate = pose.num_correspondences >= cfg.pose.ransac_n
             if refine == "icp" and has_estimate:
                 check_deadline("ICP")
-                pose = self._refine(pose, query_cloud, best)
+                pose = self._refine(pose, query_cloud, best, cfg)
             timings["pose"] = _ms(t)
 
             # 5. the evidence, its calibrated confidence and the verdict
@@ -600,11 +601,11 @@ class Localizer:
             T_kf = pose.T_target_source if has_estimate else None
             T_map = best.T_map_sensor @ T_kf if T_kf is not None else None
             judged = assess(
-                self.calibration,
+                calibration,
                 ranked,
                 spectral
                 if spectral is not None
-                else self._spectral(query, retrieved, out, ranked, whole),
+                else self._spectral(query, retrieved, out, ranked, whole, cfg),
                 lambda i: self._keyframes[i].T_map_sensor,
                 query_keypoints=query.keypoints,
                 similarity=float(query.global_descriptor @ best.features.global_descriptor),
@@ -728,9 +729,11 @@ class Localizer:
         out: RerankOutput,
         ranked: list[int],
         whole: dict[int, Keyframe],
+        cfg: LocalizerConfig,
     ) -> dict[int, SpectralCandidate]:
         """SpectralGV's view of the re-ranked candidates: from the re-ranking when it was
-        SGV (its scores are in retrieval order), else scored now in one batch."""
+        SGV (its scores are in retrieval order), else scored now in one batch with the
+        request's settings ``cfg``."""
         if out.sgv is not None:
             res, scored = out.sgv, [c.keyframe_id for c in retrieved]
         else:
@@ -742,7 +745,7 @@ class Localizer:
                 query.local_features,
                 [f.keypoints for f in feats],
                 [f.local_features for f in feats],
-                self.config.sgv,
+                cfg.sgv,
             )
             scored = ranked
         kps = [whole[i].features.keypoints for i in scored]
@@ -798,7 +801,11 @@ class Localizer:
         return violation(thin(query_cloud), T_map_query, views)
 
     def _refine(
-        self, pose: PoseResult, query_cloud: np.ndarray | None, best: Keyframe
+        self,
+        pose: PoseResult,
+        query_cloud: np.ndarray | None,
+        best: Keyframe,
+        settings: LocalizerConfig,
     ) -> PoseResult:
         if query_cloud is None or best.cloud is None:
             pose.icp = {
@@ -807,7 +814,7 @@ class Localizer:
                 "keeps keyframe clouds (keep_clouds=True)",
             }
             return pose
-        cfg = self.config.pose
+        cfg = settings.pose
         target = None
         if cfg.icp_backend != "open3d" and len(best.cloud) >= 3:
             cloud, backend = best.cloud, cfg.icp_backend

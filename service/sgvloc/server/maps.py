@@ -1174,8 +1174,10 @@ class MapManager:
                     i for i in sorted(prepared) if items[i].key is None or items[i].key not in known
                 ]
                 ids: dict[int, int] = {}
-                version = handle.version
                 if not new:
+                    if self.shared and known:  # the keys may be another replica's write
+                        self._catch_up(handle)  # newer than this copy: answer after it
+                    version = handle.version
                     break
                 # 2. one store transaction for the batch (the acknowledgement point)
                 rows = [self._row(items[i], prepared[i]) for i in new]
