@@ -308,3 +308,18 @@ def test_a_key_another_replica_stored_is_answered_after_its_write(
     assert again.created == [False] and again.ids == first.ids
     assert again.map_version == first.map_version == b.get("m").version
     assert b.get("m").localizer.keyframe_ids() == first.ids
+
+
+def test_a_map_made_elsewhere_is_loaded_by_the_first_write_or_localize(
+    pair: tuple[MapManager, MapManager], rng
+) -> None:
+    """A map another replica made since this one last caught up is loaded when a write
+    or a localize asks for it, not answered 404 until the follower gets to it."""
+    a, b = pair
+    a.create("new", SPEC)
+    with pytest.raises(NotFoundError):
+        b.get("new")  # plain lookups do not touch the store
+    inserted = b.insert("new", feature_keyframes(rng, 2, "k"))  # b never synced
+    assert inserted.map_version == 1 and b.get("new").num_keyframes == 2
+    with pytest.raises(NotFoundError):
+        b.get("nowhere", load=True)

@@ -84,6 +84,8 @@ MAP_NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")  # whole name: full
 SETTINGS_TRIES = 5
 _TMP_PREFIX = ".tmp-"
 _TRASH_PREFIX = ".deleted-"
+#: longest a request waits for a map another thread is loading or deleting (seconds)
+LOAD_WAIT_S = 10.0
 #: a spooled upload untouched this long (seconds) was left by a crash
 SPOOL_ABANDONED_S = 3600.0
 
@@ -771,11 +773,26 @@ class MapManager:
         with self._lock:
             return [self._maps[n] for n in sorted(self._maps)]
 
-    def get(self, name: str) -> MapHandle:
+    def get(self, name: str, *, load: bool = False) -> MapHandle:
         """A loaded map; raises :class:`MapUnavailableError` for a map whose folder failed
-        to load, else :class:`NotFoundError`."""
+        to load, else :class:`NotFoundError`. ``load`` (a shared store; call off the event
+        loop): a map another replica made since this one last caught up is loaded now
+        rather than answered 404 (an insert or a localize right after its creation)."""
         with self._lock:
             handle = self._maps.get(name)
+        if handle is None and load and self.shared and MAP_NAME_RE.fullmatch(name):
+            try:
+                self._load_named(name)
+            except NotFoundError:
+                pass
+            deadline = time.monotonic() + LOAD_WAIT_S
+            while True:  # the follower may be loading it (or a delete ending) meanwhile
+                with self._lock:
+                    handle = self._maps.get(name)
+                    busy = name in self._reserved
+                if handle is not None or not busy or time.monotonic() > deadline:
+                    break
+                time.sleep(0.02)
         if handle is None:
             why = self.failed.get(name)
             if why is not None:
@@ -1136,7 +1153,7 @@ class MapManager:
 
     def insert(self, name: str, items: list[KeyframeIn]) -> InsertResult:
         """Insert keyframes all-or-nothing; known keys return their ids, created=False."""
-        handle = self.get(name)
+        handle = self.get(name, load=True)
         if not items:
             raise field_error(InputError("at least one keyframe is required"), "keyframes")
         keys = [it.key for it in items if it.key is not None]
@@ -1442,7 +1459,7 @@ class MapManager:
         seed: Seed | None = None,
     ) -> LocalizationResult:
         """Localize a scan (or features) in map ``name``; with ``seed``, track."""
-        handle = self.get(name)
+        handle = self.get(name, load=True)
         if (points is None) == (features is None):
             raise InputError("give exactly one of points or features")
         if seed is not None and features is not None:

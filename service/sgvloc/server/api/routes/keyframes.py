@@ -48,7 +48,7 @@ async def insert_keyframes(
     """Insert keyframes: all or none; a known key returns its id with created=false."""
 
     def work() -> InsertOut:
-        manager.get(map_name)  # 404 before decoding a large body for nothing
+        manager.get(map_name, load=True)  # 404 before decoding a large body for nothing
         req = KeyframeBatch.model_validate(body.decode(), context=limits(settings))
         result = manager.insert(map_name, [kf.to_input() for kf in req.keyframes])
         return InsertOut(ids=result.ids, created=result.created, map_version=result.map_version)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from functools import partial
 from typing import Annotated
 
 import anyio
@@ -157,7 +158,7 @@ async def localize(
         await _caught_up(manager, map_name, min_map_version, settings.catch_up_wait_s)
 
     def work() -> LocalizeOut:
-        handle = manager.get(map_name)
+        handle = manager.get(map_name, load=True)
         req = LocalizeBody.model_validate(body.decode(), context=limits(settings))
         result = manager.localize(
             map_name,
@@ -180,8 +181,9 @@ async def localize(
 
 async def _caught_up(manager: MapManager, name: str, version: int, wait_s: float) -> None:
     """Return once map ``name`` is at ``version`` or later on this replica; StaleError
-    after ``wait_s`` (catch-ups run in the default thread pool, not the CPU workers)."""
-    handle = manager.get(name)
+    after ``wait_s`` (catch-ups run in the default thread pool, not the CPU workers; a
+    map another replica made meanwhile is loaded there too)."""
+    handle = await anyio.to_thread.run_sync(partial(manager.get, name, load=True))
     deadline = time.monotonic() + wait_s
     while handle.version < version:
         if manager.shared:
