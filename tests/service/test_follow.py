@@ -15,7 +15,7 @@ from svc_helpers import feature_keyframes
 
 from sgvloc.core.encoders import EncoderSpec
 from sgvloc.core.errors import NotFoundError
-from sgvloc.server.maps import MapManager
+from sgvloc.server.maps import MapManager, MapUnavailableError
 from sgvloc.server.store import StoreError, StoreUnavailableError, open_backend
 from sgvloc.server.store.postgres import redact
 
@@ -323,3 +323,27 @@ def test_a_map_made_elsewhere_is_loaded_by_the_first_write_or_localize(
     assert inserted.map_version == 1 and b.get("new").num_keyframes == 2
     with pytest.raises(NotFoundError):
         b.get("nowhere", load=True)
+
+
+def test_a_map_that_fails_to_load_is_not_loaded_again_by_each_request(
+    pair: tuple[MapManager, MapManager], url: str, monkeypatch
+) -> None:
+    import json
+
+    a, b = pair
+    a.create("bad", SPEC)
+    with psycopg.connect(url) as conn:  # settings this version cannot read
+        meta = conn.execute("SELECT meta FROM sgvloc_maps WHERE name = 'bad'").fetchone()[0]
+        cfg = json.loads(meta["localizer_config"])
+        cfg["pose"]["a_newer_setting"] = 1
+        conn.execute(
+            "UPDATE sgvloc_maps SET meta = meta || %s::jsonb WHERE name = 'bad'",
+            (json.dumps({"localizer_config": json.dumps(cfg)}),),
+        )
+    with pytest.raises(MapUnavailableError):
+        b.get("bad", load=True)
+    loads = []
+    monkeypatch.setattr(b, "_load_named", lambda name: loads.append(name))
+    with pytest.raises(MapUnavailableError):
+        b.get("bad", load=True)
+    assert loads == []  # only POST .../reload tries again

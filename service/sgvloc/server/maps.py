@@ -780,7 +780,8 @@ class MapManager:
         rather than answered 404 (an insert or a localize right after its creation)."""
         with self._lock:
             handle = self._maps.get(name)
-        if handle is None and load and self.shared and MAP_NAME_RE.fullmatch(name):
+        loadable = load and self.shared and name not in self.failed  # failed: reload only
+        if handle is None and loadable and MAP_NAME_RE.fullmatch(name):
             try:
                 self._load_named(name)
             except NotFoundError:
