@@ -426,18 +426,17 @@ class Localizer:
                     f"the fit's confidence {tracked.confidence:.2f} is below min_confidence "
                     f"{threshold:g}"
                 )
-            outside = None
+            code = None  # of a fit not accepted: tracking_failed unless said otherwise
             if tracked.ok and prior is not None:  # the request's prior bounds the fit too
                 outside = prior.rejects(tracked.T_map_sensor)
                 if outside:
                     tracked.ok, tracked.why = False, f"outside the prior region: {outside}"
+                    code = "outside_prior"
             if tracked.ok:
                 return self._tracked_answer(tracked, t_start, threshold, prior)
             tcfg = self.config.tracking
             if tcfg.fallback == "none":
-                return self._tracked_answer(
-                    tracked, t_start, threshold, prior, "outside_prior" if outside else None
-                )
+                return self._tracked_answer(tracked, t_start, threshold, prior, code)
             if prior is None:
                 k = tcfg.seed_sigmas
                 prior = Prior(
@@ -458,9 +457,7 @@ class Localizer:
                 )
             except EmptyScanError as exc:  # the fit's answer stands, with why no fallback
                 tracked.why += f"; no global fallback: {exc}"
-                return self._tracked_answer(
-                    tracked, t_start, threshold, prior, "outside_prior" if outside else None
-                )
+                return self._tracked_answer(tracked, t_start, threshold, prior, code)
             result.mode, result.tracking = "relocalized", tracked.to_dict()
             result.timings_ms["track"] = tracked.timings_ms["track"]
             result.timings_ms["total"] = _ms(t_start)

@@ -929,6 +929,7 @@ class MapManager:
                 self._reserved.add(name)
         if handle is None:
             raise NotFoundError(f"map {name!r} does not exist")
+        trash = None
         try:
             with handle.write_lock:
                 if isinstance(self.backend, SharedBackend):
@@ -940,15 +941,11 @@ class MapManager:
                         raise
                     except NotFoundError:  # another replica deleted it meanwhile
                         pass
-                    handle.closed = True
-                    handle.store.close()
-                    trash = None
-                else:
-                    handle.closed = True
-                    handle.store.close()
-                    assert handle.path is not None
+                handle.closed = True
+                handle.store.close()
+                if handle.path is not None:  # a map folder: one atomic rename, then clean-up
                     trash = self.maps_dir / f"{_TRASH_PREFIX}{name}-{uuid.uuid4().hex[:8]}"
-                    handle.path.rename(trash)  # one atomic step; the rest is clean-up
+                    handle.path.rename(trash)
         finally:
             with self._lock:
                 self._reserved.discard(name)

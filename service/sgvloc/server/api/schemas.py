@@ -91,12 +91,18 @@ def _limit(info: ValidationInfo, name: str) -> int | None:
     return (info.context or {}).get(name)
 
 
-def _check_map_top_k(top_k: int, info: ValidationInfo) -> None:
-    """A map's default top_k within max_top_k, as a request's (else a map setting would
-    take every localize of it past the limit)."""
-    cap = _limit(info, "max_top_k")
+def map_top_k_problem(top_k: int, cap: int | None) -> str | None:
+    """Why a map's default top_k is refused: it must stay within max_top_k, as a
+    request's (else a map setting would take every localize of it past the limit)."""
     if cap is not None and top_k > cap:
-        raise ValueError(f"top_k {top_k} exceeds the limit of {cap} (max_top_k)")
+        return f"top_k {top_k} exceeds the limit of {cap} (max_top_k)"
+    return None
+
+
+def _check_map_top_k(top_k: int, info: ValidationInfo) -> None:
+    why = map_top_k_problem(top_k, _limit(info, "max_top_k"))
+    if why:
+        raise ValueError(why)
 
 
 def _to_ndarray(value: Any) -> np.ndarray:

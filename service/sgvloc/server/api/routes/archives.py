@@ -29,7 +29,7 @@ from ..body import encode, media_type
 from ..deps import ManagerDep, MapName, SettingsDep, WorkerDep
 from ..errors import ApiError
 from ..openapi import error_responses
-from ..schemas import MapInfo
+from ..schemas import MapInfo, map_top_k_problem
 from .maps import check_keypoint_budget, confine_model_path, map_info
 
 router = APIRouter(tags=["maps"], dependencies=[Depends(authorize)])
@@ -177,12 +177,12 @@ async def import_map(
         return confine_model_path(spec, settings.models_dir) or spec  # for a new map
 
     def check_settings(cfg: LocalizerConfig) -> None:
-        if cfg.top_k > settings.max_top_k:
+        why = map_top_k_problem(cfg.top_k, settings.max_top_k)
+        if why:
             raise ApiError(
                 422,
                 "invalid_input",
-                f"the archived map's top_k {cfg.top_k} exceeds the limit of "
-                f"{settings.max_top_k} (max_top_k)",
+                f"the archived map's {why}",
                 "localizer.top_k",
             )
 
