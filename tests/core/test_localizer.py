@@ -528,3 +528,38 @@ def test_a_settings_change_during_a_localization_is_not_mixed_into_it(monkeypatc
     assert len(during.retrieved) == len(before.retrieved) == 2
     after = loc.localize(features=feats)
     assert after.confidence < 1e-6 and len(after.retrieved) == 1
+
+
+def test_a_keyframe_deleted_in_the_store_is_no_answer_and_no_error(campus) -> None:
+    """A copy that fetches local features and clouds from the store (a replica keeping
+    only poses and global descriptors) may still list a keyframe another replica just
+    deleted: localize answers from the other candidates instead of failing, the free-space
+    check does without it, and tracking builds its submap without it."""
+    from sgvloc.core.cache import FetchCache
+    from sgvloc.core.tracking import Seed
+    from sgvloc.server.maps import _slim
+
+    loc, db, queries, scans = campus
+    copy = Localizer(loc.encoder, loc.config)
+    store = {i: loc.keyframe(i) for i in loc.keyframe_ids()}
+    copy.add_keyframes([_slim(kf) for kf in store.values()])
+
+    def source() -> FetchCache:  # a fresh cache: what the store holds now
+        return FetchCache(lambda ids: {i: store[i] for i in ids if i in store}, 64)
+
+    copy.keyframe_source = source()
+    scan = scans[queries[0].index]
+    first = copy.localize(scan)
+    assert first.localized and first.keyframe_id == loc.localize(scan).keyframe_id
+    del store[first.keyframe_id]  # deleted elsewhere; this copy has not caught up
+    copy.keyframe_source = source()
+    again = copy.localize(scan)
+    assert again.keyframe_id != first.keyframe_id
+    assert first.keyframe_id not in [c.keyframe_id for c in again.reranked]
+    assert again.localized, again.reason  # the next keyframe of the place answers
+    tracked = copy.localize(scan, seed=Seed(first.T_map_sensor, 2.0, 10.0))
+    assert tracked.localized, tracked.reason
+    store.clear()  # every candidate gone: the copy says so and asks for a retry
+    copy.keyframe_source = source()
+    with pytest.raises(ConflictError, match="catching up"):
+        copy.localize(scan)

@@ -545,9 +545,16 @@ class Localizer:
             # 3. re-rank the candidates
             check_deadline("re-ranking")
             t = time.perf_counter()
-            whole = self._whole([c.keyframe_id for c in retrieved])
+            whole = self._whole([c.keyframe_id for c in retrieved], gone_ok=True)
             if self.keyframe_source is not None:
                 timings["fetch"] = _ms(t)
+                # candidates deleted in the store meanwhile are not answers any more
+                retrieved = [c for c in retrieved if c.keyframe_id in whole]
+                if not retrieved:
+                    raise ConflictError(
+                        "every candidate keyframe is gone from the store; the map is "
+                        "catching up, retry"
+                    )
 
             def features_of(i: int) -> Features:
                 if i not in whole:  # a candidate query expansion found
@@ -646,11 +653,11 @@ class Localizer:
                 centre = ((cell[0] + 0.5) * cfg.submap_cell_m, (cell[1] + 0.5) * cfg.submap_cell_m)
                 reach = cfg.submap_radius_m + cfg.submap_cell_m * 0.7072  # + half a diagonal
                 ids = self._grid.within(Prior(centre, reach))
-                whole = self._whole([int(i) for i in ids])
+                whole = self._whole([int(i) for i in ids], gone_ok=True)
                 clouds = [
                     (int(i), kf.T_map_sensor, kf.cloud)
                     for i in ids
-                    if (kf := whole[int(i)]).cloud is not None
+                    if (kf := whole.get(int(i))) is not None and kf.cloud is not None
                 ]
                 return build_submap(clouds, cfg)
 
@@ -751,15 +758,16 @@ class Localizer:
         wanted = set(ranked[: 2 + AGREEMENT_CANDIDATES])
         return spectral_candidates(scored, query.keypoints, kps, res, poses_for=wanted)
 
-    def _whole(self, ids: list[int]) -> dict[int, Keyframe]:
+    def _whole(self, ids: list[int], gone_ok: bool = False) -> dict[int, Keyframe]:
         """The keyframes ``ids`` with their features and clouds: from memory, or from
-        the keyframe source (its cache, then one fetch for the rest). Call under the
-        read lock."""
+        the keyframe source (its cache, then one fetch for the rest). A keyframe deleted
+        in the store that this copy still lists (another replica's delete, not yet caught
+        up) is left out with ``gone_ok``, else a ConflictError. Call under the read lock."""
         if self.keyframe_source is None:
             return {int(i): self._keyframes[int(i)] for i in ids}
         got = self.keyframe_source.get_many([int(i) for i in ids])
         missing = [int(i) for i in ids if int(i) not in got]
-        if missing:  # deleted in the store, not yet here: the map is being caught up
+        if missing and not gone_ok:
             raise ConflictError(
                 f"keyframes {missing[:5]} are gone from the store; the map is catching up, retry"
             )
@@ -786,7 +794,8 @@ class Localizer:
         )
         missing = [i for i in ids if i not in whole]
         if missing:
-            whole.update(self._whole(missing))
+            whole.update(self._whole(missing, gone_ok=True))
+            ids = [i for i in ids if i in whole]
         views = []
         for kf in (whole[i] for i in ids):
             if kf.cloud is not None and len(kf.cloud):
