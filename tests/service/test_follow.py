@@ -347,3 +347,54 @@ def test_a_map_that_fails_to_load_is_not_loaded_again_by_each_request(
     with pytest.raises(MapUnavailableError):
         b.get("bad", load=True)
     assert loads == []  # only POST .../reload tries again
+
+
+def _returns_within(fn, limit_s: float):
+    """Run ``fn`` on a thread; its outcome (value or exception), or AssertionError if it
+    has not returned after ``limit_s`` (a hang, not a speed figure: the limit is loose)."""
+    out: dict = {}
+
+    def run() -> None:
+        try:
+            out["value"] = fn()
+        except BaseException as exc:  # noqa: BLE001 - handed to the test
+            out["error"] = exc
+
+    t = threading.Thread(target=run, daemon=True)
+    t.start()
+    t.join(limit_s)
+    assert not t.is_alive(), f"still waiting after {limit_s} s"
+    return out
+
+
+def test_a_frozen_server_fails_calls_and_a_slow_statement_goes_on(postgres, url: str) -> None:
+    """A server that stops answering but keeps its connections open (a stopped process:
+    no TCP timeout fires) fails calls on open connections and on the pool's idle ones
+    with StoreUnavailableError instead of hanging them; a statement that simply takes
+    longer than the limit on a live server is left alone."""
+    if postgres.cluster is None:
+        pytest.skip("needs the throwaway cluster (SGVLOC_TEST_PG_URL names an outside server)")
+    backend = open_backend(url)
+    backend.start()
+    try:
+        with backend.transaction() as cur:
+            cur.execute("SELECT pg_sleep(%s)", (backend.timeout_s * 2,))
+            assert cur.fetchone() is not None
+
+        def frozen_mid_transaction() -> None:
+            with backend.transaction() as cur:
+                cur.execute("SELECT 1")
+                postgres.cluster.pause()
+                cur.execute("SELECT 1")
+
+        try:
+            out = _returns_within(frozen_mid_transaction, 60)
+            assert isinstance(out.get("error"), StoreUnavailableError), out
+            assert "stopped answering" in str(out["error"])
+            out = _returns_within(backend.catalog, 60)  # the pool's idle connections
+            assert isinstance(out.get("error"), StoreUnavailableError), out
+        finally:
+            postgres.cluster.resume()
+        assert _returns_within(backend.catalog, 60) == {"value": {}}
+    finally:
+        backend.close()

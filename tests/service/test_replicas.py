@@ -79,6 +79,11 @@ def _keyframes(seq: KittiSequence, idx: list[int], prefix: str = "kf") -> list[d
     ]
 
 
+def _keyframes_on(c: httpx.Client, name: str) -> int | None:
+    r = c.get(f"/v1/maps/{name}")
+    return r.json()["keyframes"] if r.status_code == 200 else None
+
+
 def _localize(c: httpx.Client, name: str, points: np.ndarray, **params) -> httpx.Response:
     return post_msgpack(
         c,
@@ -150,7 +155,7 @@ def test_store_outage_fails_writes_fast_and_localizations_go_on(
     r = post_msgpack(ca, "/v1/maps/outage/keyframes", {"keyframes": _keyframes(seq, db[:3])})
     assert r.status_code == 201
     acked += [f"kf/{i}" for i in db[:3]]
-    _until(lambda: cb.get("/v1/maps/outage").status_code == 200, what="map on b")
+    _until(lambda: _keyframes_on(cb, "outage") == 3, what="map on b, caught up")
     points = seq[queries[0]].scan().xyzi()
 
     postgres.cluster.stop()
@@ -179,6 +184,45 @@ def test_store_outage_fails_writes_fast_and_localizations_go_on(
     _until(lambda: cb.get("/v1/maps/outage").json()["keyframes"] == len(acked), what="b caught up")
     keys = {k["key"] for k in cb.get("/v1/maps/outage/keyframes").json()["keyframes"]}
     assert keys == set(acked)
+
+
+def test_a_frozen_store_fails_writes_and_localizations_go_on(
+    postgres, replicas: list[Server], balm_mini_dir: Path, balm_mini_roles: list
+) -> None:
+    """PostgreSQL stopped (SIGSTOP) keeps its connections open and answers nothing: a
+    write fails with 503 instead of waiting for it, the replica's worker is free again,
+    and once the store is back a keyed retry stores each keyframe once."""
+    if postgres.cluster is None:
+        pytest.skip("needs the throwaway cluster (SGVLOC_TEST_PG_URL names an outside server)")
+    a, b, _ = replicas
+    seq, db, queries = _scans(balm_mini_dir, balm_mini_roles)
+    ca, cb = (httpx.Client(base_url=s.url, timeout=120.0) for s in (a, b))
+    assert ca.post("/v1/maps", json={"name": "frozen"}).status_code == 201
+    r = post_msgpack(ca, "/v1/maps/frozen/keyframes", {"keyframes": _keyframes(seq, db[:3])})
+    assert r.status_code == 201
+    _until(lambda: _keyframes_on(cb, "frozen") == 3, what="map on b, caught up")
+    points = seq[queries[0]].scan().xyzi()
+    later = _keyframes(seq, db[3:5])
+
+    postgres.cluster.pause()
+    try:
+        r = post_msgpack(ca, "/v1/maps/frozen/keyframes", {"keyframes": later})
+        assert r.status_code == 503, r.text
+        assert error_of(r)["code"] == "store_unavailable" and r.headers["Retry-After"]
+        for c in (ca, cb):  # served from memory by the replicas' only worker
+            localized, _, version, _ = _answer(_localize(c, "frozen", points))
+            assert version == 1
+    finally:
+        postgres.cluster.resume()
+
+    def write_ok() -> bool:
+        r = post_msgpack(ca, "/v1/maps/frozen/keyframes", {"keyframes": later})
+        return r.status_code in (200, 201)
+
+    _until(write_ok, timeout=30, what="writes after the store came back")
+    _until(lambda: cb.get("/v1/maps/frozen").json()["keyframes"] == 5, what="b caught up")
+    keys = [k["key"] for k in cb.get("/v1/maps/frozen/keyframes").json()["keyframes"]]
+    assert sorted(keys) == sorted(f"kf/{i}" for i in db[:5])
 
 
 def test_concurrent_writers_on_two_replicas(replicas: list[Server]) -> None:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import os
 import pwd
 import shutil
+import signal
 import socket
 import subprocess
 import tempfile
@@ -97,6 +98,31 @@ class TempCluster:
 
     def stop(self, mode: str = "fast") -> None:
         self._run("pg_ctl", "-D", str(self.data), "-m", mode, "-w", "-t", "60", "stop")
+
+    def _processes(self) -> list[int]:
+        """The server's process ids: the postmaster (``postmaster.pid``) and its children."""
+        pid = int((self.data / "postmaster.pid").read_text().split()[0])
+        pids = [pid]
+        for entry in Path("/proc").iterdir():
+            if entry.name.isdigit():
+                try:
+                    stat = (entry / "stat").read_text()
+                except OSError:
+                    continue
+                if int(stat.rsplit(")", 1)[1].split()[1]) == pid:  # its parent
+                    pids.append(int(entry.name))
+        return pids
+
+    def pause(self) -> None:
+        """Freeze the server (SIGSTOP to every process of it): connections stay open and
+        the kernel still takes what clients send, but nothing answers (Linux only)."""
+        for pid in self._processes():
+            os.kill(pid, signal.SIGSTOP)
+
+    def resume(self) -> None:
+        """Let a paused server go on (SIGCONT)."""
+        for pid in self._processes():
+            os.kill(pid, signal.SIGCONT)
 
     @property
     def url(self) -> str:

@@ -21,16 +21,22 @@ SQLite). Keys are unique per map: a key another replica stored first raises
 Connections come from a psycopg pool with short connect and acquire timeouts: when the
 server cannot be reached a call fails within seconds with
 :class:`~sgvloc.server.store.base.StoreUnavailableError`, and the pool reconnects by itself.
+A server that keeps its connections open but stops answering (a stopped or frozen
+process: the kernel still acknowledges what is sent, so no TCP timeout fires) is caught
+by :class:`_Watchdog`: a call that has waited ``timeout_s`` makes the server prove it is
+alive over a new connection, and a call on a dead server is cut off.
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import os
+import socket
 import threading
 import time
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
 from urllib.parse import urlsplit, urlunsplit
@@ -170,6 +176,82 @@ STATEMENT_TIMEOUT_S = 120
 IDLE_IN_TRANSACTION_S = 600
 
 
+class _Call:
+    """One watched call on a connection: the socket to cut and when to look again."""
+
+    def __init__(self, fd: int, due: float, limit_s: float, probe: bool) -> None:
+        self.fd = fd
+        self.due = due
+        self.limit_s = limit_s
+        self.probe = probe
+        self.cut = False
+
+
+class _Watchdog:
+    """Cuts off calls to a server that stopped answering.
+
+    A call registers its connection's socket for as long as it runs. One daemon thread
+    looks at the calls every :data:`TICK_S`: a call past its limit either makes the
+    server prove it is alive (``probe``: a new connection answering ``SELECT 1`` within
+    ``timeout_s``; then the call may go on, a long statement is no fault) or, if it cannot
+    or for calls that must be quick (the pool's check of an idle connection), has its
+    socket shut down, so that the blocked call fails at once with an OperationalError
+    and the pool drops the connection.
+    """
+
+    TICK_S = 0.25
+
+    def __init__(self, alive: Callable[[], bool]) -> None:
+        self._alive = alive
+        self._calls: dict[int, _Call] = {}
+        self._lock = threading.Lock()
+        self._thread: threading.Thread | None = None
+        self._next = 0
+
+    @contextmanager
+    def watch(self, conn: psycopg.Connection, limit_s: float, probe: bool) -> Iterator[_Call]:
+        call = _Call(conn.fileno(), time.monotonic() + limit_s, limit_s, probe)
+        with self._lock:
+            self._next += 1
+            token = self._next
+            self._calls[token] = call
+            if self._thread is None:
+                self._thread = threading.Thread(
+                    target=self._run, name="sgvloc-store-watchdog", daemon=True
+                )
+                self._thread.start()
+        try:
+            yield call
+        finally:
+            with self._lock:  # unregistered before the connection can close (fd reuse)
+                del self._calls[token]
+
+    def _run(self) -> None:
+        while True:
+            time.sleep(self.TICK_S)
+            now = time.monotonic()
+            with self._lock:
+                due = [(t, c) for t, c in self._calls.items() if c.due <= now and not c.cut]
+            if not due:
+                continue
+            alive = None
+            if any(c.probe for _, c in due):
+                alive = self._alive()  # one probe answers for every call due
+            with self._lock:
+                for token, call in due:
+                    if self._calls.get(token) is not call:
+                        continue  # ended meanwhile: its socket may be another's now
+                    if call.probe and alive:
+                        call.due = time.monotonic() + call.limit_s
+                        continue
+                    call.cut = True
+                    try:
+                        with socket.socket(fileno=os.dup(call.fd)) as sock:
+                            sock.shutdown(socket.SHUT_RDWR)
+                    except OSError as exc:
+                        log.debug("could not cut a stalled store connection: %s", exc)
+
+
 class PgBackend(SharedBackend):
     """Every map in one PostgreSQL database, through a connection pool."""
 
@@ -203,13 +285,14 @@ class PgBackend(SharedBackend):
         }
         if password is not None:
             connect["password"] = password
+        self._watchdog = _Watchdog(self._alive)
         self.pool = ConnectionPool(
             url,
             min_size=1,
             max_size=max(2, pool_size),
             timeout=timeout_s,
             kwargs=connect,
-            check=ConnectionPool.check_connection,
+            check=self._check,
             reconnect_timeout=0,  # keep trying to reconnect for as long as it takes
             open=False,
             name="sgvloc-store",
@@ -223,29 +306,55 @@ class PgBackend(SharedBackend):
 
     # -- connections --------------------------------------------------------------------
 
+    def _check(self, conn: psycopg.Connection) -> None:
+        """The pool's check of an idle connection before it is lent: an empty query,
+        cut off after ``timeout_s`` (a connection to a frozen server fails it)."""
+        with self._watchdog.watch(conn, self.timeout_s, probe=False):
+            ConnectionPool.check_connection(conn)
+
+    def _alive(self) -> bool:
+        """Whether the server answers ``SELECT 1`` on a new connection within about
+        ``timeout_s`` (connecting, then the query, each limited)."""
+        try:
+            with psycopg.connect(self.url, autocommit=True, **self._connect_kwargs) as conn:
+                with self._watchdog.watch(conn, self.timeout_s, probe=False):
+                    conn.execute("SELECT 1")
+            return True
+        except psycopg.Error:
+            return False
+
     @contextmanager
     def transaction(self, read_snapshot: bool = False) -> Iterator[psycopg.Cursor]:
         """A cursor in one transaction (committed when the block ends without error);
         ``read_snapshot``: a read-only REPEATABLE READ one (every query sees one state).
         Unreachable server -> :class:`StoreUnavailableError`."""
+        call: _Call | None = None
         try:
             with self.pool.connection() as conn:
-                if read_snapshot:
-                    conn.isolation_level = psycopg.IsolationLevel.REPEATABLE_READ
-                    conn.read_only = True
-                try:
-                    with conn.transaction(), conn.cursor() as cur:
-                        yield cur
-                finally:
+                with self._watchdog.watch(conn, self.timeout_s, probe=True) as call:
                     if read_snapshot:
-                        conn.isolation_level = None
-                        conn.read_only = None
+                        conn.isolation_level = psycopg.IsolationLevel.REPEATABLE_READ
+                        conn.read_only = True
+                    try:
+                        with conn.transaction(), conn.cursor() as cur:
+                            yield cur
+                    finally:
+                        if read_snapshot and not call.cut:
+                            conn.isolation_level = None
+                            conn.read_only = None
         except PoolTimeout:
             raise StoreUnavailableError(
                 f"the map store (PostgreSQL) cannot be reached within {self.timeout_s:g} s; "
                 "nothing was changed (retry later)"
             ) from None
         except psycopg.OperationalError as exc:
+            if call is not None and call.cut:
+                raise StoreUnavailableError(
+                    "the map store (PostgreSQL) stopped answering (no reply, and no new "
+                    f"connection answered within {self.timeout_s:g} s); a write that was "
+                    "committing when it stopped may still be applied once it is back "
+                    "(writes with keys are safe to retry); retry later"
+                ) from None
             raise StoreUnavailableError(
                 f"the map store (PostgreSQL) failed: {str(exc).strip() or type(exc).__name__}; "
                 "retry later"
@@ -367,7 +476,8 @@ class PgBackend(SharedBackend):
                     self._listener = psycopg.connect(
                         self.url, autocommit=True, **self._connect_kwargs
                     )
-                    self._listener.execute(f"LISTEN {CHANNEL}")
+                    with self._watchdog.watch(self._listener, self.timeout_s, probe=False):
+                        self._listener.execute(f"LISTEN {CHANNEL}")
                 got = False
                 for _ in self._listener.notifies(timeout=timeout_s, stop_after=1):
                     got = True
