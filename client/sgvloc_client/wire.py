@@ -113,13 +113,23 @@ def container_budget(size: int, bytes_per_container: int) -> int:
     return size // bytes_per_container + 10_000
 
 
-def unpackb(data: bytes, max_bytes: int | None = None, max_list_len: int | None = None) -> Any:
+def unpackb(
+    data: bytes,
+    max_bytes: int | None = None,
+    max_list_len: int | None = None,
+    *,
+    max_map_len: int | None = None,
+    max_containers: int | None = None,
+) -> Any:
     """Parse MessagePack into the same structure with ndarrays restored (read-only views).
-    Refuses a body holding more maps and lists than :func:`container_budget` allows, or
-    a list of more than ``max_list_len`` items."""
+    Refuses a body holding more maps and lists than :func:`container_budget` allows (and
+    than ``max_containers``), a list of more than ``max_list_len`` items or a map of more
+    than ``max_map_len`` keys."""
     if max_bytes is not None and len(data) > max_bytes:
         raise WireError(f"body has {len(data)} bytes, limit is {max_bytes}")
     budget = container_budget(len(data), MSGPACK_BYTES_PER_CONTAINER)
+    if max_containers is not None:
+        budget = min(budget, max_containers)
     count = 0
 
     def counted(container: Any) -> Any:
@@ -140,6 +150,7 @@ def unpackb(data: bytes, max_bytes: int | None = None, max_list_len: int | None 
             object_hook=counted,
             list_hook=counted,
             max_array_len=len(data) if max_list_len is None else max_list_len,
+            max_map_len=len(data) if max_map_len is None else max_map_len,
         )
     except WireError:
         raise
@@ -147,6 +158,10 @@ def unpackb(data: bytes, max_bytes: int | None = None, max_list_len: int | None 
         if "max_array_len" in str(exc):
             raise WireError(
                 f"body holds a list of more than {max_list_len} items: longer than any field"
+            ) from None
+        if "max_map_len" in str(exc):
+            raise WireError(
+                f"body holds a map of more than {max_map_len} keys: more than any object has"
             ) from None
         raise WireError(f"body is not valid MessagePack: {exc}") from None
     return _from_wire(obj)

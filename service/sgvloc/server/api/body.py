@@ -30,6 +30,23 @@ JSON_TYPES = (wire.JSON,)
 
 #: a JSON body may hold one object or array per this many bytes (a point [0,0,0], is 8)
 JSON_BYTES_PER_CONTAINER = 6
+#: the most fields an object (JSON) or map (MessagePack) of a body may have: far above any
+#: request's (tags: 64); each unknown field would otherwise cost a validation error
+MAX_OBJECT_FIELDS = 256
+#: MessagePack carries arrays as bytes: a body holds a few maps and lists per keyframe
+MSGPACK_CONTAINERS_PER_ITEM = 32
+
+
+def _object(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """A JSON object, refused beyond :data:`MAX_OBJECT_FIELDS` fields (the last of a
+    repeated field wins, as ``json.loads`` has it)."""
+    if len(pairs) > MAX_OBJECT_FIELDS:
+        raise wire.WireError(
+            f"body holds an object of {len(pairs)} fields: more than any object of a "
+            f"request has ({MAX_OBJECT_FIELDS})"
+        )
+    return dict(pairs)
+
 
 #: numeric response fields sent as ndarrays in MessagePack (float64)
 ARRAY_FIELDS = frozenset({"T_map_sensor", "T_keyframe_sensor", "translation", "quaternion_xyzw"})
@@ -48,6 +65,8 @@ class RawBody:
     content_type: str
     #: longest list (MessagePack) a body may hold; None: no bound
     max_list_len: int | None = None
+    #: the most maps and lists (MessagePack) a body may hold; None: by its size only
+    max_containers: int | None = None
 
     def decode(self) -> Any:
         """Parse the body; arrays become ndarrays (MessagePack) or nested lists (JSON)."""
@@ -55,7 +74,12 @@ class RawBody:
             raise ApiError(400, "bad_body", "the request body is empty")
         try:
             if self.content_type in MSGPACK_TYPES:
-                return wire.unpackb(self.data, max_list_len=self.max_list_len)
+                return wire.unpackb(
+                    self.data,
+                    max_list_len=self.max_list_len,
+                    max_map_len=MAX_OBJECT_FIELDS,
+                    max_containers=self.max_containers,
+                )
             # each object or array costs tens of bytes in memory however few it takes in
             # the body ("{}," is three): a body of little else is refused before parsing
             n = self.data.count(b"{") + self.data.count(b"[")
@@ -66,7 +90,7 @@ class RawBody:
                     f"the body holds {n} objects and arrays in {len(self.data)} bytes: too "
                     "many to be a request (arrays of numbers, a few fields each)",
                 )
-            return json.loads(self.data)
+            return json.loads(self.data, object_pairs_hook=_object)
         except wire.WireError as exc:
             raise ApiError(400, "bad_body", str(exc)) from None
         except (ValueError, UnicodeDecodeError) as exc:  # JSONDecodeError is a ValueError
@@ -82,11 +106,13 @@ async def read_body(
     *,
     json_limit: int | None = None,
     max_list_len: int | None = None,
+    max_items: int | None = None,
 ) -> RawBody:
     """Read the whole body, at most ``limit`` bytes (``json_limit`` for JSON) within
     ``timeout_s`` seconds; 415 for a media type other than JSON or MessagePack, 413
     beyond the limit, 408 (and the connection closed) when the body is not complete in
-    time, 400 when the client goes away before it is."""
+    time, 400 when the client goes away before it is. ``max_items``: the most items (e.g.
+    keyframes) a body may carry, which bounds the maps and lists of a MessagePack one."""
     ctype = media_type(request.headers.get("content-type"))
     if ctype not in MSGPACK_TYPES + JSON_TYPES:
         raise ApiError(
@@ -123,7 +149,8 @@ async def read_body(
             f"the body did not arrive within body_timeout_s={timeout_s:g} s",
             headers={"Connection": "close"},
         )
-    return RawBody(bytes(buf), ctype, max_list_len)
+    containers = None if max_items is None else 10_000 + MSGPACK_CONTAINERS_PER_ITEM * max_items
+    return RawBody(bytes(buf), ctype, max_list_len, containers)
 
 
 def wants_msgpack(request: Request) -> bool:

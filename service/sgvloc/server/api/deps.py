@@ -150,6 +150,7 @@ async def get_body(
         settings.body_timeout_s,
         json_limit=settings.max_json_body_bytes,
         max_list_len=max(settings.max_points, settings.max_batch, settings.max_keypoints, 65536),
+        max_items=settings.max_batch,
     )
 
 

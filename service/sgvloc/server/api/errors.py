@@ -11,12 +11,12 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, TypeVar
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import Response
-from pydantic import ValidationError
+from pydantic import BaseModel, ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from sgvloc.core.errors import (
@@ -34,6 +34,8 @@ from sgvloc_client.wire import WireError
 from ..logs import REQUEST_ID_HEADER, current_request_id
 from ..maps import MapUnavailableError, StaleError
 from ..store import StoreClosedError, StoreUnavailableError, storage_full
+
+M = TypeVar("M", bound=BaseModel)
 
 log = logging.getLogger(__name__)
 
@@ -102,6 +104,19 @@ def validation_message(errors: Sequence[dict[str, Any]]) -> tuple[str, str | Non
     more = f" (and {len(errors) - 5} more)" if len(errors) > 5 else ""
     first = loc_to_field(errors[0].get("loc", ())) if errors else None
     return "; ".join(items) + more, first
+
+
+def validated(model: type[M], data: Any, context: dict[str, Any] | None = None) -> M:
+    """``model.model_validate(data, context=context)``, its errors as the 422 answer: the
+    message is made here, in the worker thread that validates, and not on the event loop
+    (a body with many bad fields has as many errors)."""
+    try:
+        return model.model_validate(data, context=context)
+    except ValidationError as exc:
+        message, field = validation_message(
+            exc.errors(include_url=False, include_context=False, include_input=False)
+        )
+        raise ApiError(422, "invalid_input", message, field) from None
 
 
 #: engine error -> status, code, and whether the answer carries Retry-After

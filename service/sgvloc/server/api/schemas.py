@@ -20,6 +20,7 @@ from pydantic import (
     ConfigDict,
     Field,
     StrictInt,
+    StringConstraints,
     TypeAdapter,
     ValidationError,
     ValidationInfo,
@@ -423,6 +424,9 @@ def _no_nul(v: str) -> str:
 
 #: text a store keeps: any string without NUL characters
 Text = Annotated[str, AfterValidator(_no_nul)]
+#: a keyframe tag's name and value
+TagName = Annotated[str, StringConstraints(max_length=256), AfterValidator(_no_nul)]
+TagValue = Annotated[str, StringConstraints(max_length=1024), AfterValidator(_no_nul)]
 
 
 class KeyframeMetadata(_In):
@@ -430,7 +434,9 @@ class KeyframeMetadata(_In):
 
     timestamp: float | None = Field(None, allow_inf_nan=False, description="seconds")
     sequence: Text | None = Field(None, max_length=256)
-    tags: dict[Text, Text] | None = None
+    tags: dict[TagName, TagValue] | None = Field(
+        None, max_length=64, description="at most 64; names up to 256 characters, values 1024"
+    )
 
 
 class KeyframeBody(_In):

@@ -11,7 +11,7 @@ from ...store import KeyframeFilter
 from ..auth import authorize
 from ..body import encode
 from ..deps import BodyDep, KeyframeId, ManagerDep, MapName, SettingsDep, WorkerDep
-from ..errors import ApiError
+from ..errors import ApiError, validated
 from ..openapi import body_doc, error_responses
 from ..schemas import (
     InsertOut,
@@ -49,7 +49,7 @@ async def insert_keyframes(
 
     def work() -> InsertOut:
         manager.get(map_name, load=True)  # 404 before decoding a large body for nothing
-        req = KeyframeBatch.model_validate(body.decode(), context=limits(settings))
+        req = validated(KeyframeBatch, body.decode(), limits(settings))
         result = manager.insert(map_name, [kf.to_input() for kf in req.keyframes])
         return InsertOut(ids=result.ids, created=result.created, map_version=result.map_version)
 

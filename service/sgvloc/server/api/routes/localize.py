@@ -28,6 +28,7 @@ from ..deps import (
     SettingsDep,
     WorkerDep,
 )
+from ..errors import validated
 from ..openapi import body_doc, error_responses
 from ..schemas import (
     CandidateOut,
@@ -159,7 +160,7 @@ async def localize(
 
     def work() -> LocalizeOut:
         handle = manager.get(map_name, load=True)
-        req = LocalizeBody.model_validate(body.decode(), context=limits(settings))
+        req = validated(LocalizeBody, body.decode(), limits(settings))
         result = manager.localize(
             map_name,
             points=req.points,

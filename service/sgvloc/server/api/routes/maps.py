@@ -16,7 +16,7 @@ from ...maps import MapHandle
 from ..auth import authorize, principal_of
 from ..body import encode
 from ..deps import BodyDep, ManagerDep, MapName, SettingsDep, WorkerDep
-from ..errors import ApiError
+from ..errors import ApiError, validated
 from ..openapi import body_doc, error_responses
 from ..schemas import (
     CalibrationInfo,
@@ -88,7 +88,7 @@ async def create_map(
     caller = principal_of(request)
 
     def work() -> MapInfo:
-        req = MapCreate.model_validate(body.decode(), context=limits(settings))
+        req = validated(MapCreate, body.decode(), limits(settings))
         if not caller.may_use_map(req.name):
             raise ApiError(403, "forbidden", f"this key may not use map {req.name!r}", "name")
         check_keypoint_budget(req.encoder, settings.max_keypoints)
@@ -198,7 +198,7 @@ async def update_map(
 
     def work() -> MapInfo:
         handle = manager.get(map_name)  # 404 before the body is judged
-        req = MapPatch.model_validate(body.decode(), context=limits(settings))
+        req = validated(MapPatch, body.decode(), limits(settings))
         cal = req.calibration
         calibration = (
             shipped_calibration(handle.record.encoder_spec.kind)
@@ -231,7 +231,7 @@ async def self_test_map(
     localizations go on beside it; the summary is recorded with the map
     (``last_self_test``). 409 if keyframes change meanwhile."""
     # parsed in a worker thread, as every body (a large one would hold the event loop)
-    req = await worker.run(lambda: SelfTestRequest.model_validate(body.decode()))
+    req = await worker.run(lambda: validated(SelfTestRequest, body.decode()))
     t0 = time.monotonic()
     version, plan = await worker.run(
         lambda: manager.self_test_plan(
