@@ -162,3 +162,88 @@ def test_an_archive_of_another_encoder_is_refused(source: MapManager, tmp_path: 
     m = _manager(tmp_path / "d")
     _refused(m, data, "fingerprint", EncoderMismatchError)
     m.close()
+
+
+def _tampered(members: list[tuple[str, bytes]], arrays=None, manifest=None, compress=False):
+    """The archive with its first chunk's arrays (``arrays(dict)``) and its manifest
+    (``manifest(dict)``) changed and the checksums made to match: well-formed, hostile."""
+    import hashlib
+    import json
+
+    out = []
+    for name, data in members:
+        if name == "manifest.json" and manifest is not None:
+            m = json.loads(data)
+            manifest(m)
+            data = json.dumps(m).encode()
+        if name == "keyframes/000000.npz" and (arrays is not None or compress):
+            with np.load(io.BytesIO(data)) as z:
+                a = {k: z[k] for k in z.files}
+            if arrays is not None:
+                arrays(a)
+            buf = io.BytesIO()
+            (np.savez_compressed if compress else np.savez)(buf, **a)
+            data = buf.getvalue()
+        if name == "SHA256SUMS":
+            data = "".join(f"{hashlib.sha256(d).hexdigest()}  {n}\n" for n, d in out).encode()
+        out.append((name, data))
+    return _tar(out)
+
+
+def _records(edit):
+    import json
+
+    def change(a: dict) -> None:
+        recs = json.loads(a["records"].tobytes())
+        edit(recs[0])
+        a["records"] = np.frombuffer(json.dumps(recs).encode(), dtype=np.uint8)
+
+    return change
+
+
+def test_a_well_formed_but_hostile_archive_is_refused(source: MapManager, tmp_path: Path) -> None:
+    """Checksums only say an archive was not damaged on its way: its content is checked
+    as an insert's is. Each of these was imported and then answered 500s (or inflated
+    to gigabytes) before."""
+    members = _members(_export(source, "src"))
+    m = _manager(tmp_path / "d")
+
+    def cloud(values):
+        def change(a: dict) -> None:
+            a["cloud_counts"] = a["cloud_counts"].copy()
+            a["cloud_counts"][0] = len(values)
+            a["clouds"] = np.asarray(values, np.float32).reshape(len(values), -1)
+
+        return change
+
+    def pose(a: dict) -> None:
+        a["T_map_sensor"] = a["T_map_sensor"].copy()
+        a["T_map_sensor"][0, 0, 3] = 1e200
+
+    def setting(key, value):
+        def change(mf: dict) -> None:
+            (mf["map"] if key in mf["map"] else mf)[key] = value
+
+        return change
+
+    cases = [
+        (_tampered(members, compress=True), "compressed"),
+        (_tampered(members, cloud([[np.nan, 0, 0], [1, 2, 3]])), "cloud"),
+        (_tampered(members, cloud([[1e30, 0, 0]])), "cloud"),
+        (_tampered(members, cloud([[1, 2], [3, 4]])), "cloud"),
+        (_tampered(members, pose), "translation"),
+        (_tampered(members, _records(lambda r: r.update(key="\ud800"))), "surrogate"),
+        (_tampered(members, _records(lambda r: r.update(key="x" * 300))), "key"),
+        (
+            _tampered(members, _records(lambda r: r["metadata"].update(timestamp=float("nan")))),
+            "metadata",
+        ),
+        (_tampered(members, _records(lambda r: r.update(metadata={"tags": [1]}))), "tags"),
+        (_tampered(members, manifest=setting("version", 2**70)), "out of range"),
+        (_tampered(members, manifest=setting("settings_version", 2**70)), "out of range"),
+        (_tampered(members, manifest=setting("self_test", {"x": "y" * 300_000})), "self_test"),
+    ]
+    for data, match in cases:
+        _refused(m, data, match)
+    assert m.import_archive(io.BytesIO(_tampered(members)), "imported").num_keyframes == 302
+    m.close()

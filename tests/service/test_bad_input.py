@@ -231,6 +231,7 @@ def test_text_with_nul_is_refused(client: httpx.Client, pre_map: str, extra, fie
         np.vstack([np.eye(4)[:3], [[0.0, 0.0, 1.0, 1.0]]]),  # bad last row
         np.eye(3),  # not 4x4
         np.full((4, 4), np.nan),
+        np.vstack([np.hstack([np.eye(3), [[1e200], [0.0], [0.0]]]), [[0, 0, 0, 1.0]]]),  # far
     ],
 )
 def test_non_rigid_pose(client: httpx.Client, pre_map: str, T: np.ndarray) -> None:

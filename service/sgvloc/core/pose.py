@@ -70,6 +70,11 @@ def is_rigid(T: np.ndarray, tol: float = 1e-4) -> bool:
     )
 
 
+#: the largest translation a pose may have (m): beyond any map frame on Earth (ECEF
+#: coordinates are below 6.4e6 m); larger ones overflow spatial indexes downstream
+MAX_TRANSLATION_M = 1e8
+
+
 def check_rigid(T: np.ndarray, name: str) -> np.ndarray:
     """Return ``T`` as float64 4x4 or raise :class:`InputError` naming ``name``."""
     arr = np.asarray(T, dtype=np.float64)
@@ -80,6 +85,8 @@ def check_rigid(T: np.ndarray, name: str) -> np.ndarray:
             f"{name} is not a rigid transform (rotation must be orthonormal with det +1 and "
             "the last row 0 0 0 1)"
         )
+    if np.abs(arr[:3, 3]).max() > MAX_TRANSLATION_M:
+        raise InputError(f"{name}: its translation is beyond {MAX_TRANSLATION_M:g} m")
     return arr
 
 

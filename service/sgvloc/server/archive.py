@@ -23,6 +23,7 @@ import hashlib
 import io
 import json
 import tarfile
+import zipfile
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from typing import IO, Any
@@ -43,6 +44,7 @@ CHUNK = 256  # keyframes per member
 MANIFEST = "manifest.json"
 SUMS = "SHA256SUMS"
 MAX_MEMBER_BYTES = 1 << 30  # no honest chunk comes near this; a bigger one is refused
+MAX_SELF_TEST_BYTES = 1 << 18  # a self-test's settings or summary, as JSON
 
 
 class ArchiveError(InputError):
@@ -214,16 +216,34 @@ def _header(manifest: dict[str, Any]) -> ArchiveHeader:
         next_id = None if next_id is None else int(next_id)
     except (KeyError, TypeError, ValueError) as exc:
         raise ArchiveError(f"the archive's manifest is damaged: {exc}") from None
-    if version < 0 or count < 0 or (next_id is not None and not 1 <= next_id < 2**62):
+    if not (
+        0 <= version < 2**62
+        and 0 <= count < 2**62
+        and 0 <= record.settings_version < 2**62
+        and (next_id is None or 1 <= next_id < 2**62)
+    ):
         raise ArchiveError(
-            "the archive's manifest is damaged: negative version or count, or a bad next_id"
+            "the archive's manifest is damaged: a version, count or next_id out of range"
         )
+    for name in ("self_test", "last_self_test"):
+        value = getattr(record, name)
+        if value is not None and len(json.dumps(value).encode()) > MAX_SELF_TEST_BYTES:
+            raise ArchiveError(
+                f"the archive's manifest is damaged: {name} is longer than "
+                f"{MAX_SELF_TEST_BYTES} bytes as JSON"
+            )
     sgvloc_version = str(manifest.get("sgvloc_version", "?"))
     return ArchiveHeader(record, version, count, sgvloc_version, next_id)
 
 
 def _unpack_chunk(data: bytes, name: str) -> list[KeyframeRow]:
     try:
+        # arrays are stored as they are (np.savez): a compressed one could inflate to
+        # any size before its length is checked
+        with zipfile.ZipFile(io.BytesIO(data)) as zf:
+            for info in zf.infolist():
+                if info.compress_type != zipfile.ZIP_STORED or info.file_size > len(data):
+                    raise ValueError(f"{info.filename} is compressed; archives store arrays raw")
         with np.load(io.BytesIO(data), allow_pickle=False) as z:
             a = {k: z[k] for k in z.files}
         records = json.loads(a["records"].tobytes())

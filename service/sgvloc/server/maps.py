@@ -22,6 +22,7 @@ snapshot that does not hold exactly the stored ids is ignored and rebuilt.
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import re
 import shutil
@@ -196,6 +197,59 @@ def _encoder_features(
         feats = replace(feats, local_features=np.zeros((0, encoder.local_dim), np.float32))
     encoder.check(feats)
     return feats
+
+
+#: what an inserted keyframe's key and metadata may be (the API's limits)
+KEY_MAX_CHARS = 256
+SEQUENCE_MAX_CHARS = 256
+TAGS_MAX = 64
+TAG_NAME_MAX_CHARS, TAG_VALUE_MAX_CHARS = 256, 1024
+
+
+def _check_text(value: Any, what: str, max_chars: int, min_chars: int = 1) -> None:
+    """A string a store keeps: ``min_chars`` to ``max_chars``, no NUL, valid Unicode."""
+    if not isinstance(value, str) or not min_chars <= len(value) <= max_chars:
+        raise InputError(f"{what} must be a string of {min_chars} to {max_chars} characters")
+    if "\x00" in value:
+        raise InputError(f"{what} must not contain a NUL character")
+    try:
+        value.encode("utf-8")
+    except UnicodeEncodeError:
+        raise InputError(f"{what} must be valid Unicode text (it holds a lone surrogate)") from None
+
+
+def _check_metadata(metadata: Any) -> None:
+    """Keyframe metadata as an insert stores it: an object of JSON values without NaN or
+    infinity, its ``timestamp``, ``sequence`` and ``tags`` of the API's types and sizes."""
+    if not isinstance(metadata, dict):
+        raise InputError("metadata is not an object")
+    try:
+        json.dumps(metadata, allow_nan=False)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"metadata is not plain JSON: {exc}") from None
+    stamp = metadata.get("timestamp")
+    if stamp is not None and (isinstance(stamp, bool) or not isinstance(stamp, int | float)):
+        raise InputError("metadata.timestamp must be a number of seconds")
+    if metadata.get("sequence") is not None:
+        _check_text(metadata["sequence"], "metadata.sequence", SEQUENCE_MAX_CHARS)
+    tags = metadata.get("tags")
+    if tags is not None:
+        if not isinstance(tags, dict) or len(tags) > TAGS_MAX:
+            raise InputError(f"metadata.tags must be an object of at most {TAGS_MAX} entries")
+        for name, value in tags.items():
+            _check_text(name, "a metadata.tags name", TAG_NAME_MAX_CHARS, min_chars=0)
+            _check_text(value, f"metadata.tags.{name}", TAG_VALUE_MAX_CHARS, min_chars=0)
+
+
+def _check_cloud(cloud: np.ndarray, max_range: float) -> None:
+    """A stored cloud as the encoder prepares one: finite ``[N, 3]`` points within the
+    map's range of the sensor."""
+    if cloud.ndim != 2 or cloud.shape[1] != 3 or not np.issubdtype(cloud.dtype, np.floating):
+        raise InputError(f"cloud must be [N, 3] floats, got {cloud.dtype} {list(cloud.shape)}")
+    if len(cloud) and not (
+        np.isfinite(cloud).all() and np.abs(cloud).max() <= max_range * 1.001 + 1e-3
+    ):
+        raise InputError(f"cloud holds points that are not finite or beyond {max_range:g} m")
 
 
 def _keyframe(encoder: Encoder, row: KeyframeRow) -> Keyframe:
@@ -1384,7 +1438,7 @@ class MapManager:
             filled = False
             for rows in chunks:
                 for row in rows:
-                    self._check_archived(encoder, row)
+                    self._check_archived(encoder, row, spec.preprocess.max_range)
                 try:
                     store.insert_exact(rows, header.version, header.next_id)
                 except self.backend.errors as exc:
@@ -1427,17 +1481,21 @@ class MapManager:
         return handle
 
     @staticmethod
-    def _check_archived(encoder: Encoder, row: KeyframeRow) -> None:
-        """An archived keyframe as strictly as an inserted one (ArchiveError if not)."""
+    def _check_archived(encoder: Encoder, row: KeyframeRow, max_range: float) -> None:
+        """An archived keyframe as strictly as an inserted one (ArchiveError if not): the
+        archive's checksums only say it was not damaged, not that it was made here."""
         try:
-            if row.id <= 0 or not (row.key is None or isinstance(row.key, str)):
-                raise InputError("bad id or key")
-            if not isinstance(row.metadata, dict):
-                raise InputError("metadata is not an object")
+            if not 0 < row.id < 2**62:
+                raise InputError("bad id")
+            if row.key is not None:
+                _check_text(row.key, "key", KEY_MAX_CHARS)
+            _check_metadata(row.metadata)
             check_rigid(row.T_map_sensor, "T_map_sensor")
             _encoder_features(
                 encoder, row.global_descriptor, row.keypoints, row.local_features, "archived"
             )
+            if row.cloud is not None:
+                _check_cloud(row.cloud, max_range)
         except SgvlocError as exc:
             raise ArchiveError(f"archived keyframe {row.id} is invalid: {exc}") from None
 
