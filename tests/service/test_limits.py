@@ -203,3 +203,43 @@ def test_a_slow_body_holds_no_slot(one_slot_server: Server) -> None:
     assert slow["r"].status_code == 200, slow["r"].text
     with httpx.Client(base_url=url, timeout=60) as c:  # the slot is free again
         assert c.post("/v1/maps/one/localize", content=body, headers=_MSGPACK).status_code == 200
+
+
+def test_waiting_for_a_map_version_holds_no_slot(one_slot_server: Server) -> None:
+    """A localize waiting for a map version this replica has not reached (up to
+    catch_up_wait_s) holds no localize slot: a garbage body asking for a version far
+    ahead on every connection must not lock honest vehicles out with 429s."""
+    url = one_slot_server.url
+    with httpx.Client(base_url=url, timeout=60) as c:
+        if c.get("/v1/maps/one").status_code == 404:
+            assert (
+                c.post("/v1/maps", json={"name": "one", "encoder": PRECOMPUTED}).status_code == 201
+            )
+            feats = random_features(np.random.default_rng(0))
+            kfs = {"keyframes": [{"T_map_sensor": np.eye(4), "features": feats}]}
+            assert post_msgpack(c, "/v1/maps/one/keyframes", kfs).status_code == 201
+    stale: list[int] = []
+
+    def ask_the_future() -> None:
+        with httpx.Client(base_url=url, timeout=60) as c:
+            r = c.post(
+                "/v1/maps/one/localize?min_map_version=999999999",
+                content=b"x",
+                headers=_MSGPACK,
+            )
+            stale.append(r.status_code)
+
+    waiting = [threading.Thread(target=ask_the_future) for _ in range(3)]
+    for t in waiting:
+        t.start()
+    try:
+        seen = []
+        with httpx.Client(base_url=url, timeout=60) as c:
+            for _ in range(5):
+                r = c.post("/v1/maps/one/localize", content=_localize_body(), headers=_MSGPACK)
+                seen.append(r.status_code)
+    finally:
+        for t in waiting:
+            t.join(60)
+    assert seen == [200] * 5, seen
+    assert stale == [503] * 3, stale

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import time
 from collections.abc import AsyncIterator, Callable
 from typing import Annotated, TypeVar
@@ -117,9 +118,11 @@ class Admission:
         self.inflight = 0
 
 
-async def admit_localize(request: Request) -> AsyncIterator[None]:
-    """Take a localize slot for the request (after its body arrived: the route reads the
-    body first, so a slow upload holds no slot), or 429."""
+@contextlib.asynccontextmanager
+async def localize_slot(request: Request) -> AsyncIterator[None]:
+    """Hold a localize slot for the request's work, or 429 at once when all are taken.
+    Taken after the body arrived and after any catch-up wait (``min_map_version``), so
+    that neither a slow upload nor a wait for another replica's write holds one."""
     admission: Admission = request.app.state.admission
     settings: Settings = request.app.state.settings
     if admission.inflight >= admission.limit:
@@ -158,7 +161,6 @@ SettingsDep = Annotated[Settings, Depends(get_settings)]
 MetricsDep = Annotated[Metrics, Depends(get_metrics)]
 ManagerDep = Annotated[MapManager, Depends(get_manager)]
 WorkerDep = Annotated[Worker, Depends(get_worker)]
-LocalizeSlot = Annotated[None, Depends(admit_localize, scope="function")]
 BodyDep = Annotated[RawBody, Depends(get_body)]
 MapName = Annotated[str, Path(alias="map", description="map name")]
 KeyframeId = Annotated[int, Path(alias="id", ge=0, le=2**63 - 1, description="keyframe id")]

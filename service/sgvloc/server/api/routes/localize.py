@@ -21,12 +21,12 @@ from ..auth import authorize, principal_of
 from ..body import encode
 from ..deps import (
     BodyDep,
-    LocalizeSlot,
     ManagerDep,
     MapName,
     MetricsDep,
     SettingsDep,
     WorkerDep,
+    localize_slot,
 )
 from ..errors import validated
 from ..openapi import body_doc, error_responses
@@ -132,7 +132,6 @@ async def localize(
     request: Request,
     map_name: MapName,
     body: BodyDep,  # read (within body_timeout_s) before the slot: slow uploads hold none
-    _slot: LocalizeSlot,
     manager: ManagerDep,
     settings: SettingsDep,
     metrics: MetricsDep,
@@ -155,7 +154,7 @@ async def localize(
     and the answer is 503 ``deadline_exceeded``."""
     deadline_at = time.monotonic() + settings.request_timeout_s
     key_name = principal_of(request).name  # for the metrics: the key's name, never the key
-    if min_map_version is not None:  # waits off the worker threads
+    if min_map_version is not None:  # waits off the worker threads, holding no slot
         await _caught_up(manager, map_name, min_map_version, settings.catch_up_wait_s)
 
     def work() -> LocalizeOut:
@@ -177,7 +176,8 @@ async def localize(
         request.app.state.recent.record(map_name, result, lambda: not handle.closed)
         return localize_out(map_name, result)
 
-    return encode(request, await worker.run(work, deadline_at=deadline_at))
+    async with localize_slot(request):
+        return encode(request, await worker.run(work, deadline_at=deadline_at))
 
 
 async def _caught_up(manager: MapManager, name: str, version: int, wait_s: float) -> None:
