@@ -78,6 +78,13 @@ def test_new_key_with_the_client_only_install(tmp_path: Path) -> None:
                  "--key-file", str(admin), client_only=True)  # fmt: skip
     assert run.returncode == 2 and "never overwritten" in run.stderr
     assert keys.read_text() == text
+    # a name already in the keys file would keep the service from starting: refused,
+    # before any key file is written
+    taken = tmp_path / "taken.key"
+    run = sgvloc("new-key", "--role", "vehicle", "--name", "operator", "--keys-file", str(keys),
+                 "--key-file", str(taken), client_only=True)  # fmt: skip
+    assert run.returncode == 2 and "named 'operator' already" in run.stderr, run.stderr
+    assert keys.read_text() == text and not taken.exists()
     # without files: the key on stderr, the entry on stdout
     run = sgvloc("new-key", "--role", "vehicle", "--name", "t1", "--maps", "a,b")
     assert run.returncode == 0 and run.stderr.startswith("key: ")

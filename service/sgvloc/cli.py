@@ -260,10 +260,28 @@ def new_key_command(
     --keys-file sgvloc-keys.toml --key-file sgvloc-admin.key`, then the same with
     `--role viewer --name prometheus --key-file sgvloc-metrics.key`.
     """
-    from .server.keys import ROLES, append_entry, keys_entry, new_key, write_key
+    from .server.keys import (
+        ROLES,
+        KeysError,
+        append_entry,
+        key_names,
+        keys_entry,
+        new_key,
+        write_key,
+    )
 
     if role not in ROLES:
         raise typer.BadParameter(f"role must be one of {', '.join(ROLES)}", param_hint="--role")
+    if keys_file is not None and keys_file.exists():  # a second entry of a name: no start
+        try:
+            taken = name in key_names(keys_file)
+        except KeysError as exc:
+            raise typer.BadParameter(str(exc), param_hint="--keys-file") from None
+        if taken:
+            raise typer.BadParameter(
+                f"{keys_file} has a key named {name!r} already: names must be unique",
+                param_hint="--name",
+            )
     key = new_key()
     entry = keys_entry(name, role, key, [m.strip() for m in maps.split(",") if m.strip()])
     if keys_file is not None and not keys_file.parent.is_dir():  # before a key is written

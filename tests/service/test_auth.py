@@ -327,6 +327,15 @@ def test_keys_file_formats(tmp_path: Path) -> None:
         ({"keys": [{"role": "admin", "key": "sha256:abc"}]}, "64 hex digits"),
         ({"keys": [{"role": "admin", "key": "x" * 20, "extra": 1}]}, "unknown field"),
         ({"keys": [{"role": "admin", "key": "x" * 20}] * 2}, "twice"),
+        (
+            {
+                "keys": [
+                    {"name": "ops", "role": "admin", "key": "x" * 20},
+                    {"name": "ops", "role": "viewer", "key": "y" * 20},
+                ]
+            },
+            "unique; twice: ops",
+        ),
         ({"keys": [{"role": "admin", "key": "x" * 20, "maps": "campus"}]}, "list of map names"),
         ({"users": []}, "under 'keys'"),
     ]

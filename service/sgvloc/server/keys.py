@@ -11,11 +11,45 @@ import json
 import os
 import secrets
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 Role = Literal["vehicle", "mapper", "viewer", "admin"]
 ROLES: tuple[Role, ...] = ("vehicle", "mapper", "viewer", "admin")
 SHA_PREFIX = "sha256:"
+
+
+class KeysError(ValueError):
+    """The keys file is missing, unreadable or malformed, or no keys are configured."""
+
+
+def read_keys_file(path: Path) -> Any:
+    """The parsed keys file (TOML, or JSON by its suffix); KeysError if it cannot be read."""
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise KeysError(f"cannot read the keys file {path}: {exc.strerror or exc}") from None
+    try:
+        if path.suffix.lower() == ".json":
+            return json.loads(text)
+        try:
+            import tomllib
+        except ModuleNotFoundError:  # Python 3.10
+            try:
+                import tomli as tomllib  # type: ignore[no-redef]
+            except ModuleNotFoundError:
+                raise KeysError(
+                    f"{path}: reading TOML needs Python 3.11+ (or tomli); use a .json file"
+                ) from None
+        return tomllib.loads(text)
+    except ValueError as exc:  # JSONDecodeError and TOMLDecodeError are ValueErrors
+        raise KeysError(f"{path} is not valid {path.suffix.lstrip('.') or 'TOML'}: {exc}") from None
+
+
+def key_names(path: Path) -> list[str]:
+    """The names of the keys in a keys file (KeysError if it cannot be read)."""
+    data = read_keys_file(path)
+    keys = data.get("keys") if isinstance(data, dict) else None
+    return [k["name"] for k in keys or [] if isinstance(k, dict) and "name" in k]
 
 
 def hash_key(key: str) -> str:

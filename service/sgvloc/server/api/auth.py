@@ -25,16 +25,14 @@ from __future__ import annotations
 
 import hashlib
 import hmac
-import json
 import logging
 import re
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 from fastapi import Request
 
-from ..keys import ROLES, SHA_PREFIX, Role
+from ..keys import ROLES, SHA_PREFIX, KeysError, Role, read_keys_file
 from ..settings import Settings
 from .errors import ApiError
 
@@ -77,10 +75,6 @@ _PROBE_ROLES: frozenset[Role] = frozenset({"viewer", "admin"})
 _HEX64 = re.compile(r"^[0-9a-f]{64}$")
 
 
-class KeysError(ValueError):
-    """The keys file is missing, unreadable or malformed, or no keys are configured."""
-
-
 @dataclass(frozen=True)
 class Principal:
     """Who is calling: the key's label, role and allowed maps (None = every map)."""
@@ -102,28 +96,6 @@ class ApiKey:
 
     digest: bytes  # 32 bytes
     principal: Principal
-
-
-def _read_file(path: Path) -> Any:
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise KeysError(f"cannot read the keys file {path}: {exc.strerror or exc}") from None
-    try:
-        if path.suffix.lower() == ".json":
-            return json.loads(text)
-        try:
-            import tomllib
-        except ModuleNotFoundError:  # Python 3.10
-            try:
-                import tomli as tomllib  # type: ignore[no-redef]
-            except ModuleNotFoundError:
-                raise KeysError(
-                    f"{path}: reading TOML needs Python 3.11+ (or tomli); use a .json file"
-                ) from None
-        return tomllib.loads(text)
-    except ValueError as exc:  # JSONDecodeError and TOMLDecodeError are ValueErrors
-        raise KeysError(f"{path} is not valid {path.suffix.lstrip('.') or 'TOML'}: {exc}") from None
 
 
 def _entry(raw: Any, i: int, source: str) -> ApiKey:
@@ -166,8 +138,9 @@ def parse_keys(data: Any, source: str = "keys") -> list[ApiKey]:
     if len(set(digests)) != len(digests):
         raise KeysError(f"{source}: the same key appears twice")
     names = [k.principal.name for k in keys]
-    if len(set(names)) != len(names):
-        raise KeysError(f"{source}: key names must be unique")
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        raise KeysError(f"{source}: key names must be unique; twice: {', '.join(twice)}")
     return keys
 
 
@@ -189,7 +162,7 @@ class KeyRing:
             return cls([], enabled=False)
         keys: list[ApiKey] = []
         if settings.keys_file is not None:
-            keys = parse_keys(_read_file(settings.keys_file), str(settings.keys_file))
+            keys = parse_keys(read_keys_file(settings.keys_file), str(settings.keys_file))
         if not keys:
             where = f"the keys file {settings.keys_file}" if settings.keys_file else "no keys file"
             raise KeysError(
