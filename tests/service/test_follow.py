@@ -398,3 +398,18 @@ def test_a_frozen_server_fails_calls_and_a_slow_statement_goes_on(postgres, url:
         assert _returns_within(backend.catalog, 60) == {"value": {}}
     finally:
         backend.close()
+
+
+def test_a_store_that_refuses_the_replica_ends_its_start(postgres, url: str) -> None:
+    """Bad credentials or a missing database are errors to fix, not an outage to wait
+    out: the start-up check says so (and `sgvloc serve` exits with it), while a store
+    that cannot be reached yet passes (the replica waits for it)."""
+    if postgres.cluster is None:
+        pytest.skip("needs the throwaway cluster (SGVLOC_TEST_PG_URL names an outside server)")
+    head, _, _ = url.rpartition("/")
+    for bad in (head + "/no_such_database", url.replace("postgres@", "nobody@")):
+        with pytest.raises(StoreError, match="refused the connection"):
+            open_backend(bad).check_access()
+    open_backend(url).check_access()
+    port = postgres.cluster.port
+    open_backend(url.replace(f":{port}/", ":1/")).check_access()  # nothing listens there

@@ -32,7 +32,7 @@ from ..maps import MapManager
 from ..metrics import Metrics
 from ..recent import RecentLocalizations
 from ..settings import Settings
-from ..store import open_backend
+from ..store import SharedBackend, open_backend
 from ..threads import usable_cpus
 from .auth import KeyRing, KeysError, reload_keys
 from .deps import Admission
@@ -182,16 +182,19 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         metrics.set_map_keyframes(name, keyframes)
         recent.on_change(name, keyframes)
 
+    backend = open_backend(
+        settings.store_url,
+        pool_size=settings.store_pool_size,
+        password_file=settings.store_password_file,
+    )
+    if isinstance(backend, SharedBackend):  # a refusal for good ends the start-up
+        backend.check_access()
     manager = MapManager(
         settings.maps_dir,
         snapshot_every=settings.snapshot_every,
         snapshot_delay_s=settings.snapshot_delay_s,
         on_change=on_change,
-        backend=open_backend(
-            settings.store_url,
-            pool_size=settings.store_pool_size,
-            password_file=settings.store_password_file,
-        ),
+        backend=backend,
         follow_poll_s=settings.follow_poll_s,
         features_in_memory=settings.local_features == "memory",
         feature_cache=settings.feature_cache,

@@ -429,6 +429,12 @@ class SharedBackend(ABC):
         the store cannot be reached."""
 
     @abstractmethod
+    def check_access(self) -> None:
+        """Raise :class:`StoreError` if the store refuses this replica for good (bad
+        credentials, no such database): an error to fix, not an outage to wait out. A
+        store that cannot be reached passes (start-up waits for it)."""
+
+    @abstractmethod
     def close(self) -> None: ...
 
     @abstractmethod

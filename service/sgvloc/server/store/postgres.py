@@ -365,6 +365,32 @@ class PgBackend(SharedBackend):
                 "nothing was changed"
             ) from None
 
+    #: SQLSTATE classes of a refusal that waiting does not mend: 28 (authentication,
+    #: authorisation) and 3D (no such database); a failed connection often carries no
+    #: SQLSTATE, only the server's message
+    _REFUSED = ("28", "3D")
+    _REFUSED_TEXT = (
+        "password",
+        "authentication",
+        "does not exist",
+        "permission denied",
+        "no pg_hba.conf entry",
+    )
+
+    def check_access(self) -> None:
+        try:
+            psycopg.connect(self.url, autocommit=True, **self._connect_kwargs).close()
+        except psycopg.OperationalError as exc:
+            text = str(exc).strip()
+            state = getattr(exc, "sqlstate", None) or ""
+            if state[:2] in self._REFUSED or any(t in text for t in self._REFUSED_TEXT):
+                raise StoreError(
+                    f"the map store (PostgreSQL, {redact(self.url)}) refused the connection: "
+                    f"{text}; check the store URL's user and database and the password "
+                    "(SGVLOC_STORE_PASSWORD_FILE)"
+                ) from None
+            log.info("the map store cannot be reached yet (%s): waiting for it", text)
+
     def start(self) -> None:
         if self.pool.closed:
             self.pool.open(wait=False)

@@ -152,7 +152,8 @@ async def import_map(
         raise ApiError(
             415,
             "unsupported_media_type",
-            f"Content-Type {ctype or '(none)'!r} is not supported: send {ARCHIVE_TYPE!r}",
+            f"Content-Type {ctype or '(none)'!r} is not supported: send "
+            + " or ".join(repr(t) for t in _UPLOAD_TYPES),
         )
     caller = principal_of(request)
     if name is not None and not caller.may_use_map(name):
