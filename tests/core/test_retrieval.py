@@ -69,6 +69,41 @@ def test_save_load_roundtrip(kind, tmp_path):
     assert not list(tmp_path.glob("*.tmp"))
 
 
+def test_a_snapshot_that_cannot_be_written_leaves_the_last_one(tmp_path):
+    """A write that fails (here: past the process's file size limit, as on a full disk)
+    raises and leaves the previous snapshot whole: FAISS's own writer only printed the
+    error, and the truncated file replaced the good one."""
+    import subprocess
+    import sys
+    import textwrap
+
+    script = textwrap.dedent(
+        f"""
+        import resource, signal
+        import numpy as np
+        from sgvloc.core.retrieval import FaissIndex
+
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit fails (EFBIG)
+        rng = np.random.default_rng(0)
+        index = FaissIndex(32)
+        index.add(np.arange(10), rng.normal(size=(10, 32)).astype(np.float32))
+        path = {str(tmp_path / "map.faiss")!r}
+        index.save(path)
+        index.add(np.arange(10, 5010), rng.normal(size=(5000, 32)).astype(np.float32))
+        resource.setrlimit(resource.RLIMIT_FSIZE, (200_000, 200_000))
+        try:
+            index.save(path)
+        except OSError as exc:
+            print("refused", exc.errno)
+        """
+    )
+    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.startswith("refused"), run.stdout + run.stderr
+    assert len(FaissIndex.load(tmp_path / "map.faiss")) == 10
+    assert not list(tmp_path.glob("*.tmp"))
+
+
 def test_corrupt_snapshot_is_refused(tmp_path):
     index = _index("flat")
     index.add(np.arange(3), _vectors(3))

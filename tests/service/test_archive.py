@@ -16,7 +16,7 @@ from test_store import SPEC, _items, _manager
 from sgvloc.core.errors import ConflictError, EncoderMismatchError, NotFoundError
 from sgvloc.server import archive
 from sgvloc.server.archive import ArchiveError
-from sgvloc.server.maps import FeaturesIn, MapManager
+from sgvloc.server.maps import LOCK_NAME, FeaturesIn, MapManager
 
 
 def _export(m: MapManager, name: str) -> bytes:
@@ -102,7 +102,7 @@ def _tar(members: list[tuple[str, bytes]]) -> bytes:
 def _refused(m: MapManager, data: bytes, match: str, error=ArchiveError) -> None:
     with pytest.raises(error, match=match):
         m.import_archive(io.BytesIO(data), "imported")
-    assert [p.name for p in m.maps_dir.iterdir()] == []  # nothing left behind
+    assert [p.name for p in m.maps_dir.iterdir()] == [LOCK_NAME]  # nothing left behind
     with pytest.raises(NotFoundError):
         m.get("imported")
 

@@ -104,3 +104,21 @@ def test_restart_restores_maps(server, balm_map: BalmMap) -> None:
         out = r.json()
         assert out["ids"][0] == ids[0] and out["created"] == [False, True]
         assert out["ids"][1] > max(ids)
+
+
+def test_a_second_process_on_the_same_data_dir_is_refused(server) -> None:
+    """Two processes on one embedded store would each serve their own copy of the maps
+    and overwrite each other's files (acknowledged keyframes were lost that way): the
+    second one does not start, and says why."""
+    import subprocess
+    import sys
+
+    from conftest import free_port
+
+    cmd = [sys.executable, "-m", "sgvloc.cli", "serve", "--dev", "--host", "127.0.0.1",
+           "--port", str(free_port()), "--data-dir", str(server.data_dir)]  # fmt: skip
+    run = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert run.returncode == 2, run.stderr[-2000:]
+    assert "in use by another sgvloc process" in run.stderr, run.stderr[-2000:]
+    with httpx.Client(base_url=server.url, timeout=60) as c:  # the first one is unharmed
+        assert c.get("/readyz").status_code == 200

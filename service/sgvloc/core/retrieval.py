@@ -335,16 +335,20 @@ class FaissIndex:
     # -- persistence --------------------------------------------------------------------
 
     def save(self, path: str | Path) -> None:
-        """Atomic snapshot: written to a temporary file, then moved into place."""
+        """Atomic snapshot: written to a temporary file in ``path``'s folder (which must
+        exist), flushed to disk, then moved into place. A failed write (a full disk)
+        raises OSError and leaves the previous snapshot as it was."""
         path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
         with self._lock.write():
             if self._tombstones:
                 self._compact()
+            data = faiss.serialize_index(self._index)  # FAISS's own writer reports no errors
             fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-            os.close(fd)
             try:
-                faiss.write_index(self._index, tmp)
+                with os.fdopen(fd, "wb") as f:
+                    f.write(memoryview(data))
+                    f.flush()
+                    os.fsync(f.fileno())
                 os.replace(tmp, path)
             finally:
                 if os.path.exists(tmp):

@@ -22,8 +22,10 @@ snapshot that does not hold exactly the stored ids is ignored and rebuilt.
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import json
 import logging
+import os
 import re
 import shutil
 import threading
@@ -85,6 +87,8 @@ MAP_NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")  # whole name: full
 SETTINGS_TRIES = 5
 _TMP_PREFIX = ".tmp-"
 _TRASH_PREFIX = ".deleted-"
+#: the file whose lock keeps a second process off a maps folder
+LOCK_NAME = ".lock"
 #: longest a request waits for a map another thread is loading or deleting (seconds)
 LOAD_WAIT_S = 10.0
 #: a spooled upload untouched this long (seconds) was left by a crash
@@ -252,6 +256,28 @@ def _check_cloud(cloud: np.ndarray, max_range: float) -> None:
         raise InputError(f"cloud holds points that are not finite or beyond {max_range:g} m")
 
 
+def _lock_folder(maps_dir: Path) -> int:
+    """Lock the maps folder of the embedded store for this process (a POSIX lock on its
+    ``.lock`` file, which holds the owner's pid): two processes on one folder would each
+    serve their own copy of the maps and overwrite each other's files. The lock goes
+    with the process, even a killed one. Returns the lock file's descriptor."""
+    maps_dir.mkdir(parents=True, exist_ok=True)
+    fd = os.open(maps_dir / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.lockf(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "?"
+        os.close(fd)
+        raise StoreError(
+            f"{maps_dir} is in use by another sgvloc process (pid {holder}): the embedded "
+            "store serves one process per data directory; run replicas over PostgreSQL "
+            "(docs/SCALING.md)"
+        ) from None
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+    return fd
+
+
 def _keyframe(encoder: Encoder, row: KeyframeRow) -> Keyframe:
     """A stored keyframe as the localizer holds it."""
     feats = Features(row.global_descriptor, row.keypoints, row.local_features, encoder.identity)
@@ -359,6 +385,8 @@ class MapManager:
         self.loaded = threading.Event()
         self._stop = threading.Event()
         self._snapshotter: threading.Thread | None = None
+        #: the embedded store's folder lock (one process per folder)
+        self._folder_lock = None if self.shared else _lock_folder(self.maps_dir)
 
     # -- start-up and shutdown ----------------------------------------------------------
 
@@ -819,6 +847,9 @@ class MapManager:
                 handle.store.close()
         if isinstance(self.backend, SharedBackend):
             self.backend.close()
+        if self._folder_lock is not None:
+            os.close(self._folder_lock)
+            self._folder_lock = None
 
     # -- maps ---------------------------------------------------------------------------
 
