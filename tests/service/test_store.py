@@ -392,3 +392,37 @@ def test_a_reload_while_a_map_is_deleted_does_not_load_it_back(tmp_path: Path) -
     with pytest.raises(NotFoundError):
         m.insert("m", _items(rng, 1))
     m.close()
+
+
+def test_a_damaged_row_names_its_keyframe_and_other_maps_load(tmp_path: Path) -> None:
+    """A row the store cannot decode, or one whose pose is not a pose, keeps its map
+    from loading with a message naming the keyframe and what is wrong with it (not
+    numpy's advice to unpickle it); the other maps are served."""
+    import sqlite3
+
+    from sgvloc.server.store.base import array_to_blob
+
+    rng = np.random.default_rng(4)
+    m = _manager(tmp_path)
+    ids = {}
+    for name in ("garbled", "nan-pose", "good"):
+        m.create(name, SPEC)
+        ids[name] = m.insert(name, _items(rng, 4)).ids
+    m.close()
+    damage = {
+        "garbled": ("global_descriptor", b"\x93NUMPY garbage"),
+        "nan-pose": ("T_map_sensor", array_to_blob(np.full((4, 4), np.nan))),
+    }
+    for name, (column, blob) in damage.items():
+        with sqlite3.connect(tmp_path / "maps" / name / "map.sqlite") as db:
+            db.execute(f"UPDATE keyframes SET {column} = ? WHERE id = ?", (blob, ids[name][2]))
+    m = _manager(tmp_path)
+    try:
+        assert set(m.failed) == {"garbled", "nan-pose"}
+        for name, (column, _) in damage.items():
+            why = m.failed[name]
+            assert f"keyframe {ids[name][2]}" in why and column in why, why
+            assert "pickle" not in why
+        assert m.get("good").num_keyframes == 4
+    finally:
+        m.close()

@@ -256,6 +256,23 @@ def _check_cloud(cloud: np.ndarray, max_range: float) -> None:
         raise InputError(f"cloud holds points that are not finite or beyond {max_range:g} m")
 
 
+def _damaged(encoder: Encoder, keyframes: list[Keyframe]) -> str | None:
+    """Which stored keyframes fail an insert's checks of poses and features (searched
+    only once a map failed to load), or None."""
+    bad = []
+    for kf in keyframes:
+        f = kf.features
+        try:
+            check_rigid(kf.T_map_sensor, "T_map_sensor")
+            _encoder_features(encoder, f.global_descriptor, f.keypoints, f.local_features, "")
+        except SgvlocError as exc:
+            bad.append(f"keyframe {kf.id}: {exc}")
+    if not bad:
+        return None
+    more = f" (and {len(bad) - 3} more)" if len(bad) > 3 else ""
+    return "; ".join(bad[:3]) + more + ": the stored rows are damaged; delete or repair them"
+
+
 def _lock_folder(maps_dir: Path) -> int:
     """Lock the maps folder of the embedded store for this process (a POSIX lock on its
     ``.lock`` file, which holds the owner's pid): two processes on one folder would each
@@ -543,7 +560,10 @@ class MapManager:
             version, keyframes = self._read_keyframes(store, encoder)
             handle = MapHandle(name, folder, record, store, localizer)
             index = self._usable_snapshot(handle, [kf.id for kf in keyframes])
-            localizer.restore(keyframes, version, index)
+            try:
+                localizer.restore(keyframes, version, index)
+            except Exception as exc:  # a damaged row: say which, if the checks can
+                raise StoreError(_damaged(encoder, keyframes) or str(exc)) from None
             if index is None:
                 self._save_snapshot(handle)
             return handle

@@ -212,17 +212,28 @@ _NO_FEATURES = np.zeros((0, 0), np.float32)
 
 def keyframe_row(r: tuple) -> KeyframeRow:
     """A row read as :data:`ROW_COLUMNS` (or :data:`SLIM_COLUMNS`: no keypoints, local
-    features or cloud) as a :class:`KeyframeRow`."""
+    features or cloud) as a :class:`KeyframeRow`; a column that cannot be decoded is a
+    :class:`StoreError` naming the keyframe and the column."""
+    column = "id"
+    try:
+        kf_id = int(r[0])
+        column = "T_map_sensor"
+        T = blob_to_array(r[2])
+        column = "global_descriptor"
+        g = blob_to_array(r[3])
+        column = "keypoints"
+        kp = _NO_KEYPOINTS if r[4] is None else blob_to_array(r[4])
+        column = "local_features"
+        lf = _NO_FEATURES if r[5] is None else blob_to_array(r[5])
+        column = "cloud"
+        cloud = None if r[6] is None else blob_to_array(r[6])
+        column = "metadata"
+        metadata = json.loads(r[7])
+    except Exception as exc:
+        why = "not a plain numeric array" if "pickle" in str(exc) else str(exc)
+        raise StoreError(f"keyframe {r[0]}: its stored {column} cannot be read ({why})") from None
     return KeyframeRow(
-        id=int(r[0]),
-        key=r[1],
-        T_map_sensor=blob_to_array(r[2]),
-        global_descriptor=blob_to_array(r[3]),
-        keypoints=_NO_KEYPOINTS if r[4] is None else blob_to_array(r[4]),
-        local_features=_NO_FEATURES if r[5] is None else blob_to_array(r[5]),
-        cloud=None if r[6] is None else blob_to_array(r[6]),
-        metadata=json.loads(r[7]),
-        created_at=r[8],
+        T, g, kp, lf, cloud=cloud, metadata=metadata, key=r[1], id=kf_id, created_at=r[8]
     )
 
 
