@@ -428,3 +428,35 @@ def test_another_sequence_in_a_folder_of_the_same_name_is_refused(
     # the same sequence again resumes
     rest = build_map(balm_mini_dir, data_dir, "m", limit=3, progress=False)
     assert (rest.created, rest.existing) == (1, 2)
+
+
+def test_a_build_that_inserts_nothing_leaves_no_map(
+    tmp_path: Path, balm_mini_dir: Path, service_url: str
+) -> None:
+    """A build that fails before its first keyframe went in (here: the first scan is
+    not a scan) deletes the map it made, so that it can simply be run again; a map it
+    did not make is left alone."""
+    import shutil
+
+    broken = tmp_path / "broken"
+    shutil.copytree(balm_mini_dir, broken)
+    first = sorted((broken / "velodyne").iterdir())[0]
+    first.write_bytes(b"\x00" * 5)  # not a whole point
+    data_dir = tmp_path / "data"
+    with pytest.raises(InputError):
+        build_map(broken, data_dir, "m", limit=2, progress=False)
+    with Client(service_url) as client:
+        with pytest.raises(InputError):
+            build_map(broken, client, "broken-build", limit=2, progress=False)
+        assert "broken-build" not in [m.name for m in client.list_maps()]
+    build_map(balm_mini_dir, data_dir, "other", limit=1, progress=False)
+    with pytest.raises(InputError):
+        build_map(broken, data_dir, "other", limit=2, progress=False)
+    from sgvloc.server.maps import MapManager
+
+    m = MapManager(data_dir / "maps")
+    m.load_all()
+    try:
+        assert [h.name for h in m.list()] == ["other"] and m.get("other").num_keyframes == 1
+    finally:
+        m.close()

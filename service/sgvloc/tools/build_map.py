@@ -88,7 +88,11 @@ class KeyframeSink(Protocol):
         self_test: Mapping[str, Any] | None = None,
     ) -> None:
         """Make sure map ``name`` exists (created if allowed, recording ``self_test``) with
-        the asked encoder kind."""
+        the asked encoder kind; True if this call created it."""
+        ...
+
+    def discard(self, name: str) -> None:
+        """Delete map ``name`` again (one this build created and put nothing into)."""
         ...
 
     def insert(self, name: str, batch: list[ScanKeyframe]) -> int:
@@ -184,7 +188,7 @@ class ClientSink:
         create: bool,
         encoder: dict[str, Any] | None,
         self_test: Mapping[str, Any] | None = None,
-    ) -> None:
+    ) -> bool:
         client = self.client
         try:
             info = client.get_map(name)
@@ -196,7 +200,7 @@ class ClientSink:
                 log.info(
                     "created map %s (encoder %s)", name, info.encoder.name or info.encoder.kind
                 )
-                return
+                return True
             except Conflict as conflict:  # created meanwhile by someone else?
                 try:
                     info = client.get_map(name)
@@ -205,6 +209,10 @@ class ClientSink:
         _check_encoder_kind(name, info.encoder.kind, encoder)
         _self_test_not_recorded(name, self_test)
         log.info("map %s exists with %d keyframes; resuming", name, info.keyframes)
+        return False
+
+    def discard(self, name: str) -> None:
+        self.client.delete_map(name)
 
     def insert(self, name: str, batch: list[ScanKeyframe]) -> int:
         items = [
@@ -265,7 +273,7 @@ class DataDirSink:
         create: bool,
         encoder: dict[str, Any] | None,
         self_test: Mapping[str, Any] | None = None,
-    ) -> None:
+    ) -> bool:
         from pydantic import ValidationError
 
         from sgvloc.core.encoders import EncoderSpec
@@ -289,10 +297,14 @@ class DataDirSink:
                 name, spec, self_test=None if self_test is None else dict(self_test)
             )
             log.info("created map %s (encoder %s)", name, handle.encoder.identity.name)
-            return
+            return True
         _check_encoder_kind(name, handle.record.encoder_spec.kind, encoder)
         _self_test_not_recorded(name, self_test)
         log.info("map %s exists with %d keyframes; resuming", name, handle.num_keyframes)
+        return False
+
+    def discard(self, name: str) -> None:
+        self.manager.delete(name)
 
     def insert(self, name: str, batch: list[ScanKeyframe]) -> int:
         from sgvloc.server.maps import KeyframeIn
@@ -440,8 +452,9 @@ def build_map(
     )
     created = existing = 0
     skipped: list[str] = []
+    made = False
     try:
-        sink.ensure_map(map_name, create, spec, self_test)
+        made = sink.ensure_map(map_name, create, spec, self_test)
         _check_resumed_poses(sink, map_name, prefix, seq, frames)
         with tqdm(
             total=len(frames), desc=f"build-map {map_name}", unit="scan", disable=not progress
@@ -468,6 +481,20 @@ def build_map(
                 existing += len(batch) - new
                 bar.set_postfix(new=created, existing=existing, skipped=len(skipped))
         keyframes, version = sink.state(map_name)
+    except BaseException:
+        if made and created == existing == 0:  # nothing half-made stays behind
+            try:
+                sink.discard(map_name)
+                log.warning(
+                    "map %s, made by this build, was deleted again: nothing went in", map_name
+                )
+            except Exception as exc:  # noqa: BLE001 - the build's own error matters more
+                log.warning(
+                    "map %s, made by this build, is empty and could not be deleted: %s",
+                    map_name,
+                    exc,
+                )
+        raise
     finally:
         sink.close()
     log.info(
