@@ -30,6 +30,7 @@ ROLES = ("vehicle", "mapper", "viewer", "admin")
 KEYS = {role: f"test-{role}-key-0123456789abcdef" for role in ROLES}
 KEYS["vehicle-a"] = "test-vehicle-a-key-0123456789abcdef"  # localize in map auth-a only
 KEYS["mapper-a"] = "test-mapper-a-key-0123456789abcdef"  # mapper of auth-a only
+KEYS["viewer-a"] = "test-viewer-a-key-0123456789abcdef"  # viewer of auth-a only
 
 #: who may call what (the issue's roles; mappers also read the maps they build)
 ALLOWED: dict[str, set[str]] = {
@@ -253,6 +254,13 @@ def test_key_restricted_to_maps(auth_server: Server, admin: httpx.Client, maps: 
         r = c.post("/v1/maps", json={"name": "auth-c", "encoder": PRECOMPUTED})
         assert r.status_code == 403 and error_of(r)["field"] == "name"
     assert admin.get("/v1/maps/auth-c").status_code == 404
+    # the metrics name every map and key: not for a key limited to some maps
+    with httpx.Client(base_url=auth_server.url, timeout=60, headers=_h("viewer-a")) as c:
+        assert c.get("/v1/maps/auth-a").status_code == 200
+        r = c.get("/metrics")
+        assert r.status_code == 403 and "limited to some maps" in error_of(r)["message"]
+    with httpx.Client(base_url=auth_server.url, timeout=60, headers=_h("viewer")) as c:
+        assert c.get("/metrics").status_code == 200
 
 
 def test_sdk_sends_the_key(auth_server: Server, maps: dict) -> None:
@@ -269,7 +277,7 @@ def test_sdk_sends_the_key(auth_server: Server, maps: dict) -> None:
 def test_keys_never_logged(auth_server: Server, maps: dict) -> None:
     # every key was used above (some refused); the debug log names keys, never their value
     log = auth_server.log()
-    assert "authentication on: 6 key(s)" in log
+    assert "authentication on: 7 key(s)" in log
     for key in KEYS.values():
         assert key not in log
         assert hash_key(key)[7:] not in log

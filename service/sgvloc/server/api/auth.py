@@ -88,6 +88,8 @@ class Principal:
 
 
 DEV_PRINCIPAL = Principal("development", "admin")
+#: the caller of a route open to all (no key asked for)
+ANONYMOUS = Principal("anonymous", "viewer", frozenset())
 
 
 @dataclass(frozen=True)
@@ -229,7 +231,7 @@ async def authorize(request: Request) -> Principal:
     if not ring.enabled:
         principal = DEV_PRINCIPAL
     elif allowed is None:
-        principal = Principal("anonymous", "viewer", frozenset())
+        principal = ANONYMOUS
     else:
         token = _bearer(request)
         if token is None:

@@ -5,9 +5,10 @@ from __future__ import annotations
 from fastapi import APIRouter, Depends, Request, Response
 
 from ...maps import MapManager
-from ..auth import authorize
+from ..auth import ANONYMOUS, authorize, principal_of
 from ..body import encode
 from ..deps import MetricsDep
+from ..errors import ApiError
 from ..openapi import error_responses
 from ..schemas import Health, Ready
 
@@ -52,8 +53,16 @@ async def readyz(request: Request) -> Response:
         **error_responses(401, 403, common=False),
     },
 )
-async def metrics_text(metrics: MetricsDep) -> Response:
+async def metrics_text(request: Request, metrics: MetricsDep) -> Response:
     """Prometheus metrics of this process. Open, or viewer/admin keys only, as the
-    ``metrics_auth`` setting says."""
+    ``metrics_auth`` setting says; a key limited to some maps may not read them (they
+    name every map and key)."""
+    caller = principal_of(request)
+    if caller.maps is not None and caller is not ANONYMOUS:
+        raise ApiError(
+            403,
+            "forbidden",
+            "the metrics cover every map and key: a key limited to some maps may not read them",
+        )
     data, content_type = metrics.render()
     return Response(data, media_type=content_type)
