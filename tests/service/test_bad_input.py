@@ -582,3 +582,22 @@ def test_a_map_top_k_over_the_limit_is_refused_however_written(
     r = client.request("PATCH", f"/v1/maps/{pre_map}", json={"localizer": {"top_k": top_k}})
     err = _expect(r, 422, "invalid_input", "localizer")
     assert "max_top_k" in err["message"]
+
+
+@pytest.mark.usefixtures("unchanged")
+def test_numbers_are_numbers(client: httpx.Client, pre_map: str) -> None:
+    """Strings and booleans are not coordinates or times, and a keyframe id in a path is
+    decimal digits: each was quietly taken for a number before."""
+    feats = random_features(np.random.default_rng(5))
+    r = client.post(f"/v1/maps/{pre_map}/localize", json={"points": [["1", "2", "3"]] * 10})
+    _expect(r, 422, "invalid_input", "points")
+    r = client.post(f"/v1/maps/{pre_map}/localize", json={"points": [[True, False, True]] * 10})
+    _expect(r, 422, "invalid_input", "points")
+    for stamp in ("12", True):
+        kf = {"T_map_sensor": EYE, "features": feats, "metadata": {"timestamp": stamp}}
+        _expect(
+            _insert(client, pre_map, kf), 422, "invalid_input", "keyframes[0].metadata.timestamp"
+        )
+    for bad in ("+1", "1_0", "1.0", "-1"):
+        r = client.get(f"/v1/maps/{pre_map}/keyframes/{bad}")
+        assert r.status_code == 422, (bad, r.text)

@@ -5,11 +5,12 @@ from __future__ import annotations
 import contextlib
 import time
 from collections.abc import AsyncIterator, Callable
-from typing import Annotated, TypeVar
+from typing import Annotated, Any, TypeVar
 
 import anyio
 import anyio.to_thread
 from fastapi import Depends, Path, Request
+from pydantic import BeforeValidator
 
 from sgvloc.core import cores
 from sgvloc.core.deadline import deadline
@@ -163,4 +164,17 @@ ManagerDep = Annotated[MapManager, Depends(get_manager)]
 WorkerDep = Annotated[Worker, Depends(get_worker)]
 BodyDep = Annotated[RawBody, Depends(get_body)]
 MapName = Annotated[str, Path(alias="map", description="map name")]
-KeyframeId = Annotated[int, Path(alias="id", ge=0, le=2**63 - 1, description="keyframe id")]
+
+
+def _digits(value: Any) -> Any:
+    """A keyframe id in a path is decimal digits (not ``+1``, ``1_0`` or ``1.0``)."""
+    if isinstance(value, str) and not (value.isascii() and value.isdigit()):
+        raise ValueError("must be a keyframe id: decimal digits only")
+    return value
+
+
+KeyframeId = Annotated[
+    int,
+    Path(alias="id", ge=0, le=2**63 - 1, description="keyframe id"),
+    BeforeValidator(_digits),
+]

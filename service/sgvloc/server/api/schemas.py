@@ -19,6 +19,7 @@ from pydantic import (
     BeforeValidator,
     ConfigDict,
     Field,
+    Strict,
     StrictInt,
     StringConstraints,
     TypeAdapter,
@@ -113,11 +114,15 @@ def _to_ndarray(value: Any) -> np.ndarray:
         if not isinstance(value, list):
             raise ValueError(f"must be an array, got {type(value).__name__}")
         try:
-            arr = np.asarray(value, dtype=np.float64)
+            arr = np.asarray(value)  # its own dtype first: strings and booleans stay so
+            if arr.dtype.kind == "O":  # integers beyond int64
+                arr = arr.astype(np.float64)
         except (ValueError, TypeError):
             raise ValueError("must be a rectangular array of numbers") from None
         except OverflowError:  # a JSON integer of more than 308 digits
             raise ValueError("holds a number beyond the float64 range") from None
+        if arr.dtype.kind in "fiu":
+            arr = arr.astype(np.float64, copy=False)
     if arr.dtype.kind not in "fiu":
         raise ValueError(f"must be numeric, got dtype {arr.dtype}")
     return arr
@@ -432,7 +437,9 @@ TagValue = Annotated[str, StringConstraints(max_length=1024), AfterValidator(_no
 class KeyframeMetadata(_In):
     """Optional keyframe metadata."""
 
-    timestamp: float | None = Field(None, allow_inf_nan=False, description="seconds")
+    timestamp: Annotated[float, Strict()] | None = Field(
+        None, allow_inf_nan=False, description="seconds"
+    )
     sequence: Text | None = Field(None, max_length=256)
     tags: dict[TagName, TagValue] | None = Field(
         None, max_length=64, description="at most 64; names up to 256 characters, values 1024"
