@@ -216,7 +216,7 @@ def test_a_long_import_is_not_taken_for_a_crash_leftover(
     checked = {"n": 0}
     real = maps_module.MapManager._check_archived
 
-    def slow_import(encoder, row) -> None:
+    def slow_import(encoder, row, max_range) -> None:
         checked["n"] += 1
         if checked["n"] == 1:  # as if the import had begun over an hour ago
             with psycopg.connect(url) as conn:
@@ -228,7 +228,7 @@ def test_a_long_import_is_not_taken_for_a_crash_leftover(
             other = MapManager(tmp_path / "c", backend=open_backend(url))
             other.load_all()
             other.close()
-        real(encoder, row)
+        real(encoder, row, max_range)
 
     monkeypatch.setattr(maps_module.MapManager, "_check_archived", staticmethod(slow_import))
     handle = a.import_archive(io.BytesIO(data), "copy")
