@@ -8,6 +8,7 @@ from pathlib import Path
 import httpx
 
 from sgvloc.server.api import create_app
+from sgvloc.server.maps import LOCK_NAME
 from sgvloc.server.settings import Settings
 
 
@@ -31,4 +32,5 @@ def test_not_ready_until_maps_are_loaded(tmp_path: Path) -> None:
     for r in (maps, create):
         assert r.status_code == 503
         assert r.json()["error"]["code"] == "unavailable"
-    assert not (tmp_path / "maps").exists()  # nothing was created
+    # nothing was created: the maps folder holds only the lock taken at start-up
+    assert [p.name for p in (tmp_path / "maps").iterdir()] == [LOCK_NAME]

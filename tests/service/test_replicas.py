@@ -142,20 +142,28 @@ def test_writes_on_one_replica_are_served_by_all(
     assert r.headers["Retry-After"] and time.monotonic() - t0 < 10
 
 
-def test_store_outage_fails_writes_fast_and_localizations_go_on(
-    postgres, replicas: list[Server], balm_mini_dir: Path, balm_mini_roles: list
-) -> None:
+def _two_replicas_with_a_map(postgres, replicas, balm_mini_dir, roles, name: str):
+    """Clients of replicas a and b, the fixture's scans, and map ``name`` with three
+    keyframes that b holds too (for the outage tests: needs the throwaway cluster)."""
     if postgres.cluster is None:
         pytest.skip("needs the throwaway cluster (SGVLOC_TEST_PG_URL names an outside server)")
     a, b, _ = replicas
-    seq, db, queries = _scans(balm_mini_dir, balm_mini_roles)
+    seq, db, queries = _scans(balm_mini_dir, roles)
     ca, cb = (httpx.Client(base_url=s.url, timeout=120.0) for s in (a, b))
-    assert ca.post("/v1/maps", json={"name": "outage"}).status_code == 201
-    acked: list[str] = []
-    r = post_msgpack(ca, "/v1/maps/outage/keyframes", {"keyframes": _keyframes(seq, db[:3])})
+    assert ca.post("/v1/maps", json={"name": name}).status_code == 201
+    r = post_msgpack(ca, f"/v1/maps/{name}/keyframes", {"keyframes": _keyframes(seq, db[:3])})
     assert r.status_code == 201
-    acked += [f"kf/{i}" for i in db[:3]]
-    _until(lambda: _keyframes_on(cb, "outage") == 3, what="map on b, caught up")
+    _until(lambda: _keyframes_on(cb, name) == 3, what="map on b, caught up")
+    return ca, cb, seq, db, queries
+
+
+def test_store_outage_fails_writes_fast_and_localizations_go_on(
+    postgres, replicas: list[Server], balm_mini_dir: Path, balm_mini_roles: list
+) -> None:
+    ca, cb, seq, db, queries = _two_replicas_with_a_map(
+        postgres, replicas, balm_mini_dir, balm_mini_roles, "outage"
+    )
+    acked = [f"kf/{i}" for i in db[:3]]
     points = seq[queries[0]].scan().xyzi()
 
     postgres.cluster.stop()
@@ -192,15 +200,9 @@ def test_a_frozen_store_fails_writes_and_localizations_go_on(
     """PostgreSQL stopped (SIGSTOP) keeps its connections open and answers nothing: a
     write fails with 503 instead of waiting for it, the replica's worker is free again,
     and once the store is back a keyed retry stores each keyframe once."""
-    if postgres.cluster is None:
-        pytest.skip("needs the throwaway cluster (SGVLOC_TEST_PG_URL names an outside server)")
-    a, b, _ = replicas
-    seq, db, queries = _scans(balm_mini_dir, balm_mini_roles)
-    ca, cb = (httpx.Client(base_url=s.url, timeout=120.0) for s in (a, b))
-    assert ca.post("/v1/maps", json={"name": "frozen"}).status_code == 201
-    r = post_msgpack(ca, "/v1/maps/frozen/keyframes", {"keyframes": _keyframes(seq, db[:3])})
-    assert r.status_code == 201
-    _until(lambda: _keyframes_on(cb, "frozen") == 3, what="map on b, caught up")
+    ca, cb, seq, db, queries = _two_replicas_with_a_map(
+        postgres, replicas, balm_mini_dir, balm_mini_roles, "frozen"
+    )
     points = seq[queries[0]].scan().xyzi()
     later = _keyframes(seq, db[3:5])
 

@@ -29,6 +29,7 @@ alive over a new connection, and a call on a dead server is cut off.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -314,14 +315,37 @@ class PgBackend(SharedBackend):
 
     def _alive(self) -> bool:
         """Whether the server answers ``SELECT 1`` on a new connection within about
-        ``timeout_s`` (connecting, then the query, each limited)."""
-        try:
-            with psycopg.connect(self.url, autocommit=True, **self._connect_kwargs) as conn:
-                with self._watchdog.watch(conn, self.timeout_s, probe=False):
-                    conn.execute("SELECT 1")
-            return True
-        except psycopg.Error:
-            return False
+        twice ``timeout_s`` (run on a thread of its own, so that the watchdog that asks
+        never waits longer; a probe left hanging has its socket shut down)."""
+        out: dict[str, Any] = {}
+        lock = threading.Lock()
+
+        def probe() -> None:
+            try:
+                conn = psycopg.connect(self.url, autocommit=True, **self._connect_kwargs)
+            except psycopg.Error:
+                return
+            try:
+                with lock:
+                    out["fd"] = conn.fileno()
+                conn.execute("SELECT 1")
+                out["ok"] = True
+            except psycopg.Error:
+                pass
+            finally:
+                with lock:  # from here on the socket is not the asker's to shut down
+                    out.pop("fd", None)
+                conn.close()
+
+        t = threading.Thread(target=probe, name="sgvloc-store-probe", daemon=True)
+        t.start()
+        t.join(2 * self.timeout_s + 1)
+        with lock:
+            if t.is_alive() and "fd" in out:  # the probe's query hangs: end it
+                with contextlib.suppress(OSError):
+                    with socket.socket(fileno=os.dup(out["fd"])) as sock:
+                        sock.shutdown(socket.SHUT_RDWR)
+        return bool(out.get("ok"))
 
     @contextmanager
     def transaction(self, read_snapshot: bool = False) -> Iterator[psycopg.Cursor]:
