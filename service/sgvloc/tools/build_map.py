@@ -86,7 +86,7 @@ class KeyframeSink(Protocol):
         create: bool,
         encoder: dict[str, Any] | None,
         self_test: Mapping[str, Any] | None = None,
-    ) -> None:
+    ) -> bool:
         """Make sure map ``name`` exists (created if allowed, recording ``self_test``) with
         the asked encoder kind; True if this call created it."""
         ...

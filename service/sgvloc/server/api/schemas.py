@@ -38,7 +38,17 @@ from sgvloc.core.pose import check_rigid
 from sgvloc.core.prior import DEFAULT_YAW_TOLERANCE_DEG, Prior
 from sgvloc.core.tracking import Seed
 
-from ..maps import FeaturesIn, KeyframeIn, at_field, field_error
+from ..maps import (
+    KEY_MAX_CHARS,
+    SEQUENCE_MAX_CHARS,
+    TAG_NAME_MAX_CHARS,
+    TAG_VALUE_MAX_CHARS,
+    TAGS_MAX,
+    FeaturesIn,
+    KeyframeIn,
+    at_field,
+    field_error,
+)
 from ..settings import Settings
 
 #: bound of a map's recorded self-test (JSON bytes)
@@ -430,8 +440,10 @@ def _no_nul(v: str) -> str:
 #: text a store keeps: any string without NUL characters
 Text = Annotated[str, AfterValidator(_no_nul)]
 #: a keyframe tag's name and value
-TagName = Annotated[str, StringConstraints(max_length=256), AfterValidator(_no_nul)]
-TagValue = Annotated[str, StringConstraints(max_length=1024), AfterValidator(_no_nul)]
+TagName = Annotated[str, StringConstraints(max_length=TAG_NAME_MAX_CHARS), AfterValidator(_no_nul)]
+TagValue = Annotated[
+    str, StringConstraints(max_length=TAG_VALUE_MAX_CHARS), AfterValidator(_no_nul)
+]
 
 
 class KeyframeMetadata(_In):
@@ -440,9 +452,12 @@ class KeyframeMetadata(_In):
     timestamp: Annotated[float, Strict()] | None = Field(
         None, allow_inf_nan=False, description="seconds"
     )
-    sequence: Text | None = Field(None, max_length=256)
+    sequence: Text | None = Field(None, max_length=SEQUENCE_MAX_CHARS)
     tags: dict[TagName, TagValue] | None = Field(
-        None, max_length=64, description="at most 64; names up to 256 characters, values 1024"
+        None,
+        max_length=TAGS_MAX,
+        description=f"at most {TAGS_MAX}; names up to {TAG_NAME_MAX_CHARS} characters, "
+        f"values {TAG_VALUE_MAX_CHARS}",
     )
 
 
@@ -450,7 +465,7 @@ class KeyframeBody(_In):
     """One keyframe: a pose and exactly one of ``points`` / ``features``."""
 
     key: Text | None = Field(
-        None, min_length=1, max_length=256, description="makes the insert idempotent"
+        None, min_length=1, max_length=KEY_MAX_CHARS, description="makes the insert idempotent"
     )
     T_map_sensor: Array = Field(description="4x4 rigid transform, row-major")
     points: Array | None = Field(None, description="[P, 3|4] scan, sensor frame")

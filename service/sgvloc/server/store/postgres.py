@@ -29,7 +29,6 @@ alive over a new connection, and a call on a dead server is cut off.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
 import os
@@ -177,6 +176,16 @@ STATEMENT_TIMEOUT_S = 120
 IDLE_IN_TRANSACTION_S = 600
 
 
+def _shut_down(fd: int) -> None:
+    """Shut down the socket of a connection stuck on a silent server (its blocked call
+    then fails at once); the caller makes sure ``fd`` is still that connection's."""
+    try:
+        with socket.socket(fileno=os.dup(fd)) as sock:
+            sock.shutdown(socket.SHUT_RDWR)
+    except OSError as exc:
+        log.debug("could not cut a stalled store connection: %s", exc)
+
+
 class _Call:
     """One watched call on a connection: the socket to cut and when to look again."""
 
@@ -246,11 +255,7 @@ class _Watchdog:
                         call.due = time.monotonic() + call.limit_s
                         continue
                     call.cut = True
-                    try:
-                        with socket.socket(fileno=os.dup(call.fd)) as sock:
-                            sock.shutdown(socket.SHUT_RDWR)
-                    except OSError as exc:
-                        log.debug("could not cut a stalled store connection: %s", exc)
+                    _shut_down(call.fd)
 
 
 class PgBackend(SharedBackend):
@@ -342,9 +347,7 @@ class PgBackend(SharedBackend):
         t.join(2 * self.timeout_s + 1)
         with lock:
             if t.is_alive() and "fd" in out:  # the probe's query hangs: end it
-                with contextlib.suppress(OSError):
-                    with socket.socket(fileno=os.dup(out["fd"])) as sock:
-                        sock.shutdown(socket.SHUT_RDWR)
+                _shut_down(out["fd"])
         return bool(out.get("ok"))
 
     @contextmanager
