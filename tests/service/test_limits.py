@@ -9,7 +9,6 @@ import threading
 from collections.abc import Iterator
 from pathlib import Path
 
-import anyio
 import httpx
 import numpy as np
 import pytest
@@ -27,6 +26,7 @@ from svc_helpers import (
 
 from sgvloc.core.encoders import EncoderSpec
 from sgvloc.server.api import create_app
+from sgvloc.server.api.deps import make_pools
 from sgvloc.server.settings import Settings
 from sgvloc.server.threads import usable_cpus
 from sgvloc_client import wire
@@ -52,6 +52,7 @@ def test_config_reports_the_limits(client: httpx.Client) -> None:
         "retry_after_s": 1,
         "body_timeout_s": 30.0,
         "workers": 2,
+        "write_workers": 1,  # workers - 1: one is always free of map changes
         "threads_per_worker": max(1, usable_cpus() // 2),
         "spare_cores": usable_cpus(),  # a request alone may use them all
     }
@@ -69,6 +70,15 @@ def test_library_threads_follow_workers_and_cores() -> None:
         Settings(threads_per_worker=0)
 
 
+def test_write_workers_leave_workers_to_localize() -> None:
+    assert Settings(workers=1).write_limit == 1  # nothing to keep back
+    assert Settings(workers=2).write_limit == 1
+    assert Settings(workers=6).write_limit == 5
+    assert Settings(workers=6, write_workers=2).write_limit == 2
+    with pytest.raises(ValueError, match="write_workers"):
+        Settings(workers=2, write_workers=3)
+
+
 def test_inflight_default_follows_workers() -> None:
     assert Settings(workers=3).inflight_limit == 12
     assert Settings(workers=3, max_inflight_localize=5).inflight_limit == 5
@@ -83,8 +93,7 @@ def _app(tmp_path: Path, **settings: object):
     app = create_app(Settings(data_dir=tmp_path, dev=True, **settings))
     # no lifespan under ASGITransport: load the (empty) data dir and make the pools here
     app.state.manager.load_all()
-    app.state.cpu_limiter = anyio.CapacityLimiter(app.state.settings.workers)
-    app.state.thread_limiter = anyio.CapacityLimiter(app.state.settings.workers)
+    make_pools(app.state, app.state.settings)
     return app
 
 
@@ -139,6 +148,50 @@ def test_waiting_too_long_for_a_worker_is_503(tmp_path: Path) -> None:
         assert err["code"] == "queue_timeout" and "request_timeout_s=0.2" in err["message"]
     assert after.status_code == 404  # a free worker again: the request runs
     assert app.state.admission.inflight == 0
+
+
+def test_map_changes_never_take_every_worker(tmp_path: Path) -> None:
+    """With two workers, map changes and long jobs run on at most one (write_workers):
+    while one holds it, a localization and a read still run at once, and the next
+    changes wait for it instead of taking the second worker."""
+    app = _app(tmp_path, workers=2)
+    app.state.manager.create("m", SPEC)
+    rng = np.random.default_rng(1)
+    kfs = wire.packb({"keyframes": [{"T_map_sensor": np.eye(4), "features": random_features(rng)}]})
+
+    async def go() -> dict[str, httpx.Response]:
+        transport = httpx.ASGITransport(app=app)
+        out = {}
+        async with httpx.AsyncClient(transport=transport, base_url="http://t") as c:
+            assert (await c.post("/v1/maps/m/keyframes", content=kfs, headers=_MSGPACK)).is_success
+            job = object()  # a long map job holds the one write worker (and a worker)
+            await app.state.write_limiter.acquire_on_behalf_of(job)
+            await app.state.cpu_limiter.acquire_on_behalf_of(job)
+            insert = asyncio.create_task(
+                c.post("/v1/maps/m/keyframes", content=kfs, headers=_MSGPACK)
+            )
+            delete = asyncio.create_task(c.delete("/v1/maps/m/keyframes/1"))
+            try:
+                out["localize"] = await c.post(
+                    "/v1/maps/m/localize", content=_localize_body(), headers=_MSGPACK
+                )
+                out["read"] = await c.get("/v1/maps/m/keyframes/1")
+                await asyncio.sleep(0.2)
+                out["changes_waited"] = not insert.done() and not delete.done()
+            finally:
+                app.state.cpu_limiter.release_on_behalf_of(job)
+                app.state.write_limiter.release_on_behalf_of(job)
+            out["insert"], out["delete"] = await insert, await delete
+        return out
+
+    out = asyncio.run(go())
+    assert out["localize"].status_code == 200, out["localize"].text
+    assert out["read"].status_code == 200, out["read"].text
+    assert out["changes_waited"] is True
+    assert out["insert"].status_code == 201, out["insert"].text  # the job ended: they ran
+    assert out["delete"].status_code == 200, out["delete"].text
+    assert app.state.write_limiter.borrowed_tokens == 0
+    assert app.state.cpu_limiter.borrowed_tokens == 0
 
 
 # -- a real server: a slow upload does not hold the only localize slot -------------------

@@ -66,6 +66,15 @@ class Settings(BaseSettings):
     workers: int = Field(
         2, ge=1, le=256, description="threads running CPU work (encode, search, re-rank, pose)"
     )
+    write_workers: int | None = Field(
+        None,
+        ge=1,
+        le=256,
+        description="of the workers, how many may run map changes and long jobs at once "
+        "(keyframe inserts and deletes, map creation, reload, deletion and import, "
+        "self-tests), so that localizations always find workers - write_workers of them "
+        "free of such work. Default: workers - 1 (at least 1); at most workers",
+    )
     threads_per_worker: int | None = Field(
         None,
         ge=1,
@@ -195,6 +204,19 @@ class Settings(BaseSettings):
         if self.max_inflight_localize is None:
             self.max_inflight_localize = 4 * self.workers
         return self
+
+    @model_validator(mode="after")
+    def _write_workers_within_workers(self) -> Settings:
+        if self.write_workers is not None and self.write_workers > self.workers:
+            raise ValueError(
+                f"write_workers ({self.write_workers}) may not exceed workers ({self.workers})"
+            )
+        return self
+
+    @property
+    def write_limit(self) -> int:
+        """The effective ``write_workers``."""
+        return self.write_workers or max(1, self.workers - 1)
 
     @property
     def inflight_limit(self) -> int:

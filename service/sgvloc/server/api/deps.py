@@ -46,6 +46,15 @@ def busy(status: int, code: str, message: str, settings: Settings) -> ApiError:
     return ApiError(status, code, message, headers={"Retry-After": str(settings.retry_after_s)})
 
 
+def make_pools(state: Any, settings: Settings) -> None:
+    """The worker tokens on ``app.state``: ``cpu_limiter`` (``workers``), the share of
+    them that map changes and long jobs may hold (``write_limiter``, ``write_workers``)
+    and the threads that run the work (``thread_limiter``)."""
+    state.cpu_limiter = anyio.CapacityLimiter(settings.workers)
+    state.write_limiter = anyio.CapacityLimiter(settings.write_limit)
+    state.thread_limiter = anyio.CapacityLimiter(settings.workers)
+
+
 class Worker:
     """Runs CPU work (decoding, encoding, FAISS, re-ranking, pose, SQLite) in the
     service's worker threads (``settings.workers`` at once), never on the event loop.
@@ -53,6 +62,8 @@ class Worker:
     A request waits at most ``request_timeout_s`` for a free worker; past that it is
     answered 503 ``queue_timeout`` with ``Retry-After`` (it never started, so nothing
     happened). Work that has started runs to its end: a half-done insert is never cut.
+    With a ``gate`` (map changes and long jobs: ``write_workers``) the work first takes
+    one of the gate's tokens, so that such work never holds every worker.
     """
 
     def __init__(
@@ -61,11 +72,13 @@ class Worker:
         threads: anyio.CapacityLimiter,
         settings: Settings,
         metrics: Metrics,
+        gate: anyio.CapacityLimiter | None = None,
     ) -> None:
         self._limiter = limiter
         self._settings = settings
         self._threads = threads
         self._metrics = metrics
+        self._gate = gate
 
     async def run(self, fn: Callable[[], T], *, deadline_at: float | None = None) -> T:
         """Run ``fn`` on a worker thread. With ``deadline_at`` (``time.monotonic()``
@@ -74,16 +87,21 @@ class Worker:
         timeout = self._settings.request_timeout_s
         if deadline_at is not None:
             timeout = max(0.0, min(timeout, deadline_at - time.monotonic()))
-        acquired = False
+        gated = acquired = False
         waited_from = time.monotonic()
         self._metrics.queue_waiting.inc()
         try:
             with anyio.move_on_after(timeout):
+                if self._gate is not None:
+                    await self._gate.acquire()
+                    gated = True
                 await self._limiter.acquire()
                 acquired = True
         finally:  # also when the client went away while waiting
             self._metrics.queue_waiting.dec()
             self._metrics.queue_wait.observe(time.monotonic() - waited_from)
+            if gated and not acquired:
+                self._gate.release()  # type: ignore[union-attr]
         if not acquired:
             raise busy(
                 503,
@@ -102,11 +120,26 @@ class Worker:
             return await anyio.to_thread.run_sync(limited, limiter=self._threads)
         finally:
             self._limiter.release()
+            if self._gate is not None:
+                self._gate.release()
 
 
 async def get_worker(request: Request) -> Worker:
+    """A worker for localizations and reads."""
     state = request.app.state
     return Worker(state.cpu_limiter, state.thread_limiter, state.settings, state.metrics)
+
+
+async def get_write_worker(request: Request) -> Worker:
+    """A worker for map changes and long jobs: at most ``write_workers`` run at once."""
+    state = request.app.state
+    return Worker(
+        state.cpu_limiter,
+        state.thread_limiter,
+        state.settings,
+        state.metrics,
+        gate=state.write_limiter,
+    )
 
 
 class Admission:
@@ -162,6 +195,7 @@ SettingsDep = Annotated[Settings, Depends(get_settings)]
 MetricsDep = Annotated[Metrics, Depends(get_metrics)]
 ManagerDep = Annotated[MapManager, Depends(get_manager)]
 WorkerDep = Annotated[Worker, Depends(get_worker)]
+WriteWorkerDep = Annotated[Worker, Depends(get_write_worker)]
 BodyDep = Annotated[RawBody, Depends(get_body)]
 MapName = Annotated[str, Path(alias="map", description="map name")]
 

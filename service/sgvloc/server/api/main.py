@@ -35,7 +35,7 @@ from ..settings import Settings
 from ..store import SharedBackend, open_backend
 from ..threads import usable_cpus
 from .auth import KeyRing, KeysError, reload_keys
-from .deps import Admission
+from .deps import Admission, make_pools
 from .errors import install_error_handlers
 from .openapi import install_openapi
 from .request_id import RequestIdMiddleware
@@ -132,15 +132,15 @@ def _reload_keys_on_sighup(app: FastAPI) -> Callable[[], None]:
 async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     settings: Settings = app.state.settings
     manager: MapManager = app.state.manager
-    app.state.cpu_limiter = anyio.CapacityLimiter(settings.workers)
-    app.state.thread_limiter = anyio.CapacityLimiter(settings.workers)
+    make_pools(app.state, settings)
     log.info(
-        "sgvloc %s: data dir %s, store %s, %d worker thread(s), at most %d localize request(s) in "
-        "flight, %g s queue timeout",
+        "sgvloc %s: data dir %s, store %s, %d worker thread(s) (map changes on at most %d), "
+        "at most %d localize request(s) in flight, %g s queue timeout",
         __version__,
         settings.data_dir.resolve(),
         manager.backend.describe() if manager.shared else "SQLite",  # type: ignore[union-attr]
         settings.workers,
+        settings.write_limit,
         settings.inflight_limit,
         settings.request_timeout_s,
     )

@@ -841,6 +841,9 @@ class LimitsOut(BaseModel):
     retry_after_s: int = Field(description="Retry-After of 429/503 answers")
     body_timeout_s: float = Field(description="longest a request body may take to arrive (408)")
     workers: int = Field(description="threads running CPU work")
+    write_workers: int = Field(
+        description="of the workers, how many may run map changes and long jobs at once"
+    )
     threads_per_worker: int = Field(
         description="threads each numeric library may use inside one request (as configured; "
         "OMP_NUM_THREADS and the like set by the operator take precedence)"

@@ -26,7 +26,7 @@ from sgvloc.core.encoders import EncoderSpec
 
 from ..auth import authorize, principal_of
 from ..body import encode, media_type
-from ..deps import ManagerDep, MapName, SettingsDep, WorkerDep
+from ..deps import ManagerDep, MapName, SettingsDep, WriteWorkerDep
 from ..errors import ApiError
 from ..openapi import error_responses
 from ..schemas import MapInfo, map_top_k_problem
@@ -137,7 +137,7 @@ async def import_map(
     request: Request,
     manager: ManagerDep,
     settings: SettingsDep,
-    worker: WorkerDep,
+    worker: WriteWorkerDep,
     name: Annotated[
         str | None,
         Query(max_length=64, description="the new map's name (default: the archived name)"),

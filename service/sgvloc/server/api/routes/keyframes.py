@@ -10,7 +10,7 @@ from fastapi import APIRouter, Depends, Query, Request, Response
 from ...store import KeyframeFilter
 from ..auth import authorize
 from ..body import encode
-from ..deps import BodyDep, KeyframeId, ManagerDep, MapName, SettingsDep, WorkerDep
+from ..deps import BodyDep, KeyframeId, ManagerDep, MapName, SettingsDep, WorkerDep, WriteWorkerDep
 from ..errors import ApiError, validated
 from ..openapi import body_doc, error_responses
 from ..schemas import (
@@ -43,7 +43,7 @@ async def insert_keyframes(
     body: BodyDep,
     manager: ManagerDep,
     settings: SettingsDep,
-    worker: WorkerDep,
+    worker: WriteWorkerDep,
 ) -> Response:
     """Insert keyframes: all or none; a known key returns its id with created=false."""
 
@@ -176,7 +176,7 @@ async def delete_keyframes(
     map_name: MapName,
     where: FilterDep,
     manager: ManagerDep,
-    worker: WorkerDep,
+    worker: WriteWorkerDep,
     all: Annotated[
         bool, Query(description="delete every keyframe (required when no filter is given)")
     ] = False,
@@ -235,7 +235,7 @@ async def delete_keyframe(
     map_name: MapName,
     keyframe_id: KeyframeId,
     manager: ManagerDep,
-    worker: WorkerDep,
+    worker: WriteWorkerDep,
 ) -> Response:
     """Delete one keyframe."""
     version = await worker.run(lambda: manager.delete_keyframe(map_name, keyframe_id))

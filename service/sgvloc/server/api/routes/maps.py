@@ -15,7 +15,7 @@ from sgvloc.core.errors import InputError
 from ...maps import MapHandle
 from ..auth import authorize, principal_of
 from ..body import encode
-from ..deps import BodyDep, ManagerDep, MapName, SettingsDep, WorkerDep
+from ..deps import BodyDep, ManagerDep, MapName, SettingsDep, WorkerDep, WriteWorkerDep
 from ..errors import ApiError, validated
 from ..openapi import body_doc, error_responses
 from ..schemas import (
@@ -81,7 +81,11 @@ def map_info(handle: MapHandle) -> MapInfo:
     responses=error_responses(400, 408, 409, 413, 415, 422),
 )
 async def create_map(
-    request: Request, body: BodyDep, manager: ManagerDep, settings: SettingsDep, worker: WorkerDep
+    request: Request,
+    body: BodyDep,
+    manager: ManagerDep,
+    settings: SettingsDep,
+    worker: WriteWorkerDep,
 ) -> Response:
     """Create an empty map with an encoder and localizer settings."""
 
@@ -192,7 +196,7 @@ async def update_map(
     body: BodyDep,
     manager: ManagerDep,
     settings: SettingsDep,
-    worker: WorkerDep,
+    worker: WriteWorkerDep,
 ) -> Response:
     """Change a map's localizer settings or calibration (its keyframes and version stay)."""
 
@@ -223,7 +227,7 @@ async def self_test_map(
     body: BodyDep,
     manager: ManagerDep,
     settings: SettingsDep,
-    worker: WorkerDep,
+    worker: WriteWorkerDep,
 ) -> Response:
     """Localize a sample of the map's own keyframes against the others, leaving out each
     one's own stretch of the drive: Recall@1, pose success and false accepts of the map as
@@ -267,7 +271,7 @@ async def self_test_map(
     responses=error_responses(404, 409, 503),
 )
 async def reload_map(
-    request: Request, map_name: MapName, manager: ManagerDep, worker: WorkerDep
+    request: Request, map_name: MapName, manager: ManagerDep, worker: WriteWorkerDep
 ) -> Response:
     """Load a map whose folder failed to load (listed under ``failed`` by ``/readyz``),
     after its cause is fixed, without a restart (admin). 409 if the map is loaded, 503
@@ -282,7 +286,7 @@ async def reload_map(
     operation_id="delete_map",
     responses=error_responses(404),
 )
-async def delete_map(map_name: MapName, manager: ManagerDep, worker: WorkerDep) -> Response:
+async def delete_map(map_name: MapName, manager: ManagerDep, worker: WriteWorkerDep) -> Response:
     """Delete a map with all its keyframes."""
     await worker.run(lambda: manager.delete(map_name))
     return Response(status_code=204)
