@@ -5,7 +5,9 @@ by ``GET /v1/config``. (Body size, points, batch and top_k: test_bad_input.py.)"
 from __future__ import annotations
 
 import asyncio
+import socket
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -42,6 +44,7 @@ def test_config_reports_the_limits(client: httpx.Client) -> None:
     assert cfg["limits"] == {
         "max_body_bytes": MAX_BODY_BYTES,
         "max_json_body_bytes": 8 * 1024 * 1024,
+        "max_body_memory_bytes": 4 * MAX_BODY_BYTES,
         "max_points": MAX_POINTS,
         "max_keypoints": 4096,
         "max_batch": MAX_BATCH,
@@ -77,6 +80,12 @@ def test_write_workers_leave_workers_to_localize() -> None:
     assert Settings(workers=6, write_workers=2).write_limit == 2
     with pytest.raises(ValueError, match="write_workers"):
         Settings(workers=2, write_workers=3)
+
+
+def test_body_memory_holds_at_least_one_body() -> None:
+    assert Settings(max_body_bytes=1 << 20).body_memory_limit == 4 << 20
+    with pytest.raises(ValueError, match="max_body_memory_bytes"):
+        Settings(max_body_bytes=1 << 20, max_body_memory_bytes=1 << 19)
 
 
 def test_inflight_default_follows_workers() -> None:
@@ -296,3 +305,95 @@ def test_waiting_for_a_map_version_holds_no_slot(one_slot_server: Server) -> Non
             t.join(60)
     assert seen == [200] * 5, seen
     assert stale == [503] * 3, stale
+
+
+# -- a real server: the bodies of all requests together are bounded ---------------------
+
+
+def _hold_body(port: int, length: int) -> socket.socket:
+    """A client that declares a body of ``length`` bytes, sends its first bytes and waits."""
+    sock = socket.create_connection(("127.0.0.1", port))
+    sock.sendall(
+        b"POST /v1/maps/one/localize HTTP/1.1\r\nHost: x\r\nContent-Type: application/msgpack\r\n"
+        + f"Content-Length: {length}\r\n\r\n".encode()
+        + b"\x80" * 10
+    )
+    return sock
+
+
+def _answer_head(sock: socket.socket) -> str:
+    sock.settimeout(30)
+    answer = b""
+    while b"\r\n\r\n" not in answer:
+        chunk = sock.recv(4096)
+        if not chunk:
+            break
+        answer += chunk
+    return answer.split(b"\r\n\r\n")[0].decode().lower()
+
+
+def test_bodies_in_memory_are_bounded_over_all_requests(tmp_path: Path) -> None:
+    """max_body_memory_bytes = 2 MiB with bodies of at most 1 MiB: two uploads that
+    declared 1 MiB and 1 MiB - 1000 bytes leave no room, so a third body is 503 ``overloaded`` at
+    once (declared) or as soon as it passes the room left (streamed without a length,
+    and the connection is closed); once the holders go away, bodies are served again and
+    the gauge is back to 0."""
+    mib = 1 << 20
+    srv = Server(
+        tmp_path / "data",
+        tmp_path / "server.log",
+        env={
+            "SGVLOC_MAX_BODY_BYTES": str(mib),
+            "SGVLOC_MAX_BODY_MEMORY_BYTES": str(2 * mib),
+            "SGVLOC_BODY_TIMEOUT_S": "60",
+        },
+    )
+    srv.start()
+    holders: list[socket.socket] = []
+    try:
+        with httpx.Client(base_url=srv.url, timeout=60) as c:
+            assert c.post("/v1/maps", json={"name": "one", "encoder": PRECOMPUTED}).is_success
+            feats = random_features(np.random.default_rng(0))
+            kfs = {"keyframes": [{"T_map_sensor": np.eye(4), "features": feats}]}
+            assert post_msgpack(c, "/v1/maps/one/keyframes", kfs).status_code == 201
+            assert c.get("/v1/config").json()["limits"]["max_body_memory_bytes"] == 2 * mib
+            holders = [_hold_body(srv.port, mib), _hold_body(srv.port, mib - 1000)]
+            gauge = ""
+            for _ in range(100):  # until the server has both requests' headers
+                gauge = next(
+                    line for line in c.get("/metrics").text.splitlines()
+                    if line.startswith("sgvloc_body_bytes ")
+                )  # fmt: skip
+                if float(gauge.split()[1]) == 2 * mib - 1000:
+                    break
+                time.sleep(0.1)
+            assert float(gauge.split()[1]) == 2 * mib - 1000, gauge
+            r = c.post("/v1/maps/one/localize", content=_localize_body(), headers=_MSGPACK)
+            assert r.status_code == 503 and r.headers["retry-after"] == "1", r.text
+            err = error_of(r)
+            assert err["code"] == "overloaded" and "max_body_memory_bytes=2097152" in err["message"]
+            streamed = socket.create_connection(("127.0.0.1", srv.port))
+            holders.append(streamed)
+            chunk = b"\x80" * 200_000
+            streamed.sendall(
+                b"POST /v1/maps/one/localize HTTP/1.1\r\nHost: x\r\n"
+                b"Content-Type: application/msgpack\r\nTransfer-Encoding: chunked\r\n\r\n"
+                + f"{len(chunk):x}\r\n".encode() + chunk + b"\r\n"
+            )  # fmt: skip
+            head = _answer_head(streamed)
+            assert head.startswith("http/1.1 503") and "connection: close" in head, head
+            for sock in holders:
+                sock.close()
+            codes = []
+            for _ in range(100):  # the server sees the holders go and gives their room back
+                r = c.post("/v1/maps/one/localize", content=_localize_body(), headers=_MSGPACK)
+                codes.append(r.status_code)
+                if r.status_code == 200:
+                    break
+                time.sleep(0.1)
+            assert codes[-1] == 200, codes
+            assert "sgvloc_body_bytes 0.0" in c.get("/metrics").text
+    finally:
+        for sock in holders:
+            sock.close()
+        srv.stop()

@@ -124,6 +124,11 @@ class Metrics:
             "Localize requests admitted and not answered yet (max_inflight_localize bounds it)",
             registry=r,
         )
+        self.body_bytes = Gauge(
+            "sgvloc_body_bytes",
+            "Bytes of request bodies held in memory now (max_body_memory_bytes bounds it)",
+            registry=r,
+        )
         self.queue_waiting = Gauge(
             "sgvloc_queue_waiting",
             "Requests waiting for a free worker thread now",

@@ -101,6 +101,13 @@ class Settings(BaseSettings):
     )
     batch_max: int = Field(16, ge=1, le=256, description="dynamic batching: largest batch")
     max_body_bytes: int = Field(64 * 1024 * 1024, ge=1024, description="413 above this")
+    max_body_memory_bytes: int | None = Field(
+        None,
+        ge=1024,
+        description="request bodies held in memory at once, over all requests (received or "
+        "being handled); a body that would pass it is answered 503 overloaded with "
+        "Retry-After. Default 4 x max_body_bytes; at least max_body_bytes",
+    )
     max_json_body_bytes: int = Field(
         8 * 1024 * 1024,
         ge=1024,
@@ -212,6 +219,22 @@ class Settings(BaseSettings):
                 f"write_workers ({self.write_workers}) may not exceed workers ({self.workers})"
             )
         return self
+
+    @model_validator(mode="after")
+    def _body_memory_holds_a_body(self) -> Settings:
+        if self.max_body_memory_bytes is not None and (
+            self.max_body_memory_bytes < self.max_body_bytes
+        ):
+            raise ValueError(
+                f"max_body_memory_bytes ({self.max_body_memory_bytes}) may not be less than "
+                f"max_body_bytes ({self.max_body_bytes})"
+            )
+        return self
+
+    @property
+    def body_memory_limit(self) -> int:
+        """The effective ``max_body_memory_bytes``."""
+        return self.max_body_memory_bytes or 4 * self.max_body_bytes
 
     @property
     def write_limit(self) -> int:

@@ -52,6 +52,53 @@ def _object(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
 ARRAY_FIELDS = frozenset({"T_map_sensor", "T_keyframe_sensor", "translation", "quaternion_xyzw"})
 
 
+class BodyBudget:
+    """The bytes of request bodies held in memory at once, over all requests, within
+    ``limit`` (``max_body_memory_bytes``). Used on the event loop only: a plain counter."""
+
+    def __init__(self, limit: int) -> None:
+        self.limit = limit
+        self.used = 0
+
+    def take(self, n: int) -> bool:
+        """Reserve ``n`` more bytes; False (nothing reserved) if that passes the limit."""
+        if self.used + n > self.limit:
+            return False
+        self.used += n
+        return True
+
+    def give_back(self, n: int) -> None:
+        self.used -= n
+
+
+class BodyHold:
+    """One request's share of a :class:`BodyBudget`, given back by :meth:`close`."""
+
+    def __init__(self, budget: BodyBudget) -> None:
+        self.budget = budget
+        self.held = 0
+
+    def grow_to(self, n: int, *, started: bool) -> None:
+        """Hold ``n`` bytes in all, or 503 ``overloaded`` (closing the connection once part
+        of the body has been read) when the budget has no room."""
+        if n <= self.held:
+            return
+        if not self.budget.take(n - self.held):
+            raise ApiError(
+                503,
+                "overloaded",
+                f"request bodies in memory take {self.budget.used} of "
+                f"max_body_memory_bytes={self.budget.limit} bytes, no room for {n} more; "
+                "retry later",
+                headers={"Retry-After": "1", **({"Connection": "close"} if started else {})},
+            )
+        self.held = n
+
+    def close(self) -> None:
+        self.budget.give_back(self.held)
+        self.held = 0
+
+
 def media_type(header: str | None) -> str:
     """The bare, lower-case media type of a Content-Type header."""
     return (header or "").split(";")[0].strip().lower()
@@ -107,12 +154,16 @@ async def read_body(
     json_limit: int | None = None,
     max_list_len: int | None = None,
     max_items: int | None = None,
+    hold: BodyHold | None = None,
 ) -> RawBody:
     """Read the whole body, at most ``limit`` bytes (``json_limit`` for JSON) within
     ``timeout_s`` seconds; 415 for a media type other than JSON or MessagePack, 413
     beyond the limit, 408 (and the connection closed) when the body is not complete in
     time, 400 when the client goes away before it is. ``max_items``: the most items (e.g.
-    keyframes) a body may carry, which bounds the maps and lists of a MessagePack one."""
+    keyframes) a body may carry, which bounds the maps and lists of a MessagePack one.
+    ``hold``: the process's room for bodies, taken for the declared length before any
+    byte is read and as the body grows (503 ``overloaded`` when there is none); the
+    caller gives it back once the request is done."""
     ctype = media_type(request.headers.get("content-type"))
     if ctype not in MSGPACK_TYPES + JSON_TYPES:
         raise ApiError(
@@ -129,6 +180,8 @@ async def read_body(
         raise ApiError(
             413, "payload_too_large", f"body has {int(declared)} bytes, {what} is {limit}"
         )
+    if hold is not None and declared is not None and declared.isdigit():
+        hold.grow_to(int(declared), started=False)
     buf = bytearray()
     with anyio.move_on_after(timeout_s) as scope:
         try:
@@ -138,6 +191,8 @@ async def read_body(
                     raise ApiError(
                         413, "payload_too_large", f"body exceeds {what} of {limit} bytes"
                     )
+                if hold is not None:
+                    hold.grow_to(len(buf), started=True)
         except ClientDisconnect:  # nobody to answer: not the service's error
             raise ApiError(
                 400, "bad_body", "the client closed the connection before the body was complete"

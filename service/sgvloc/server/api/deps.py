@@ -18,7 +18,7 @@ from sgvloc.core.deadline import deadline
 from ..maps import MapManager
 from ..metrics import Metrics
 from ..settings import Settings
-from .body import RawBody, read_body
+from .body import BodyHold, RawBody, read_body
 from .errors import ApiError
 
 T = TypeVar("T")
@@ -176,19 +176,27 @@ async def localize_slot(request: Request) -> AsyncIterator[None]:
 
 async def get_body(
     request: Request, settings: Annotated[Settings, Depends(get_settings)]
-) -> RawBody:
+) -> AsyncIterator[RawBody]:
     """The raw request body, within ``max_body_bytes`` (``max_json_body_bytes`` for JSON;
     413) and ``body_timeout_s`` (408) and of a known type (415); its lists hold at most
     as many items as the largest field may (``max_points``, ``max_batch``,
-    ``max_keypoints``)."""
-    return await read_body(
-        request,
-        settings.max_body_bytes,
-        settings.body_timeout_s,
-        json_limit=settings.max_json_body_bytes,
-        max_list_len=max(settings.max_points, settings.max_batch, settings.max_keypoints, 65536),
-        max_items=settings.max_batch,
-    )
+    ``max_keypoints``). Its bytes count against ``max_body_memory_bytes`` (503 when the
+    bodies of other requests fill it) until the request is done."""
+    hold = BodyHold(request.app.state.body_budget)
+    try:
+        yield await read_body(
+            request,
+            settings.max_body_bytes,
+            settings.body_timeout_s,
+            json_limit=settings.max_json_body_bytes,
+            max_list_len=max(
+                settings.max_points, settings.max_batch, settings.max_keypoints, 65536
+            ),
+            max_items=settings.max_batch,
+            hold=hold,
+        )
+    finally:
+        hold.close()
 
 
 SettingsDep = Annotated[Settings, Depends(get_settings)]

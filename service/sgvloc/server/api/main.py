@@ -35,6 +35,7 @@ from ..settings import Settings
 from ..store import SharedBackend, open_backend
 from ..threads import usable_cpus
 from .auth import KeyRing, KeysError, reload_keys
+from .body import BodyBudget
 from .deps import Admission, make_pools
 from .errors import install_error_handlers
 from .openapi import install_openapi
@@ -219,6 +220,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.keyring = keyring
     app.state.admission = Admission(settings.inflight_limit)
     metrics.localize_inflight.set_function(lambda: app.state.admission.inflight)
+    app.state.body_budget = BodyBudget(settings.body_memory_limit)
+    metrics.body_bytes.set_function(lambda: app.state.body_budget.used)
     metrics.watch_maps(lambda: [(h.name, h.num_keyframes, h.version) for h in manager.list()])
     routers = (maps, archives, keyframes, localize, localizations, probes, config, ui)
     for module in routers:

@@ -827,6 +827,9 @@ class LimitsOut(BaseModel):
 
     max_body_bytes: int = Field(description="413 above this")
     max_json_body_bytes: int = Field(description="413 above this for a JSON body")
+    max_body_memory_bytes: int = Field(
+        description="request bodies in memory at once, over all requests (503 above this)"
+    )
     max_points: int = Field(description="points per scan (422)")
     max_keypoints: int = Field(
         description="keypoints per feature set, and a new map's encoder num_keypoints (422)"

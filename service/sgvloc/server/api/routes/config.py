@@ -38,6 +38,7 @@ async def get_config(request: Request, settings: SettingsDep) -> Response:
             limits=LimitsOut(
                 max_body_bytes=s.max_body_bytes,
                 max_json_body_bytes=s.max_json_body_bytes,
+                max_body_memory_bytes=s.body_memory_limit,
                 max_points=s.max_points,
                 max_keypoints=s.max_keypoints,
                 max_batch=s.max_batch,
