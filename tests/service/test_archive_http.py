@@ -231,3 +231,51 @@ def test_an_archive_past_this_servers_limits_is_refused(
     assert r.status_code == 422, r.text
     assert error_of(r)["field"] == field
     assert client.get("/v1/maps/arc-wide").status_code == 404
+
+
+def test_a_stalled_download_is_cut_and_lets_its_snapshot_go(tmp_path: Path) -> None:
+    """A client that stops reading an export (its receive window closed) loses the
+    connection send_timeout_s after the server's buffer filled: what it then reads ends
+    without the archive's last chunk, the log says why, and the server serves on."""
+    import socket
+    import time
+
+    from conftest import Server
+
+    srv = Server(tmp_path / "data", tmp_path / "server.log", env={"SGVLOC_SEND_TIMEOUT_S": "1.5"})
+    srv.start()
+    sock = None
+    try:
+        rng = np.random.default_rng(3)
+        with httpx.Client(base_url=srv.url, timeout=120) as c:
+            assert c.post("/v1/maps", json={"name": "big", "encoder": PRECOMPUTED}).is_success
+            for _ in range(8):  # 80 keyframes of 4000 keypoints: an archive of about 14 MB
+                kfs = [{"T_map_sensor": np.eye(4), "features": random_features(rng, 4000)}
+                       for _ in range(10)]  # fmt: skip
+                assert post_msgpack(c, "/v1/maps/big/keyframes", {"keyframes": kfs}).is_success
+        sock = socket.socket()
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        sock.connect(("127.0.0.1", srv.port))
+        sock.sendall(b"GET /v1/maps/big/export HTTP/1.1\r\nHost: x\r\n\r\n")
+        sock.settimeout(30)
+        got = sock.recv(4096)
+        assert got.startswith(b"HTTP/1.1 200"), got[:200]
+        time.sleep(5)  # reads nothing: the server's buffer fills and it waits
+        sock.settimeout(10)
+        try:
+            while chunk := sock.recv(1 << 16):
+                got += chunk
+            closed = True
+        except (TimeoutError, ConnectionResetError):
+            closed = False
+        assert closed, f"the connection stayed open ({len(got)} bytes read)"
+        assert len(got) < 10_000_000 and not got.endswith(b"0\r\n\r\n"), len(got)
+        assert "took none of its answer for 1.5 s" in srv.log_path.read_text()
+        with httpx.Client(base_url=srv.url, timeout=120) as c:
+            whole = c.get("/v1/maps/big/export")
+            assert whole.status_code == 200 and len(whole.content) > 10_000_000
+            assert 'status="500"' not in c.get("/metrics").text
+    finally:
+        if sock is not None:
+            sock.close()
+        srv.stop()

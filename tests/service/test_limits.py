@@ -54,6 +54,7 @@ def test_config_reports_the_limits(client: httpx.Client) -> None:
         "request_timeout_s": 30.0,
         "retry_after_s": 1,
         "body_timeout_s": 30.0,
+        "send_timeout_s": 60.0,
         "workers": 2,
         "write_workers": 1,  # workers - 1: one is always free of map changes
         "threads_per_worker": max(1, usable_cpus() // 2),

@@ -53,22 +53,29 @@ def serve(settings: Settings) -> None:
         workers=None,  # one process: an app object cannot be forked into workers anyway
         access_log=settings.log_level == "debug" and not json_logs,
         timeout_graceful_shutdown=settings.shutdown_timeout_s,
-        http=_header_timeout_protocol(settings.header_timeout_s),
+        http=_timed_protocol(settings.header_timeout_s, settings.send_timeout_s),
     )
     _graceful_server(config).run()
 
 
-def _header_timeout_protocol(header_timeout_s: float):  # uvicorn is imported late
-    """uvicorn's h11 protocol with a deadline on request headers: a connection whose
-    next request's headers are not complete within ``header_timeout_s`` (from the
-    connection or from the previous answer) is closed. uvicorn's keep-alive timeout
-    stops at the first byte, so headers trickled a byte at a time would hold a
-    connection forever otherwise."""
+def _timed_protocol(header_timeout_s: float, send_timeout_s: float):  # uvicorn imported late
+    """uvicorn's h11 protocol with two deadlines.
+
+    - Request headers: a connection whose next request's headers are not complete within
+      ``header_timeout_s`` (from the connection or from the previous answer) is closed.
+      uvicorn's keep-alive timeout stops at the first byte, so headers trickled a byte at
+      a time would hold a connection forever otherwise.
+    - Answers: a client that takes none of an answer for ``send_timeout_s`` while the
+      send buffer is full loses its connection (aborted: the buffer is dropped). Without
+      it a stalled download holds its answer's memory, and an export its snapshot of the
+      store, for as long as the client keeps the connection open.
+    """
     import h11
     from uvicorn.protocols.http.h11_impl import H11Protocol
 
-    class HeaderTimeoutProtocol(H11Protocol):
+    class TimedProtocol(H11Protocol):
         _header_timer = None
+        _send_timer = None
 
         def _arm_header_timer(self) -> None:
             self._disarm_header_timer()
@@ -116,11 +123,38 @@ def _header_timeout_protocol(header_timeout_s: float):  # uvicorn is imported la
             if not self.transport.is_closing():
                 self._arm_header_timer()
 
+        def pause_writing(self) -> None:  # the client is not taking the answer
+            super().pause_writing()
+            if self._send_timer is None:
+                self._send_timer = self.loop.call_later(send_timeout_s, self._send_timeout)
+
+        def resume_writing(self) -> None:
+            self._disarm_send_timer()
+            super().resume_writing()
+
+        def _disarm_send_timer(self) -> None:
+            if self._send_timer is not None:
+                self._send_timer.cancel()
+                self._send_timer = None
+
+        def _send_timeout(self) -> None:
+            self._send_timer = None
+            if self.transport.is_closing():
+                return
+            peer = self.client[0] if getattr(self, "client", None) else "?"
+            log.warning(
+                "closing a connection to %s that took none of its answer for %g s (send_timeout_s)",
+                peer,
+                send_timeout_s,
+            )
+            self.transport.abort()  # close() would wait for the unsent data
+
         def connection_lost(self, exc) -> None:  # noqa: ANN001
             self._disarm_header_timer()
+            self._disarm_send_timer()
             super().connection_lost(exc)
 
-    return HeaderTimeoutProtocol
+    return TimedProtocol
 
 
 def _graceful_server(config):  # uvicorn is imported late: after the thread caps

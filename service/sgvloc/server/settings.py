@@ -198,6 +198,14 @@ class Settings(BaseSettings):
         description="longest a request's headers may take to arrive (from the connection or "
         "the previous answer); beyond it the connection is closed",
     )
+    send_timeout_s: float = Field(
+        60.0,
+        gt=0,
+        le=3600,
+        description="longest a client may take none of an answer being sent (a map export, a "
+        "large answer) once the send buffer is full; beyond it the connection is closed and "
+        "the answer's resources (an export's snapshot of the store) are let go",
+    )
     body_timeout_s: float = Field(
         30.0,
         gt=0,

@@ -843,6 +843,9 @@ class LimitsOut(BaseModel):
     request_timeout_s: float = Field(description="longest wait for a worker thread (503)")
     retry_after_s: int = Field(description="Retry-After of 429/503 answers")
     body_timeout_s: float = Field(description="longest a request body may take to arrive (408)")
+    send_timeout_s: float = Field(
+        description="longest a client may take none of an answer (then the connection is closed)"
+    )
     workers: int = Field(description="threads running CPU work")
     write_workers: int = Field(
         description="of the workers, how many may run map changes and long jobs at once"

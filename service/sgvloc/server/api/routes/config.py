@@ -48,6 +48,7 @@ async def get_config(request: Request, settings: SettingsDep) -> Response:
                 request_timeout_s=s.request_timeout_s,
                 retry_after_s=s.retry_after_s,
                 body_timeout_s=s.body_timeout_s,
+                send_timeout_s=s.send_timeout_s,
                 workers=s.workers,
                 write_workers=s.write_limit,
                 threads_per_worker=s.library_threads,
