@@ -432,3 +432,30 @@ def test_keys_change_without_a_restart(tmp_path: Path) -> None:
     finally:
         srv.stop()
     assert "keys file not reloaded" in srv.log()
+
+
+def test_an_open_readyz_names_failed_maps_only_to_key_holders(tmp_path: Path) -> None:
+    """/readyz is open by default (load balancers call it without a key): a map folder
+    that fails to load makes it 503 degraded with a count for anyone, and its name and
+    reason only for a caller with a key that may use that map."""
+    keys = _write_keys(tmp_path / "keys.toml")
+    maps = tmp_path / "data" / "maps"
+    for name in ("auth-a", "other"):  # neither can be loaded
+        (maps / name).mkdir(parents=True)
+        (maps / name / "map.sqlite").write_bytes(b"not a database")
+    srv = Server(tmp_path / "data", tmp_path / "server.log", env={"SGVLOC_KEYS_FILE": str(keys)})
+    srv.start()
+    try:
+        with httpx.Client(base_url=srv.url, timeout=60) as c:
+            seen = {}
+            for who in (None, "wrong", "vehicle", "viewer-a", "admin"):
+                r = c.get("/readyz", headers=_h(who))
+                assert r.status_code == 503 and r.json()["status"] == "degraded", (who, r.text)
+                assert r.json()["failed_maps"] == 2, r.text
+                seen[who] = r.json()["failed"]
+    finally:
+        srv.stop()
+    assert seen[None] == {} and seen["wrong"] == {}
+    assert set(seen["vehicle"]) == set(seen["admin"]) == {"auth-a", "other"}
+    assert "not a database" in seen["admin"]["other"], seen
+    assert set(seen["viewer-a"]) == {"auth-a"}

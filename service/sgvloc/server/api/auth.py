@@ -272,6 +272,13 @@ def reload_keys(app: Any) -> KeyRing:
     return ring
 
 
+def key_holder(request: Request) -> Principal | None:
+    """On an open route, the caller its valid key names (if it sent one), or None."""
+    token = _bearer(request)
+    ring: KeyRing = request.app.state.keyring
+    return ring.identify(token) if token is not None and ring.enabled else None
+
+
 def principal_of(request: Request) -> Principal:
     """The caller, as :func:`authorize` found it."""
     return getattr(request.state, "principal", DEV_PRINCIPAL)

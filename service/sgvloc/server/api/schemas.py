@@ -818,8 +818,11 @@ class Ready(BaseModel):
     )
     maps: int
     failed: dict[str, str] = Field(
-        default_factory=dict, description="map folders that could not be loaded, and why"
+        default_factory=dict,
+        description="map folders that could not be loaded, and why: shown to a caller with "
+        "a key (of those maps it may use); an open probe without one sees only failed_maps",
     )
+    failed_maps: int = Field(0, description="how many map folders could not be loaded")
 
 
 class LimitsOut(BaseModel):

@@ -5,7 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter, Depends, Request, Response
 
 from ...maps import MapManager
-from ..auth import ANONYMOUS, authorize, principal_of
+from ..auth import ANONYMOUS, authorize, key_holder, principal_of
 from ..body import encode
 from ..deps import MetricsDep
 from ..errors import ApiError
@@ -32,16 +32,27 @@ async def healthz(request: Request) -> Response:
 )
 async def readyz(request: Request) -> Response:
     """Ready (200) once every map is loaded; 503 while loading, and 503 ``degraded``
-    while a map folder failed to load (listed under ``failed``; fix it and POST
+    while a map folder failed to load (counted in ``failed_maps`` and listed with the
+    reasons under ``failed`` for a caller with a key; fix it and POST
     ``/v1/maps/{map}/reload``, or remove the folder). Open, or viewer/admin keys only, as
     the ``readyz_auth`` setting says."""
     manager: MapManager = request.app.state.manager
     if not manager.loaded.is_set():
         return encode(request, Ready(status="loading", maps=0), 503)
     maps, failed = len(manager.list()), dict(manager.failed)
-    if failed:
-        return encode(request, Ready(status="degraded", maps=maps, failed=failed), 503)
-    return encode(request, Ready(status="ready", maps=maps))
+    if not failed:
+        return encode(request, Ready(status="ready", maps=maps))
+    caller = principal_of(request)
+    if caller is ANONYMOUS:  # an open probe: names and reasons only for a key's holder
+        caller = key_holder(request) or ANONYMOUS
+    shown = {} if caller is ANONYMOUS else {
+        name: why for name, why in failed.items() if caller.may_use_map(name)
+    }  # fmt: skip
+    return encode(
+        request,
+        Ready(status="degraded", maps=maps, failed=shown, failed_maps=len(failed)),
+        503,
+    )
 
 
 @router.get(
