@@ -210,7 +210,8 @@ def test_a_kidnap_back_revisits_and_bad_stream_options_are_clear(
     assert kid["scans_until_correct_fix"] == 2  # from stream position 6 on; position 7 fixes
     for kwargs, match in [
         ({"first_scan": 99}, "outside the 15 scans"),
-        ({"map_until": -1.0}, "no keyframe"),
+        ({"map_until": -1.0}, "until must be a finite number of seconds >= 0"),
+        ({"map_every": 0}, "every must be >= 1"),
     ]:
         with pytest.raises(InputError, match=match):
             eval_track(balm_mini_dir, tmp_path, **kwargs)

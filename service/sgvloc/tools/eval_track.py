@@ -37,7 +37,7 @@ from sgvloc.core.tracking import Seed
 from sgvloc.server.maps import KeyframeIn, MapManager
 from sgvloc_client.tracking import MotionModel
 
-from .build_map import insert_skipping_empty
+from .build_map import insert_skipping_empty, select_frames
 from .evaluation.metrics import rre, rte
 
 
@@ -149,15 +149,12 @@ def eval_track(
                 f"kidnap {at}:{to}: the stream of scans {first_scan}..{n - 1} never takes "
                 "this jump (both scans must be streamed, AT reached before the stream ends)"
             )
-    if map_until is not None:  # seconds from the sequence's first scan, as build-map --until
-        times = seq.times
-        if times is None:
-            raise InputError(f"{data} has no times.txt: map_until needs scan times")
-        map_ids = [i for i in range(n) if times[i] - times[0] <= map_until]
-    else:
-        map_ids = list(range(0, n, map_every))
+    # every scan of the first map_until seconds (as build-map --until), or every map_every-th
+    every = 1 if map_until is not None else map_every
+    times = None if seq.times is None else seq.times[:n]
+    map_ids = select_frames(n, every, until=map_until, times=times)
     if not map_ids:
-        raise InputError("the map would have no keyframe (map_until before the first scan)")
+        raise InputError("the map would have no keyframe")
     say = progress or (lambda _msg: None)
     out.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix="sgvloc-track-") as tmp:
