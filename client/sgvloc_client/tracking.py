@@ -59,6 +59,8 @@ def _exp_rotation(v: np.ndarray) -> np.ndarray:
 #: the largest seed uncertainty the service takes (seed.sigma_m); beyond it the tracker
 #: asks for a global localization instead
 MAX_SEED_SIGMA_M = 1e4
+#: the longest odometry step taken (m): beyond any vehicle's motion between two scans
+MAX_ODOMETRY_M = 1e4
 #: fixes closer in time than this give no velocity (their registration noise, divided by
 #: a tiny interval, would read as a fast motion)
 MIN_STEP_S = 0.02
@@ -67,6 +69,41 @@ MIN_STEP_S = 0.02
 def _check_stamp(stamp: float) -> None:
     if not math.isfinite(stamp):
         raise ValueError(f"stamp must be a finite number of seconds, got {stamp!r}")
+
+
+def _odometry_step(odom_delta: Any) -> np.ndarray:
+    """``odom_delta`` as a rigid 4x4 float64 transform (its rotation re-orthonormalised,
+    as float32 odometry drifts slightly off), or ValueError naming it: a bad sample must
+    be refused before it enters the track, where it would spoil every later seed."""
+    try:
+        step = np.asarray(odom_delta, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(
+            f"odom_delta must be a 4x4 transform (T_prev_curr), got {type(odom_delta).__name__}"
+        ) from None
+    if step.shape != (4, 4):
+        raise ValueError(
+            f"odom_delta must be a 4x4 transform (T_prev_curr), got shape {list(step.shape)}"
+        )
+    if not np.isfinite(step).all() or np.abs(step[:3, 3]).max() > MAX_ODOMETRY_M:
+        raise ValueError(
+            f"odom_delta must hold finite values and move at most {MAX_ODOMETRY_M:g} m"
+        )
+    R = step[:3, :3]
+    if not (
+        np.allclose(R.T @ R, np.eye(3), atol=1e-2)
+        and np.linalg.det(R) > 0
+        and np.allclose(step[3], [0.0, 0.0, 0.0, 1.0])
+    ):
+        raise ValueError(
+            "odom_delta is not a rigid transform: its rotation must be orthonormal with "
+            "determinant +1 and its last row 0 0 0 1"
+        )
+    u, _, vt = np.linalg.svd(R)
+    step = step.copy()
+    step[:3, :3] = u @ vt
+    step[3] = [0.0, 0.0, 0.0, 1.0]
+    return step
 
 
 @dataclass
@@ -140,13 +177,16 @@ class MotionModel:
 
     def _odometry(self, odom_delta: Any) -> np.ndarray:
         """The odometry since the last fix, with this scan's ``odom_delta``."""
-        step = np.asarray(odom_delta, dtype=np.float64).reshape(4, 4)
+        step = _odometry_step(odom_delta)
         return (self._pending_odom if self._pending_odom is not None else np.eye(4)) @ step
 
     def seed(self, stamp: float, odom_delta: Any = None) -> Seed | None:
         """The seed for a scan taken at ``stamp`` (seconds), or None: relocalize. Call
-        it once per scan: its ``odom_delta`` adds to the odometry since the last fix."""
+        it once per scan: its ``odom_delta`` adds to the odometry since the last fix
+        (ValueError, the track unchanged, if it is not a rigid 4x4 transform)."""
         _check_stamp(stamp)
+        if odom_delta is not None:
+            _odometry_step(odom_delta)  # refused before anything else, even while lost
         if self.lost or self.stamp is None or stamp - self.stamp > self.max_gap_s:
             return None
         if stamp < self.stamp - MIN_STEP_S:  # before the last fix (a clock reset, a bag

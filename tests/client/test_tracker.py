@@ -69,6 +69,36 @@ def test_odometry_replaces_the_motion_model_and_accumulates_over_misses() -> Non
     assert s.sigma_m > m.sigma_m * m.widen  # widened after the miss
 
 
+def test_a_bad_odometry_sample_is_refused_and_spoils_no_later_seed() -> None:
+    """A NaN, non-rigid or misshapen odom_delta is a ValueError naming it, before it
+    enters the track: the next scan with good odometry is seeded as if it never came.
+    Odometry a little off orthonormal (float32) is straightened, not refused."""
+    m = MotionModel()
+    m.observe(_fix(_pose(5, 5, 90)), 0.0)
+    step = _pose(1, 0, 0)
+    nan = step.copy()
+    nan[0, 3] = np.nan
+    skew = step.copy()
+    skew[0, 1] = 0.5
+    for bad, match in [
+        (nan, "finite"),
+        (skew, "not a rigid transform"),
+        (np.eye(3), "got shape"),
+        ("forward", "4x4 transform"),
+        (_pose(1e5, 0, 0), "at most"),
+    ]:
+        with pytest.raises(ValueError, match=match) as info:
+            m.seed(0.1, odom_delta=bad)
+        assert "odom_delta" in str(info.value)
+    s = m.seed(0.1, odom_delta=step)
+    np.testing.assert_allclose(s.T_map_sensor, _pose(5, 5, 90) @ step, atol=1e-12)
+    drifted = _pose(0, 1, 30).astype(np.float32) * np.float32(1.0001)
+    drifted[3] = [0, 0, 0, 1]
+    s = m.seed(0.2, odom_delta=drifted)
+    R = s.T_map_sensor[:3, :3]
+    np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-9)  # a rigid seed for the service
+
+
 def test_predict_changes_nothing_and_fixes_close_in_time_give_no_velocity() -> None:
     m = MotionModel()
     m.observe(_fix(_pose(0, 0, 0)), 0.0)
