@@ -9,6 +9,8 @@ response logic lives in this module.
 from __future__ import annotations
 
 import contextlib
+import datetime
+import email.utils
 import itertools
 import json
 import os
@@ -88,6 +90,24 @@ class Call(Generic[T]):
     def http_timeout(self) -> Any:
         """The ``timeout`` argument for httpx: this call's own, or the client's."""
         return self.timeout if self.own_timeout else httpx.USE_CLIENT_DEFAULT
+
+
+def _retry_after_s(header: str | None) -> float | None:
+    """``Retry-After`` in seconds from now: delay-seconds or an HTTP date (a date already
+    past is 0); None when absent or unreadable."""
+    if header is None:
+        return None
+    try:
+        return float(header)
+    except ValueError:
+        pass
+    try:
+        when = email.utils.parsedate_to_datetime(header)
+    except (TypeError, ValueError):
+        return None
+    if when.tzinfo is None:  # an HTTP date is GMT
+        when = when.replace(tzinfo=datetime.timezone.utc)
+    return max(0.0, (when - datetime.datetime.now(datetime.timezone.utc)).total_seconds())
 
 
 def _may_resend(call: Call[Any], exc: httpx.TransportError | None) -> bool:
@@ -189,6 +209,8 @@ class BaseClient:
             raise ValueError(f"retries must be >= 0, got {retries}")
         if not max_retry_after >= 0:
             raise ValueError(f"max_retry_after must be >= 0, got {max_retry_after}")
+        if not (backoff >= 0 and max_backoff >= 0):
+            raise ValueError(f"backoff and max_backoff must be >= 0, got {backoff}, {max_backoff}")
         if wire_format not in ("msgpack", "json"):
             raise ValueError(f"wire_format must be 'msgpack' or 'json', got {wire_format!r}")
         urls = [base_url] if isinstance(base_url, str) else list(base_url)
@@ -338,11 +360,9 @@ class BaseClient:
             and attempt < self.retries
         ):
             return -1.0
-        header = response.headers.get("retry-after")
-        try:
-            delay = float(header) if header is not None else self.backoff * 2**attempt
-        except ValueError:  # an HTTP date, or garbage: the backoff
-            delay = self.backoff * 2**attempt
+        delay = _retry_after_s(response.headers.get("retry-after"))
+        if delay is None:  # none, or garbage: the backoff
+            delay = min(self.max_backoff, self.backoff * 2**attempt)
         if not 0.0 <= delay <= self.max_retry_after:
             return -1.0
         return delay

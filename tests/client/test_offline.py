@@ -11,6 +11,7 @@ import subprocess
 import sys
 import tempfile
 import textwrap
+import time
 from pathlib import Path
 
 import httpx
@@ -494,6 +495,41 @@ def test_overload_retry_waits_retry_after_and_skips_unsafe_calls(monkeypatch) ->
         with pytest.raises(Overloaded):
             c.create_map("campus")
     assert len(seen) == 1
+
+
+def test_overload_waits_are_bounded_and_read_http_dates(monkeypatch) -> None:
+    """Without Retry-After the wait is the backoff, within max_backoff; a Retry-After
+    date is read as the time until it (a date past max_retry_after is not waited for)."""
+    import email.utils
+
+    import sgvloc_client._client as sync_client
+
+    waits: list[float] = []
+    monkeypatch.setattr(sync_client.time, "sleep", waits.append)
+    handler, seen = _overloaded_then_ok([503] * 6, retry_after=None)
+    with Client(
+        transport=httpx.MockTransport(handler),
+        retry_overloaded=True,
+        retries=6,
+        backoff=0.2,
+        max_backoff=1.0,
+    ) as c:
+        c.get_map("campus")
+    assert waits == pytest.approx([0.2, 0.4, 0.8, 1.0, 1.0, 1.0]) and len(seen) == 7
+    waits.clear()
+    soon = email.utils.formatdate(time.time() + 10, usegmt=True)
+    handler, seen = _overloaded_then_ok([503], retry_after=soon)
+    with Client(transport=httpx.MockTransport(handler), retry_overloaded=True) as c:
+        c.get_map("campus")
+    assert len(waits) == 1 and 8.0 <= waits[0] <= 10.0, waits
+    far = email.utils.formatdate(time.time() + 3600, usegmt=True)
+    handler, seen = _overloaded_then_ok([503], retry_after=far)
+    with Client(transport=httpx.MockTransport(handler), retry_overloaded=True) as c:
+        with pytest.raises(Overloaded):
+            c.get_map("campus")
+    assert len(seen) == 1
+    with pytest.raises(ValueError, match="backoff"):
+        Client(backoff=-1)
 
 
 def test_async_client_retries_overloaded_answers() -> None:
