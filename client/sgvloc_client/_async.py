@@ -14,6 +14,7 @@ import httpx
 from ._base import (
     ARCHIVE_TYPE,
     DEFAULT_BASE_URL,
+    REQUEST_ID_HEADER,
     BaseClient,
     Call,
     WireFormat,
@@ -126,7 +127,7 @@ class AsyncClient(BaseClient):
                     call.method,
                     self._url(i, call.path),
                     content=call.content,
-                    headers=call.headers,
+                    headers=call.request_headers,
                     timeout=call.http_timeout,
                 )
             except httpx.TransportError as exc:
@@ -373,7 +374,9 @@ class AsyncClient(BaseClient):
                 async with self._http.stream("GET", url, timeout=timeout) as r:
                     if r.status_code >= 400:
                         await r.aread()
-                        raise self._error(r.status_code, self._decode(r))
+                        raise self._error(
+                            r.status_code, self._decode(r), r.headers.get(REQUEST_ID_HEADER)
+                        )
                     size = 0
                     async for block in r.aiter_bytes():
                         out.write(block)

@@ -9,6 +9,7 @@ response logic lives in this module.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import datetime
 import email.utils
 import itertools
@@ -85,11 +86,23 @@ class Call(Generic[T]):
     #: None waits as long as it takes), when ``own_timeout``
     timeout: float | None = None
     own_timeout: bool = False
+    #: sent as ``X-Request-ID`` with every attempt, so that the service's log lines of
+    #: the call can be found from its error
+    request_id: str = dataclasses.field(default_factory=lambda: uuid.uuid4().hex)
+
+    @property
+    def request_headers(self) -> dict[str, str]:
+        """The call's headers with its ``X-Request-ID``."""
+        return {**(self.headers or {}), REQUEST_ID_HEADER: self.request_id}
 
     @property
     def http_timeout(self) -> Any:
         """The ``timeout`` argument for httpx: this call's own, or the client's."""
         return self.timeout if self.own_timeout else httpx.USE_CLIENT_DEFAULT
+
+
+#: the header carrying a call's id, answered by the service with the id its log uses
+REQUEST_ID_HEADER = "X-Request-ID"
 
 
 def _retry_after_s(header: str | None) -> float | None:
@@ -341,8 +354,10 @@ class BaseClient:
         detail = str(exc) or kind
         raise TransportError(
             f"{call.method} {self.base_urls[i]}{call.path} failed after {tries} "
-            f"attempt{'s' if tries > 1 else ''}: {kind}: {detail}",
+            f"attempt{'s' if tries > 1 else ''}: {kind}: {detail} (request id "
+            f"{call.request_id})",
             attempts=tries,
+            request_id=call.request_id,
         ) from exc
 
     def _overload_delay(self, call: Call[Any], attempt: int, response: httpx.Response) -> float:
@@ -375,7 +390,8 @@ class BaseClient:
         status = response.status_code
         body = self._decode(response)
         if status >= 400 and status not in call.passthrough:
-            raise self._error(status, body)
+            rid = response.headers.get(REQUEST_ID_HEADER) or call.request_id
+            raise self._error(status, body, rid)
         return call.parse(status, body)
 
     @staticmethod
@@ -399,7 +415,7 @@ class BaseClient:
         return response.text
 
     @staticmethod
-    def _error(status: int, body: Any) -> APIError:
+    def _error(status: int, body: Any, request_id: str | None = None) -> APIError:
         err = body.get("error") if isinstance(body, dict) else None
         if isinstance(err, dict):
             code = str(err.get("code") or f"http_{status}")
@@ -410,7 +426,7 @@ class BaseClient:
             detail = body.get("detail") if isinstance(body, dict) else body
             message = str(detail or httpx.codes.get_reason_phrase(status))[:500]
             field = None
-        return error_class(status, code)(status, code, message, field, body)
+        return error_class(status, code)(status, code, message, field, body, request_id)
 
     # ----------------------------------------------------------------------------------
     # Requests, one builder per operation (documented on Client)

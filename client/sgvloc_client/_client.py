@@ -13,6 +13,7 @@ import httpx
 from ._base import (
     ARCHIVE_TYPE,
     DEFAULT_BASE_URL,
+    REQUEST_ID_HEADER,
     BaseClient,
     Call,
     WireFormat,
@@ -125,7 +126,7 @@ class Client(BaseClient):
                     call.method,
                     self._url(i, call.path),
                     content=call.content,
-                    headers=call.headers,
+                    headers=call.request_headers,
                     timeout=call.http_timeout,
                 )
             except httpx.TransportError as exc:
@@ -374,7 +375,9 @@ class Client(BaseClient):
             with _open_dest(dest) as out, self._http.stream("GET", url, timeout=timeout) as r:
                 if r.status_code >= 400:
                     r.read()
-                    raise self._error(r.status_code, self._decode(r))
+                    raise self._error(
+                        r.status_code, self._decode(r), r.headers.get(REQUEST_ID_HEADER)
+                    )
                 size = 0
                 for block in r.iter_bytes():
                     out.write(block)

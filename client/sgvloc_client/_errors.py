@@ -12,6 +12,8 @@ Every exception derives from :class:`SgvlocError`::
         │                    ``.status`` (HTTP status), ``.code`` (machine code such as
         │                    ``"not_found"``), ``.message`` and ``.field`` (the offending
         │                    request field such as ``"keyframes[3].points"``, or None)
+        │                    and ``.request_id`` (the id of the request in the service's
+        │                    log; a TransportError carries the id it was sent with)
         ├── BadRequest       400 / 415 / 422: undecodable body, wrong shapes, bad values
         ├── NotFound         404: unknown map or keyframe
         ├── Conflict         409 ``conflict``: e.g. a map with that name exists
@@ -39,9 +41,11 @@ class SgvlocError(Exception):
 class TransportError(SgvlocError):
     """The request did not get an HTTP answer (connection refused, reset, timeout)."""
 
-    def __init__(self, message: str, *, attempts: int = 1) -> None:
+    def __init__(self, message: str, *, attempts: int = 1, request_id: str | None = None) -> None:
         super().__init__(message)
         self.attempts = attempts
+        #: the ``X-Request-ID`` the call was sent with (the service's log names it)
+        self.request_id = request_id
 
 
 class ScanFileError(SgvlocError, ValueError):
@@ -58,14 +62,18 @@ class APIError(SgvlocError):
         message: str,
         field: str | None = None,
         body: Any = None,
+        request_id: str | None = None,
     ) -> None:
         self.status = status
         self.code = code
         self.message = message
         self.field = field
         self.body = body
+        #: the request's id in the service's log (its ``X-Request-ID`` answer)
+        self.request_id = request_id
         where = f" (field {field})" if field else ""
-        super().__init__(f"{status} {code}: {message}{where}")
+        rid = f" [request id {request_id}]" if request_id else ""
+        super().__init__(f"{status} {code}: {message}{where}{rid}")
 
 
 class BadRequest(APIError):

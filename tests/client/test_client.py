@@ -23,6 +23,7 @@ from sgvloc_client import (
     MapInfo,
     NotFound,
     Prior,
+    TransportError,
     read_scan,
     wire,
 )
@@ -103,6 +104,31 @@ def test_unknown_map_is_not_found(service_url: str) -> None:
             c.localize("no-such-map", points=np.zeros((10, 3)))
         with pytest.raises(NotFound):
             c.get_keyframe("no-such-map", 0)
+
+
+def test_errors_carry_the_request_id_of_the_services_log(service_url: str, closed_url: str) -> None:
+    """Each call sends an X-Request-ID; an error answer carries the id the service
+    logged it under, and a call that got no answer the id it was sent with."""
+    with Client(service_url) as c:
+        with pytest.raises(NotFound) as info:
+            c.get_map("no-such-map")
+    rid = info.value.request_id
+    assert rid and len(rid) == 32 and rid in str(info.value)
+    with Client(closed_url, retries=1, backoff=0) as c:
+        with pytest.raises(TransportError) as lost:
+            c.get_map("m")
+    assert lost.value.request_id and lost.value.request_id in str(lost.value)
+    assert lost.value.request_id != rid
+
+    async def main() -> str | None:
+        async with AsyncClient(service_url) as c:
+            try:
+                await c.get_map("no-such-map")
+            except NotFound as exc:
+                return exc.request_id
+        return None
+
+    assert asyncio.run(main()) not in (None, rid)
 
 
 def test_bad_shapes_are_bad_request(service_url: str, balm_mini_dir: Path) -> None:
