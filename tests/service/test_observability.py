@@ -171,6 +171,9 @@ def json_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
     for name, (role, key) in KEYS.items():
         lines += ["[[keys]]", f'name = "{name}"', f'role = "{role}"', f'key = "{key}"']
     (root / "keys.toml").write_text("\n".join(lines) + "\n")
+    broken = root / "data" / "maps" / "broken"  # a map that cannot be loaded: 503s
+    broken.mkdir(parents=True)
+    (broken / "map.sqlite").write_bytes(b"not a database")
     srv = Server(
         data_dir=root / "data",
         log_path=root / "server.log",
@@ -206,6 +209,8 @@ def test_json_log_lines_with_request_ids_and_access_lines(json_server: Server) -
         verdict = "localized" if r.json()["localized"] else "not_localized"
         r = c.get("/v1/maps", headers={"X-Request-ID": "no-key-1"})
         assert r.status_code == 401
+        r = c.get("/v1/maps/broken", headers={**_as("prometheus"), "X-Request-ID": "unavailable-1"})
+        assert r.status_code == 503, r.text
         text = c.get("/metrics", headers=_as("prometheus")).text
     json_server.stop()  # every line written
 
@@ -235,6 +240,14 @@ def test_json_log_lines_with_request_ids_and_access_lines(json_server: Server) -
     assert (create["route"], create["status"], create["key_name"]) == ("/v1/maps", 201, "builder")
     (refused,) = [r for r in access if r["request_id"] == "no-key-1"]
     assert refused["status"] == 401 and refused["key_name"] is None
+    assert refused["code"] == "unauthorized" and refused["client"] == "127.0.0.1"
+    assert loc["code"] is None and refused["level"] == "INFO"
+    (failed,) = [r for r in access if r["request_id"] == "unavailable-1"]
+    assert (failed["status"], failed["code"], failed["level"]) == (
+        503,
+        "map_unavailable",
+        "WARNING",
+    )
     # keys are never logged
     log_text = json_server.log()
     assert not any(key in log_text for _, key in KEYS.values())

@@ -29,7 +29,9 @@ LogFormat = Literal["text", "json"]
 REQUEST_ID_HEADER = "X-Request-ID"
 _SANE_ID = re.compile(r"[A-Za-z0-9._:+/=-]{1,128}")
 #: the access line fields (``extra=`` of the access log call)
-ACCESS_FIELDS = ("method", "route", "status", "duration_ms", "key_name")
+ACCESS_FIELDS = ("method", "route", "status", "duration_ms", "key_name", "code", "client")
+#: routes whose 503 is an answer, not a failure (a probe saying "not ready")
+PROBE_ROUTES = frozenset({"/healthz", "/readyz", "/metrics"})
 
 request_id: contextvars.ContextVar[str | None] = contextvars.ContextVar(
     "sgvloc_request_id", default=None
@@ -117,24 +119,39 @@ def configure_logging(level: str, fmt: LogFormat = "text") -> None:
 
 
 def log_access(
-    method: str, route: str, status: int, duration_ms: float, key_name: str | None
+    method: str,
+    route: str,
+    status: int,
+    duration_ms: float,
+    key_name: str | None,
+    code: str | None = None,
+    client: str | None = None,
 ) -> None:
-    """The access line of one answered request (in the request's context)."""
-    if not access_log.isEnabledFor(_access_level):
+    """The access line of one answered request (in the request's context): at the access
+    level, or WARNING for a 5xx answer (not a probe's), so that a service logging at INFO
+    in text shows its failures with their error code and caller."""
+    level = _access_level
+    if status >= 500 and route not in PROBE_ROUTES:
+        level = max(level, logging.WARNING)
+    if not access_log.isEnabledFor(level):
         return
     access_log.log(
-        _access_level,
-        "%s %s %d %.1f ms key=%s",
+        level,
+        "%s %s %d %.1f ms key=%s code=%s client=%s",
         method,
         route,
         status,
         duration_ms,
         key_name or "-",
+        code or "-",
+        client or "-",
         extra={
             "method": method,
             "route": route,
             "status": status,
             "duration_ms": round(duration_ms, 3),
             "key_name": key_name,
+            "code": code,
+            "client": client,
         },
     )

@@ -68,6 +68,7 @@ def error_response(
     from .body import encode
 
     body = {"error": {"code": code, "message": message, "field": field}}
+    request.state.error_code = code  # for the access line
     response = encode(request, body, status)
     response.headers.update(headers or {})
     return response

@@ -3,8 +3,8 @@
 Every HTTP request gets an id (its sane ``X-Request-ID``, or a new one; see
 :mod:`sgvloc.server.logs`), set in the logging context before anything else runs and
 sent back in the response's ``X-Request-ID``. When the answer is complete one access
-line is logged: method, route template, status, duration and the caller's key name
-(never the key).
+line is logged: method, route template, status, duration, the caller's key name
+(never the key), the error code of an error answer and the client's address.
 """
 
 from __future__ import annotations
@@ -54,10 +54,13 @@ class RequestIdMiddleware:
             await self.app(scope, receive, send_with_id)
         finally:
             principal = state.get("principal")
+            peer = scope.get("client")
             log_access(
                 scope["method"],
                 getattr(scope.get("route"), "path", None) or "unmatched",
                 status,
                 (time.perf_counter() - start) * 1e3,
                 getattr(principal, "name", None),
+                state.get("error_code"),
+                peer[0] if peer else None,
             )
