@@ -16,6 +16,7 @@ import yaml
 from conftest import Server
 from svc_helpers import PRECOMPUTED, BalmMap, map_state, post_msgpack, random_features
 
+from sgvloc.about import __version__
 from sgvloc.core.confidence import VERDICT_CODES
 from sgvloc.tools.dashboard import (
     dashboard_queries,
@@ -216,6 +217,10 @@ def test_json_log_lines_with_request_ids_and_access_lines(json_server: Server) -
 
     by_key = samples(text)
     assert by_key[f'sgvloc_localize_by_key_total{{key_name="truck-17",verdict="{verdict}"}}'] == 1
+    assert by_key["sgvloc_maps_failed"] == 1  # the broken folder
+    assert by_key[f'sgvloc_build_info{{version="{__version__}"}}'] == 1
+    assert by_key["process_resident_memory_bytes"] > 0
+    assert by_key["sgvloc_store_up"] == 1  # SQLite: always
     assert not any("key_name" in s and "builder" in s for s in by_key)
 
     records = []

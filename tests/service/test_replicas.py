@@ -188,6 +188,8 @@ def test_store_outage_fails_writes_fast_and_localizations_go_on(
         return r.status_code == 201
 
     _until(write_ok, timeout=30, what="writes after the store came back")
+    _until(lambda: cb.get("/readyz").json()["store_reachable"] is True, what="b reaches it")
+    assert "sgvloc_store_up 1.0" in cb.get("/metrics").text
     acked += [f"kf/{i}" for i in db[3:5]]
     _until(lambda: cb.get("/v1/maps/outage").json()["keyframes"] == len(acked), what="b caught up")
     keys = {k["key"] for k in cb.get("/v1/maps/outage/keyframes").json()["keyframes"]}
@@ -214,6 +216,14 @@ def test_a_frozen_store_fails_writes_and_localizations_go_on(
         for c in (ca, cb):  # served from memory by the replicas' only worker
             localized, _, version, _ = _answer(_localize(c, "frozen", points))
             assert version == 1
+
+        def store_down(c: httpx.Client) -> bool:  # once a catch-up has failed
+            ready = c.get("/readyz")
+            return ready.status_code == 200 and ready.json()["store_reachable"] is False
+
+        for c in (ca, cb):
+            _until(lambda c=c: store_down(c), timeout=30, what="store_reachable false")
+            assert "sgvloc_store_up 0.0" in c.get("/metrics").text
     finally:
         postgres.cluster.resume()
 

@@ -390,6 +390,7 @@ class MapManager:
         self.features_in_memory = features_in_memory
         self.feature_cache = feature_cache
         self.follow_errors = 0  # failed catch-ups in a row (the store is unreachable)
+        self._load_waits = False  # loading waits for a store that does not answer
         self.snapshot_every = snapshot_every
         self.snapshot_delay_s = snapshot_delay_s
         self._on_change = on_change or (lambda name, n: None)
@@ -487,12 +488,24 @@ class MapManager:
         wait = 0.5
         while not self._stop.is_set():
             try:
-                return fn()
+                out = fn()
             except StoreUnavailableError as exc:
+                self._load_waits = True
                 log.warning("%s%s; trying again in %.0f s", what, exc, wait)
                 self._stop.wait(wait)
                 wait = min(10.0, wait * 2)
+                continue
+            self._load_waits = False
+            return out
         return None
+
+    @property
+    def store_reachable(self) -> bool | None:
+        """A shared store: False while the last call of the loading or of the catch-up
+        with the other replicas failed (the log says why); None for SQLite."""
+        if not self.shared:
+            return None
+        return self.follow_errors == 0 and not self._load_waits
 
     def _load_named(self, name: str) -> None:
         """Load map ``name`` from the shared store and serve it (or list it as failed;

@@ -18,11 +18,14 @@ from prometheus_client import (
     Counter,
     Gauge,
     Histogram,
+    Info,
+    ProcessCollector,
     generate_latest,
 )
 from prometheus_client.core import GaugeMetricFamily
 from prometheus_client.registry import Collector
 
+from sgvloc.about import __version__
 from sgvloc.core.confidence import VERDICT_CODES
 from sgvloc.core.localizer import LocalizationResult
 
@@ -129,6 +132,20 @@ class Metrics:
             "Bytes of request bodies held in memory now (max_body_memory_bytes bounds it)",
             registry=r,
         )
+        self.maps_failed = Gauge(
+            "sgvloc_maps_failed",
+            "Map folders that could not be loaded (/readyz names them to a key holder)",
+            registry=r,
+        )
+        self.store_up = Gauge(
+            "sgvloc_store_up",
+            "1 while the map store answers this replica (always with SQLite), 0 while a "
+            "shared PostgreSQL store does not (loading waits, writes fail, localizations go "
+            "on from memory)",
+            registry=r,
+        )
+        Info("sgvloc_build", "The service's version", registry=r).info({"version": __version__})
+        ProcessCollector(registry=r)  # memory, CPU time, open files of the process
         self.queue_waiting = Gauge(
             "sgvloc_queue_waiting",
             "Requests waiting for a free worker thread now",

@@ -222,6 +222,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     metrics.localize_inflight.set_function(lambda: app.state.admission.inflight)
     app.state.body_budget = BodyBudget(settings.body_memory_limit)
     metrics.body_bytes.set_function(lambda: app.state.body_budget.used)
+    metrics.maps_failed.set_function(lambda: len(manager.failed))
+    metrics.store_up.set_function(lambda: float(manager.store_reachable is not False))
     metrics.watch_maps(lambda: [(h.name, h.num_keyframes, h.version) for h in manager.list()])
     routers = (maps, archives, keyframes, localize, localizations, probes, config, ui)
     for module in routers:

@@ -823,6 +823,12 @@ class Ready(BaseModel):
         "a key (of those maps it may use); an open probe without one sees only failed_maps",
     )
     failed_maps: int = Field(0, description="how many map folders could not be loaded")
+    store_reachable: bool | None = Field(
+        None,
+        description="a shared PostgreSQL store: false while it does not answer this replica "
+        "(loading waits for it; writes fail with 503 store_unavailable; localizations go on "
+        "from the maps in memory, so readiness does not change once loaded); null with SQLite",
+    )
 
 
 class LimitsOut(BaseModel):

@@ -34,14 +34,16 @@ async def readyz(request: Request) -> Response:
     """Ready (200) once every map is loaded; 503 while loading, and 503 ``degraded``
     while a map folder failed to load (counted in ``failed_maps`` and listed with the
     reasons under ``failed`` for a caller with a key; fix it and POST
-    ``/v1/maps/{map}/reload``, or remove the folder). Open, or viewer/admin keys only, as
-    the ``readyz_auth`` setting says."""
+    ``/v1/maps/{map}/reload``, or remove the folder). ``store_reachable`` says whether a
+    shared store answers. Open, or viewer/admin keys only, as the ``readyz_auth`` setting
+    says."""
     manager: MapManager = request.app.state.manager
+    store = manager.store_reachable
     if not manager.loaded.is_set():
-        return encode(request, Ready(status="loading", maps=0), 503)
+        return encode(request, Ready(status="loading", maps=0, store_reachable=store), 503)
     maps, failed = len(manager.list()), dict(manager.failed)
     if not failed:
-        return encode(request, Ready(status="ready", maps=maps))
+        return encode(request, Ready(status="ready", maps=maps, store_reachable=store))
     caller = principal_of(request)
     if caller is ANONYMOUS:  # an open probe: names and reasons only for a key's holder
         caller = key_holder(request) or ANONYMOUS
@@ -50,7 +52,13 @@ async def readyz(request: Request) -> Response:
     }  # fmt: skip
     return encode(
         request,
-        Ready(status="degraded", maps=maps, failed=shown, failed_maps=len(failed)),
+        Ready(
+            status="degraded",
+            maps=maps,
+            failed=shown,
+            failed_maps=len(failed),
+            store_reachable=store,
+        ),
         503,
     )
 
