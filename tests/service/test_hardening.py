@@ -161,6 +161,10 @@ def test_a_bad_map_folder_blocks_no_other_map_and_leaks_no_path(tmp_path: Path) 
             assert set(r.json()["failed"]) == {"broken", "empty", "moved"}, r.text
             gone = c.get("/v1/maps/moved")
             assert gone.status_code == 503 and error_of(gone)["code"] == "map_unavailable"
+            kept = c.delete("/v1/maps/broken")  # not deleted, and not said to be missing
+            assert kept.status_code == 503 and error_of(kept)["code"] == "map_unavailable"
+            assert "remove its folder" in error_of(kept)["message"]
+            assert (maps / "broken" / "map.sqlite").exists()
             text = r.text + gone.text + c.post("/v1/maps", json={"name": "broken"}).text
             assert str(tmp_path) not in text, text
             # still broken: 503 with the reason; then the cause is fixed: 200

@@ -1040,12 +1040,19 @@ class MapManager:
         return handle
 
     def delete(self, name: str) -> None:
-        """Delete a map and its folder; raises :class:`NotFoundError`."""
+        """Delete a map and its folder; raises :class:`NotFoundError`, or
+        :class:`MapUnavailableError` for a map that failed to load (not deleted)."""
         with self._lock:
             handle = self._maps.pop(name, None)
             if handle is not None:  # neither the follower nor a reload loads it meanwhile
                 self._reserved.add(name)
         if handle is None:
+            why = self.failed.get(name)
+            if why is not None:  # its folder or rows are left to the operator
+                raise MapUnavailableError(
+                    f"map {name!r} could not be loaded ({why}), so it is not deleted: fix "
+                    f"the cause and POST /v1/maps/{name}/reload (admin), or remove its folder"
+                )
             raise NotFoundError(f"map {name!r} does not exist")
         trash = None
         try:
