@@ -199,6 +199,12 @@ def test_bad_arguments_are_one_line_usage_errors(tmp_path: Path) -> None:
         (["calibrate-track", "--data", "{tmp}@30:10", "--out", "{tmp}/m.json"], "0 <= A < B"),
         (["calibrate-track", "--data", "{tmp}@x", "--out", "{tmp}/m.json"], "DIR@N"),
         (["synth", "{tmp}/afile"], "is a file; name a folder"),
+        (["train", "--data", "{tmp}", "--out", "{tmp}/afile", "--steps", "1"], "is a file"),
+        (["train", "--data", "{tmp}", "--out", "{tmp}/afile/sub", "--steps", "1"], "cannot make"),
+        (
+            ["build-map", "--data", "{tmp}", "--map", "m", "--data-dir", "{tmp}/afile/d"],
+            "cannot make",
+        ),
     ],
 )
 def test_arguments_a_command_cannot_use_are_refused_before_the_work(

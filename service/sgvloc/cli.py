@@ -505,6 +505,8 @@ def build_map_command(
             ctx=ctx,
             param_hint="'--url' / '--data-dir'",
         )
+    if data_dir is not None:
+        _output_folder(data_dir, "--data-dir")
     if choose_encoder and encoder is not None:
         raise typer.BadParameter(
             "--choose-encoder picks the encoder: leave out --encoder",
@@ -1408,6 +1410,8 @@ def train_command(
     from .server.threads import usable_cpus
 
     _cap_threads(threads, usable_cpus())
+    _output_folder(out, "--out")
+    _exit_on_sigterm()  # the steps since the last checkpoint are saved
     from .core.errors import SgvlocError
     from .tools.train import Sequence, TrainConfig, train
 

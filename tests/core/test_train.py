@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import replace
 from pathlib import Path
@@ -199,6 +200,13 @@ def test_tiny_training_lowers_the_loss_and_checkpoints(seq: Sequence, tmp_path: 
     # a resume continues the same training: other settings are refused, not half applied
     with pytest.raises(InputError, match="lr 0.003 -> 1e-05"):
         train([seq], tmp_path, replace(tiny_config(10), lr=1e-5), progress=False)
+    # and on the same data: another sequence (or a part of it) is refused
+    other = Sequence("other", seq.images[:10], seq.poses[:10])
+    with pytest.raises(InputError, match=r"other training data \(synthetic \(12 scans\)"):
+        train([other], tmp_path, tiny_config(10), progress=False)
+    assert json.loads((tmp_path / "log.json").read_text())["data"] == [
+        {"name": "synthetic", "scans": 12}
+    ]
     # an exported weights file (or anything else) is not a checkpoint
     weights = export_weights(ckpt, tmp_path / "w.pt")
     with pytest.raises(InputError, match="not a training checkpoint"):
@@ -207,6 +215,31 @@ def test_tiny_training_lowers_the_loss_and_checkpoints(seq: Sequence, tmp_path: 
     ckpt.write_bytes(ckpt.read_bytes()[:20_000])
     with pytest.raises(InputError, match="cannot resume from this checkpoint"):
         train([seq], tmp_path, tiny_config(10), progress=False)
+
+
+def test_an_interrupted_run_keeps_its_steps(
+    seq: Sequence, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Ctrl-C between checkpoints saves the steps done; a run again resumes after them."""
+    import sgvloc.tools.train as training
+
+    real, calls = training.losses, []
+
+    def interrupting(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        calls.append(1)
+        if len(calls) == 4:  # in the 4th step, before it is taken
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(training, "losses", interrupting)
+    with pytest.raises(KeyboardInterrupt):
+        train([seq], tmp_path, tiny_config(8), progress=False)
+    _, state = load_checkpoint(tmp_path / "checkpoint.pt")
+    assert state["step"] == 3 and len(state["history"]) == 3
+    monkeypatch.setattr(training, "losses", real)
+    train([seq], tmp_path, tiny_config(8), progress=False)
+    _, state = load_checkpoint(tmp_path / "checkpoint.pt")
+    assert state["step"] == 8 and len(state["history"]) == 8
 
 
 def test_exported_weights_make_a_learned_encoder_of_their_own(

@@ -27,6 +27,7 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -440,6 +441,8 @@ def train(
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=1e-4)
     ckpt_path = out / "checkpoint.pt"
     step, history, val_hist = 0, [], []
+    # what it trains on: a resumed run must go on with the same data
+    data = [{"name": seq.name, "scans": len(seq.images)} for seq in train_seqs]
     if resume and ckpt_path.exists():
         try:
             ckpt = torch.load(ckpt_path, map_location=device, weights_only=False)
@@ -454,6 +457,12 @@ def train(
                     f"{ckpt_path}: the run was started with other settings "
                     f"({', '.join(f'{k} {was.get(k)!r} -> {asdict(cfg)[k]!r}' for k in changed)}); "
                     "a resumed run continues the same training: use another OUT or --no-resume"
+                )
+            if "data" in ckpt and ckpt["data"] != data:
+                raise InputError(
+                    f"{ckpt_path}: the run was started on other training data "
+                    f"({_data_text(ckpt['data'])}, now {_data_text(data)}); a resumed run "
+                    "continues the same training: use another OUT or --no-resume"
                 )
             model.load_state_dict(ckpt["model"])
             opt.load_state_dict(ckpt["optimizer"])
@@ -482,12 +491,16 @@ def train(
                     "rng": rng.bit_generator.state,
                     "torch_rng": torch.get_rng_state(),
                     "config": asdict(cfg),
+                    "data": data,
                 },
                 part,
             ),
         )
         (out / "log.json").write_text(
-            json.dumps({"config": asdict(cfg), "history": history, "val": val_hist}, indent=1)
+            json.dumps(
+                {"config": asdict(cfg), "data": data, "history": history, "val": val_hist},
+                indent=1,
+            )
         )
         _plot(history, val_hist, out / "curves.png")
 
@@ -502,26 +515,39 @@ def train(
     bar = tqdm(total=cfg.steps, initial=step, disable=not progress, unit="step")
     model.train()
     t0 = time.perf_counter()
-    while step < cfg.steps:
-        a, p, pos, corr, _ = sample_batch(train_seqs, cfg, rng)
-        parts = losses(model, a, p, pos, corr, cfg, device)
-        opt.zero_grad()
-        parts["total"].backward()
-        opt.step()
-        step += 1
-        history.append({"step": step, **{k: float(v.detach()) for k, v in parts.items()}})
-        bar.update(1)
-        bar.set_postfix(loss=f"{history[-1]['total']:.3f}")
-        if val_seqs and (step % cfg.val_every == 0 or step == cfg.steps):
-            val_hist.append({"step": step, **_validate(model, val_seqs, cfg, device)})
-            log.info("step %d validation %s", step, val_hist[-1])
-        if step % cfg.checkpoint_every == 0 or step == cfg.steps:
+    saved = step
+    try:
+        while step < cfg.steps:
+            a, p, pos, corr, _ = sample_batch(train_seqs, cfg, rng)
+            parts = losses(model, a, p, pos, corr, cfg, device)
+            opt.zero_grad()
+            parts["total"].backward()
+            opt.step()
+            step += 1
+            history.append({"step": step, **{k: float(v.detach()) for k, v in parts.items()}})
+            bar.update(1)
+            bar.set_postfix(loss=f"{history[-1]['total']:.3f}")
+            if val_seqs and (step % cfg.val_every == 0 or step == cfg.steps):
+                val_hist.append({"step": step, **_validate(model, val_seqs, cfg, device)})
+                log.info("step %d validation %s", step, val_hist[-1])
+            if step % cfg.checkpoint_every == 0 or step == cfg.steps:
+                save()
+                saved = step
+    except (KeyboardInterrupt, SystemExit):  # Ctrl-C, SIGTERM: keep the steps done
+        bar.close()
+        if step > saved:  # the weights, optimiser and RNG are those after ``step``
             save()
+            log.warning("interrupted: saved step %d in %s; run again to resume", step, ckpt_path)
+        raise
     bar.close()
     if not ckpt_path.exists():
         save()
     log.info("trained %d steps in %.0f s", step, time.perf_counter() - t0)
     return ckpt_path
+
+
+def _data_text(data: list[dict[str, Any]]) -> str:
+    return ", ".join(f"{d['name']} ({d['scans']} scans)" for d in data)
 
 
 def export_weights(checkpoint: str | Path, out: str | Path, note: str = "") -> Path:
