@@ -233,3 +233,27 @@ def test_bench_values_it_cannot_use_are_usage_errors(
     res = sgvloc(*(a.format(tmp=tmp_path) for a in args), "--out", str(tmp_path / "b.json"))
     assert res.returncode == 2, res.stdout + res.stderr
     assert words in res.stdout + res.stderr and "Traceback" not in res.stderr
+
+
+def test_an_interruption_inside_a_compiled_kernel_exits_as_one() -> None:
+    """Ctrl-C or SIGTERM arriving while numba calls back into Python comes out as a
+    SystemError caused by the interruption: the command exits 130 / 143 as for any
+    interruption, not with a traceback."""
+    from sgvloc.cli import interruption_exit_code
+
+    def raised(inner: BaseException) -> SystemError:
+        try:
+            try:
+                raise inner
+            except BaseException:
+                raise SystemError("returned a result with an exception set")  # noqa: B904
+        except SystemError as exc:
+            try:  # numba wraps once more
+                raise SystemError("CPUDispatcher(<function _register>)") from exc
+            except SystemError as outer:
+                return outer
+
+    assert interruption_exit_code(raised(KeyboardInterrupt())) == 130
+    assert interruption_exit_code(raised(SystemExit(143))) == 143
+    assert interruption_exit_code(raised(ValueError("bad"))) is None
+    assert interruption_exit_code(SystemError("alone")) is None

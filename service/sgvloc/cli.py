@@ -1777,10 +1777,34 @@ def map_import_command(
     )
 
 
+def interruption_exit_code(exc: BaseException) -> int | None:
+    """The exit code of a Ctrl-C (130) or SIGTERM (its ``SystemExit``) that reached a
+    compiled kernel's call back into Python and came out as a ``SystemError`` with the
+    interruption as its cause; None for any other error."""
+    seen: BaseException | None = exc
+    for _ in range(16):
+        seen = seen.__cause__ or seen.__context__ if seen is not None else None
+        if seen is None:
+            return None
+        if isinstance(seen, KeyboardInterrupt):
+            return 130
+        if isinstance(seen, SystemExit):
+            return seen.code if isinstance(seen.code, int) else 1
+    return None
+
+
 def main() -> None:
     """Entry point of the ``sgvloc`` console script."""
     try:
         app()
+    except SystemError as exc:  # an interruption inside numba: exit as one, quietly
+        code = interruption_exit_code(exc)
+        if code is None:
+            raise
+        import sys
+
+        typer.echo("interrupted", err=True)
+        sys.exit(code)
     except ModuleNotFoundError as exc:
         if (exc.name or "").split(".")[0] not in SERVICE_MODULES:
             raise
