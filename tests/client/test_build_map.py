@@ -376,8 +376,9 @@ def test_scans_the_encoder_cannot_describe_are_skipped(
     service_url: str, balm_mini_dir: Path, tmp_path: Path
 ) -> None:
     """A scan in which the map's encoder finds nothing (flat ground only: no BEV column
-    holds two voxels) is a 422 ``empty_scan`` naming it; build-map leaves it out, says
-    which, and inserts the rest, into a service and into a data directory alike."""
+    holds two voxels) is a 422 ``empty_scan`` naming it; build-map leaves it out, and a
+    scan file with no point, says which, and inserts the rest, into a service and into a
+    data directory alike."""
     import shutil
 
     import httpx
@@ -388,6 +389,7 @@ def test_scans_the_encoder_cannot_describe_are_skipped(
     ground = np.c_[rng.uniform(-10, 10, (300, 2)), np.full(300, -1.5), np.ones(300)]
     for i in (1, 4):
         ground.astype(np.float32).tofile(data / "velodyne" / f"{i:06d}.bin")
+    (data / "velodyne" / "000003.bin").write_bytes(b"")  # a scan file with no point
     r = httpx.post(f"{service_url}/v1/maps", json={"name": "sparse"})
     assert r.status_code == 201, r.text
     r = httpx.post(
@@ -401,11 +403,12 @@ def test_scans_the_encoder_cannot_describe_are_skipped(
     for target in (["--url", service_url], ["--data-dir", str(tmp_path / "dd")]):
         out = CliRunner().invoke(app, [*args, *target, "--no-progress"])
         assert out.exit_code == 0, out.output
-        assert "6 scans sent, 4 new keyframes" in out.output
-        assert "2 scans skipped" in out.output and "seq/000001, seq/000004" in out.output
+        assert "6 scans sent, 3 new keyframes" in out.output
+        assert "3 scans skipped" in out.output, out.output
+        assert "seq/000001, seq/000003, seq/000004" in out.output, out.output
     with Client(service_url) as c:
         keys = [kf.key for kf in c.list_keyframes("sparse").keyframes]
-        assert sorted(keys) == [f"seq/{i:06d}" for i in (0, 2, 3, 5)]
+        assert sorted(keys) == [f"seq/{i:06d}" for i in (0, 2, 5)]
         c.delete_map("sparse")
 
 

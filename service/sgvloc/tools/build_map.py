@@ -461,24 +461,31 @@ def build_map(
         ) as bar:
             for start in range(0, len(frames), batch_size):
                 batch = []
-                for i in frames[start : start + batch_size]:
+                chunk = frames[start : start + batch_size]
+                for i in chunk:
                     frame = seq[i]
+                    key = f"{prefix}/{frame.path.stem}"
+                    points = frame.scan().xyzi()  # [P, 4]
+                    if not np.isfinite(points[:, :3]).all(axis=1).any():
+                        log.warning("skipping %s: %s holds no point", key, frame.path.name)
+                        skipped.append(key)  # an empty file: nothing to describe either
+                        continue
                     metadata: dict[str, Any] = {"sequence": prefix}
                     if frame.time is not None:
                         metadata["timestamp"] = frame.time
                     batch.append(
                         ScanKeyframe(
                             T_map_sensor=frame.T_world_sensor,
-                            points=frame.scan().xyzi(),  # [P, 4]
-                            key=f"{prefix}/{frame.path.stem}",
+                            points=points,
+                            key=key,
                             metadata=metadata,
                         )
                     )
-                bar.update(len(batch))
                 insert = partial(sink.insert, map_name)
                 new, batch = insert_skipping_empty(insert, batch, skipped)
                 created += new
                 existing += len(batch) - new
+                bar.update(len(chunk))  # once they are in
                 bar.set_postfix(new=created, existing=existing, skipped=len(skipped))
         keyframes, version = sink.state(map_name)
     except BaseException:
@@ -512,5 +519,5 @@ def build_map(
         existing=existing,
         keyframes=keyframes,
         map_version=version,
-        skipped=tuple(skipped),
+        skipped=tuple(sorted(skipped)),
     )
