@@ -138,6 +138,39 @@ def test_bev_images_of_a_scan_sequence(small, tmp_path):
     res = CliRunner().invoke(app, ["bev-images", str(shorter), str(out), "--overwrite"])
     assert res.exit_code == 0, res.output
     assert len(open_sequence(out).paths) == 3
+    # a run that fails (a scan with no finite point) names the scan and leaves the
+    # previous images as they were
+    before = files(out)
+    broken = tmp_path / "broken"
+    shutil.copytree(small, broken)
+    np.full((10, 4), np.nan, np.float32).tofile(broken / "velodyne" / "000004.bin")
+    res = CliRunner().invoke(app, ["bev-images", str(broken), str(out), "--overwrite"])
+    assert res.exit_code == 1 and "000004.bin" in res.output, res.output
+    assert files(out) == before and not list(out.glob(".*"))
+
+
+def test_an_overwrite_that_fails_leaves_the_previous_sequence(small, tmp_path, monkeypatch):
+    import sgvloc.tools.synth as synth
+
+    out = tmp_path / "town"
+    shutil.copytree(small, out)
+    before = files(out)
+    real, calls = synth.Lidar.scan, []
+
+    def interrupted(self, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(synth.Lidar, "scan", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        generate(out, SynthConfig(seed=9, **SMALL), overwrite=True)
+    assert files(out) == before and not list(out.glob(".*"))
+    monkeypatch.setattr(synth.Lidar, "scan", real)
+    generate(out, SynthConfig(seed=9, **SMALL), overwrite=True)
+    assert files(out) != before and not list(out.glob(".*"))
+    assert json.loads((out / "synth.json").read_text())["config"]["seed"] == 9
 
 
 @pytest.mark.parametrize("pattern", ["spinning", "rosette"])

@@ -12,7 +12,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from sgvloc.core.errors import InputError
+from sgvloc.core.errors import InputError, SgvlocError
+
+from .staging import staged
 
 
 def export_bev_images(
@@ -32,13 +34,18 @@ def export_bev_images(
     imgs = Path(out) / "imgs"
     if imgs.exists() and any(imgs.iterdir()) and not overwrite:
         raise InputError(f"{out}: already holds images (imgs/); pass overwrite")
-    imgs.mkdir(parents=True, exist_ok=True)
-    for old in imgs.glob("*.png"):  # overwrite: an image beyond this sequence is no one's
-        old.unlink()
-    for i, frame in enumerate(tqdm(seq, desc="bev-images", unit="scan", disable=not progress)):
-        if not cv2.imwrite(str(imgs / f"{i:06d}.png"), rasterize(frame.scan().points).image):
-            raise InputError(f"{imgs}: cannot write image {i}")
-    rows = np.asarray(seq.poses)[:, :3, :].reshape(len(seq), 12)
-    np.savetxt(Path(out) / "pose.txt", rows, fmt="%.9g")
-    np.savetxt(Path(out) / "times.txt", np.asarray(seq.times), fmt="%.6f")
+    # written aside: a run that fails or is interrupted leaves the previous images whole
+    with staged(Path(out), ("imgs", "pose.txt", "times.txt")) as stage:
+        (stage / "imgs").mkdir()
+        scans = tqdm(seq, desc="bev-images", unit="scan", disable=not progress)
+        for i, frame in enumerate(scans):
+            try:
+                image = rasterize(frame.scan().points).image
+            except SgvlocError as exc:
+                raise InputError(f"{frame.path}: {exc}") from None
+            if not cv2.imwrite(str(stage / "imgs" / f"{i:06d}.png"), image):
+                raise InputError(f"{out}: cannot write image {i}")
+        rows = np.asarray(seq.poses)[:, :3, :].reshape(len(seq), 12)
+        np.savetxt(stage / "pose.txt", rows, fmt="%.9g")
+        np.savetxt(stage / "times.txt", np.asarray(seq.times), fmt="%.6f")
     return len(seq)

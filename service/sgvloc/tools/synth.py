@@ -39,6 +39,8 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from sgvloc.core.errors import InputError
 
+from .staging import staged
+
 log = logging.getLogger(__name__)
 
 #: material classes of the town's meshes and their reflectivity (intensity scale)
@@ -420,17 +422,21 @@ def generate(
 
     Raises :class:`InputError` if ``out`` already holds a sequence and not ``overwrite``.
     """
-    from sgvloc.core.io import write_kitti_bin
-
     cfg = cfg or SynthConfig()
     root = Path(out)
     vel = root / "velodyne"
     if vel.exists() and any(vel.iterdir()) and not overwrite:
         raise InputError(f"{root}: already holds a sequence (velodyne/); pass overwrite")
-    vel.mkdir(parents=True, exist_ok=True)
-    for old in vel.glob("*.bin"):
-        old.unlink()
+    # written aside: a run that fails or is interrupted leaves the previous sequence whole
+    with staged(root, ("velodyne", "poses.txt", "times.txt", "synth.json")) as stage:
+        return _generate(stage, root, cfg, progress)
 
+
+def _generate(stage: Path, root: Path, cfg: SynthConfig, progress: bool) -> dict[str, Any]:
+    from sgvloc.core.io import write_kitti_bin
+
+    vel = stage / "velodyne"
+    vel.mkdir()
     grid = cfg.grid or default_grid(cfg)
     town = build_town(cfg, grid)
     poses = route_poses(cfg, grid, town.pitch)
@@ -451,10 +457,10 @@ def generate(
             )
         write_kitti_bin(vel / f"{i:06d}.bin", scan)
         points += len(scan)
-    with open(root / "poses.txt", "w") as fh:
+    with open(stage / "poses.txt", "w") as fh:
         for T in poses:
             fh.write(" ".join(f"{v:.9e}" for v in T[:3].ravel()) + "\n")
-    with open(root / "times.txt", "w") as fh:
+    with open(stage / "times.txt", "w") as fh:
         for i in range(cfg.scans):
             fh.write(f"{i / cfg.rate_hz:.6f}\n")
     info = {
@@ -467,6 +473,6 @@ def generate(
         "primitives": town.stats,
         "mean_points_per_scan": points / cfg.scans,
     }
-    (root / "synth.json").write_text(json.dumps(info, indent=1))
+    (stage / "synth.json").write_text(json.dumps(info, indent=1))
     log.info("synthetic sequence %s: %s", root, info)
     return info
