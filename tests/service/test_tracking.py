@@ -215,6 +215,13 @@ def test_a_kidnap_back_revisits_and_bad_stream_options_are_clear(
     ]:
         with pytest.raises(InputError, match=match):
             eval_track(balm_mini_dir, tmp_path, **kwargs)
+    import shutil
+
+    bare = tmp_path / "bare"
+    shutil.copytree(balm_mini_dir, bare)
+    (bare / "poses.txt").unlink()
+    with pytest.raises(InputError, match="needs poses.txt"):
+        eval_track(bare, tmp_path / "out")
 
 
 def test_eval_track_counts_scans_the_encoder_cannot_describe(

@@ -138,6 +138,8 @@ def eval_track(
     ``localizer.tracking``), stream the sequence from ``first_scan`` on, write
     ``out/track.json`` and ``out/trajectory.png``; returns the report."""
     seq = KittiSequence(data)
+    if seq.poses is None:  # the map's keyframes and every error are measured on them
+        raise InputError(f"{data}: needs poses.txt (the ground truth)")
     n = len(seq) if max_scans is None else min(len(seq), max_scans)
     if not 0 <= first_scan < n:
         raise InputError(f"first_scan {first_scan} is outside the {n} scans streamed")
@@ -426,6 +428,8 @@ def track_samples(
     from sgvloc.core.localizer import Localizer
 
     seq = KittiSequence(data)
+    if seq.poses is None:
+        raise InputError(f"{data}: needs poses.txt (the ground truth)")
     n = len(seq) if max_scans is None else min(len(seq), max_scans)
     config = LocalizerConfig(tracking=TrackingConfig(fallback="none"))
     loc = Localizer(make_encoder(encoder or EncoderSpec()), config)
