@@ -143,9 +143,11 @@ def serve(
     store: Annotated[
         str | None,
         typer.Option(
-            help="postgresql://user:password@host:port/db: keep the maps in PostgreSQL, "
-            "shared by every replica started with the same URL (env SGVLOC_STORE_URL; "
-            "default: SQLite under --data-dir). See docs/SCALING.md"
+            help="postgresql://user@host:port/db: keep the maps in PostgreSQL, shared by "
+            "every replica started with the same URL (env SGVLOC_STORE_URL; default: SQLite "
+            "under --data-dir). Give the password in a file (env SGVLOC_STORE_PASSWORD_FILE) "
+            "or PGPASSFILE, not in the URL: a command line is visible to every user of the "
+            "machine (ps). See docs/SCALING.md"
         ),
     ] = None,
     workers: Annotated[
