@@ -368,22 +368,28 @@ class AsyncClient(BaseClient):
         self, map: str, dest: str | os.PathLike[str] | BinaryIO, *, timeout: float | None = 600.0
     ) -> int:
         """See :meth:`Client.export_map`."""
-        url = self._url(self._pick(), f"{_map_path(map)}/export")
-        try:
-            with _open_dest(dest) as out:
-                async with self._http.stream("GET", url, timeout=timeout) as r:
-                    if r.status_code >= 400:
-                        await r.aread()
-                        raise self._error(
-                            r.status_code, self._decode(r), r.headers.get(REQUEST_ID_HEADER)
-                        )
-                    size = 0
-                    async for block in r.aiter_bytes():
-                        out.write(block)
-                        size += len(block)
-        except httpx.TransportError as exc:
-            raise self._unanswered("GET", url, exc) from exc
-        return size
+        i = self._pick()
+        tried, attempt = {i}, 0
+        with _open_dest(dest) as out:
+            while True:
+                url = self._url(i, f"{_map_path(map)}/export")
+                try:
+                    async with self._http.stream("GET", url, timeout=timeout) as r:
+                        if r.status_code >= 400:
+                            await r.aread()
+                            rid = r.headers.get(REQUEST_ID_HEADER)
+                            raise self._error(r.status_code, self._decode(r), rid)
+                        size = 0
+                        async for block in r.aiter_bytes():
+                            out.write(block)
+                            size += len(block)
+                        return size
+                except httpx.ConnectError as exc:
+                    i, wait = self._after_refusal(i, tried, attempt, "GET", exc)
+                    attempt += 1
+                    await asyncio.sleep(wait)
+                except httpx.TransportError as exc:
+                    raise self._unanswered("GET", url, exc) from exc
 
     async def import_map(
         self,
@@ -394,19 +400,34 @@ class AsyncClient(BaseClient):
     ) -> MapInfo:
         """See :meth:`Client.import_map`."""
 
+        i = self._pick()
+        tried, attempt = {i}, 0
         with _open_src(src) as f:
 
             async def chunks() -> AsyncIterator[bytes]:
                 for block in _chunks(f):
                     yield block
 
-            url = self._url(self._pick(), self._import_path(name))
-            try:
-                r = await self._http.post(
-                    url, content=chunks(), headers={"Content-Type": ARCHIVE_TYPE}, timeout=timeout
-                )
-            except httpx.TransportError as exc:
-                raise self._unanswered("POST", url, exc) from exc
+            start = f.tell() if f.seekable() else None
+            while True:
+                url = self._url(i, self._import_path(name))
+                try:
+                    r = await self._http.post(
+                        url,
+                        content=chunks(),
+                        headers={"Content-Type": ARCHIVE_TYPE},
+                        timeout=timeout,
+                    )
+                    break
+                except httpx.ConnectError as exc:
+                    if start is None:
+                        raise self._unanswered("POST", url, exc) from exc
+                    i, wait = self._after_refusal(i, tried, attempt, "POST", exc)
+                    attempt += 1
+                    f.seek(start)
+                    await asyncio.sleep(wait)
+                except httpx.TransportError as exc:
+                    raise self._unanswered("POST", url, exc) from exc
         return self._finish(self._import_call(), r)
 
     # ----------------------------------------------------------------------------------

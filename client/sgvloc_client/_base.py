@@ -270,6 +270,25 @@ class BaseClient:
     def _url(self, i: int, path: str) -> str:
         return f"{self.base_urls[i]}{path}"
 
+    def _after_refusal(
+        self, i: int, tried: set[int], attempt: int, method: str, exc: httpx.TransportError
+    ) -> tuple[int, float]:
+        """A streamed call (an export, an import) whose connection to URL ``i`` was
+        refused at try ``attempt``, so nothing was sent: the URL to try next (an untried
+        replica at once, else the same after the backoff) and the seconds to wait first.
+        Raises :class:`TransportError` when ``retries`` are spent."""
+        if attempt >= self.retries:
+            raise self._unanswered(method, self.base_urls[i], exc) from exc
+        n = len(self.base_urls)
+        if n > 1:
+            self._mark_down(i)
+            for k in range(1, n):
+                j = (i + k) % n
+                if j not in tried:
+                    tried.add(j)
+                    return j, 0.0
+        return i, min(self.max_backoff, self.backoff * 2**attempt)
+
     def _failover(
         self,
         call: Call[Any],

@@ -369,22 +369,30 @@ class Client(BaseClient):
         self, map: str, dest: str | os.PathLike[str] | BinaryIO, *, timeout: float | None = 600.0
     ) -> int:
         """Download map ``map`` as an archive into ``dest`` (a path or a binary file),
-        streamed; returns the bytes written. ``timeout``: seconds without data."""
-        url = self._url(self._pick(), f"{_map_path(map)}/export")
-        try:
-            with _open_dest(dest) as out, self._http.stream("GET", url, timeout=timeout) as r:
-                if r.status_code >= 400:
-                    r.read()
-                    raise self._error(
-                        r.status_code, self._decode(r), r.headers.get(REQUEST_ID_HEADER)
-                    )
-                size = 0
-                for block in r.iter_bytes():
-                    out.write(block)
-                    size += len(block)
-        except httpx.TransportError as exc:
-            raise self._unanswered("GET", url, exc) from exc
-        return size
+        streamed; returns the bytes written. ``timeout``: seconds without data. A refused
+        connection moves to the next replica (or is tried again, within ``retries``)."""
+        i = self._pick()
+        tried, attempt = {i}, 0
+        with _open_dest(dest) as out:
+            while True:
+                url = self._url(i, f"{_map_path(map)}/export")
+                try:
+                    with self._http.stream("GET", url, timeout=timeout) as r:
+                        if r.status_code >= 400:
+                            r.read()
+                            rid = r.headers.get(REQUEST_ID_HEADER)
+                            raise self._error(r.status_code, self._decode(r), rid)
+                        size = 0
+                        for block in r.iter_bytes():
+                            out.write(block)
+                            size += len(block)
+                        return size
+                except httpx.ConnectError as exc:
+                    i, wait = self._after_refusal(i, tried, attempt, "GET", exc)
+                    attempt += 1
+                    time.sleep(wait)
+                except httpx.TransportError as exc:
+                    raise self._unanswered("GET", url, exc) from exc
 
     def import_map(
         self,
@@ -394,15 +402,32 @@ class Client(BaseClient):
         timeout: float | None = 600.0,
     ) -> MapInfo:
         """Create a map from an archive made by :meth:`export_map` (streamed from ``src``,
-        a path or a binary file), under ``name`` or its archived name."""
-        url = self._url(self._pick(), self._import_path(name))
+        a path or a binary file), under ``name`` or its archived name. A refused
+        connection moves to the next replica (or is tried again, within ``retries``) when
+        ``src`` can be read again from its start (a path, or a seekable file)."""
+        i = self._pick()
+        tried, attempt = {i}, 0
         with _open_src(src) as f:
-            try:
-                r = self._http.post(
-                    url, content=_chunks(f), headers={"Content-Type": ARCHIVE_TYPE}, timeout=timeout
-                )
-            except httpx.TransportError as exc:
-                raise self._unanswered("POST", url, exc) from exc
+            start = f.tell() if f.seekable() else None
+            while True:
+                url = self._url(i, self._import_path(name))
+                try:
+                    r = self._http.post(
+                        url,
+                        content=_chunks(f),
+                        headers={"Content-Type": ARCHIVE_TYPE},
+                        timeout=timeout,
+                    )
+                    break
+                except httpx.ConnectError as exc:
+                    if start is None:
+                        raise self._unanswered("POST", url, exc) from exc
+                    i, wait = self._after_refusal(i, tried, attempt, "POST", exc)
+                    attempt += 1
+                    f.seek(start)
+                    time.sleep(wait)
+                except httpx.TransportError as exc:
+                    raise self._unanswered("POST", url, exc) from exc
         return self._finish(self._import_call(), r)
 
     # ----------------------------------------------------------------------------------

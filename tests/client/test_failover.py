@@ -9,7 +9,9 @@ import itertools
 import threading
 from collections.abc import Iterator
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
 
+import numpy as np
 import pytest
 
 from sgvloc_client import AsyncClient, Client, TransportError
@@ -74,6 +76,45 @@ def test_a_refused_connection_moves_any_call(service_url: str, closed_url: str) 
         c._turn = itertools.count(0)
         assert c._pick() == 1
         c.delete_map("failover-created")
+
+
+def test_a_refused_connection_moves_an_export_and_an_import(
+    service_url: str, closed_url: str, tmp_path: Path
+) -> None:
+    """Streamed calls fail over too when nothing was sent: the export lands whole, and
+    the import's file is read again from its start on the next replica."""
+    feats = {
+        "global_descriptor": np.ones(16, np.float32),
+        "keypoints": np.random.default_rng(0).uniform(-5, 5, (20, 3)).astype(np.float32),
+        "local_features": np.ones((20, 8), np.float32),
+    }
+    spec = {"kind": "precomputed", "name": "egonn", "global_dim": 16, "local_dim": 8}
+    with Client(service_url) as c:
+        c.create_map("moved-archive", encoder=spec)
+        c.insert_keyframes("moved-archive", [{"T_map_sensor": np.eye(4), "features": feats}])
+    archive = tmp_path / "m.tar"
+    with Client([closed_url, service_url], retries=1) as c:
+        c._turn = itertools.count(0)  # start on the closed one
+        size = c.export_map("moved-archive", archive)
+        assert size == archive.stat().st_size > 0
+        c._down_until = [0.0, 0.0]  # forget the failure: start on the closed one again
+        c._turn = itertools.count(0)
+        info = c.import_map(archive, "moved-archive-2")
+        assert info.keyframes == 1
+        c.delete_map("moved-archive")
+        c.delete_map("moved-archive-2")
+
+    async def run() -> int:
+        async with AsyncClient([closed_url, service_url], retries=1) as c:
+            c._turn = itertools.count(0)
+            return await c.export_map("moved-archive-async", tmp_path / "a.tar")
+
+    with Client(service_url) as c:
+        c.import_map(archive, "moved-archive-async")
+    assert asyncio.run(run()) == (tmp_path / "a.tar").stat().st_size
+    with Client(closed_url, retries=0) as c, pytest.raises(TransportError):
+        c.export_map("moved-archive-async", tmp_path / "b.tar")
+    assert not (tmp_path / "b.tar").exists()
 
 
 def test_no_retries_left_raises(closed_url: str) -> None:
