@@ -70,6 +70,8 @@ class AsyncClient(BaseClient):
             ``retries``. Off by default: a vehicle may prefer a fresh scan to a late answer.
         max_retry_after: a ``Retry-After`` longer than this (seconds) is not waited for:
             the :class:`Overloaded` error is raised at once.
+        total_timeout: the longest (seconds) a call may take with all its tries and
+            waits (see :class:`Client`).
 
     Use as an async context manager (or await :meth:`aclose`). Errors are the exceptions of
     :mod:`sgvloc_client._errors` (see :class:`~sgvloc_client.SgvlocError`).
@@ -88,6 +90,7 @@ class AsyncClient(BaseClient):
         wire_format: WireFormat = "msgpack",
         retry_overloaded: bool = False,
         max_retry_after: float = 30.0,
+        total_timeout: float | None = None,
     ) -> None:
         super().__init__(
             base_url,
@@ -99,6 +102,7 @@ class AsyncClient(BaseClient):
             wire_format=wire_format,
             retry_overloaded=retry_overloaded,
             max_retry_after=max_retry_after,
+            total_timeout=total_timeout,
         )
         self._http = httpx.AsyncClient(transport=transport, **self._http_options())
 
@@ -121,6 +125,7 @@ class AsyncClient(BaseClient):
         attempt = 0
         i = self._pick()
         tried = {i}
+        end = self._deadline()
         while True:
             try:
                 response = await self._http.request(
@@ -128,13 +133,14 @@ class AsyncClient(BaseClient):
                     self._url(i, call.path),
                     content=call.content,
                     headers=call.request_headers,
-                    timeout=call.http_timeout,
+                    timeout=self._attempt_timeout(call, end),
                 )
             except httpx.TransportError as exc:
                 sent = not isinstance(exc, httpx.ConnectError)
                 j = self._failover(call, attempt, i, tried, sent=sent, exc=exc)
                 if j is None:
-                    await asyncio.sleep(self._retry_delay(call, attempt, exc, i))
+                    wait = self._retry_delay(call, attempt, exc, i)
+                    await asyncio.sleep(self._wait_within(call, end, wait))
                 else:
                     i = j
                     tried.add(j)
@@ -148,7 +154,7 @@ class AsyncClient(BaseClient):
                     attempt += 1
                     continue
             delay = self._overload_delay(call, attempt, response)
-            if delay >= 0:
+            if delay >= 0 and (end is None or time.monotonic() + delay < end):
                 await asyncio.sleep(delay)
                 attempt += 1
                 continue

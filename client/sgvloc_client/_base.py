@@ -217,7 +217,10 @@ class BaseClient:
         wire_format: WireFormat = "msgpack",
         retry_overloaded: bool = False,
         max_retry_after: float = 30.0,
+        total_timeout: float | None = None,
     ) -> None:
+        if total_timeout is not None and not total_timeout > 0:
+            raise ValueError(f"total_timeout must be > 0 seconds or None, got {total_timeout}")
         if retries < 0:
             raise ValueError(f"retries must be >= 0, got {retries}")
         if not max_retry_after >= 0:
@@ -242,6 +245,8 @@ class BaseClient:
         self.wire_format: WireFormat = wire_format
         self.retry_overloaded = retry_overloaded
         self.max_retry_after = max_retry_after
+        #: the longest a call may take, all its tries and waits together (None: no bound)
+        self.total_timeout = total_timeout
         self._api_key = api_key
 
     def __repr__(self) -> str:
@@ -269,6 +274,44 @@ class BaseClient:
 
     def _url(self, i: int, path: str) -> str:
         return f"{self.base_urls[i]}{path}"
+
+    def _deadline(self) -> float | None:
+        """When a call starting now must be over (``time.monotonic()``), or None."""
+        return None if self.total_timeout is None else time.monotonic() + self.total_timeout
+
+    def _attempt_timeout(self, call: Call[Any], end: float | None) -> Any:
+        """The httpx ``timeout`` of one try of ``call``: its own or the client's, cut to
+        the time left before ``end``; :class:`TransportError` when none is left."""
+        if end is None:
+            return call.http_timeout
+        left = end - time.monotonic()
+        if left <= 0:
+            raise self._out_of_time(call)
+        base = httpx.Timeout(call.timeout) if call.own_timeout else self.timeout
+
+        def cut(value: float | None) -> float:
+            return left if value is None else min(value, left)
+
+        return httpx.Timeout(
+            connect=cut(base.connect),
+            read=cut(base.read),
+            write=cut(base.write),
+            pool=cut(base.pool),
+        )
+
+    def _wait_within(self, call: Call[Any], end: float | None, wait: float) -> float:
+        """``wait`` (seconds before the next try), or :class:`TransportError` when the
+        next try would start past ``end``."""
+        if end is not None and time.monotonic() + wait >= end:
+            raise self._out_of_time(call)
+        return wait
+
+    def _out_of_time(self, call: Call[Any]) -> TransportError:
+        return TransportError(
+            f"{call.method} {call.path}: no answer within total_timeout="
+            f"{self.total_timeout:g} s (request id {call.request_id})",
+            request_id=call.request_id,
+        )
 
     def _after_refusal(
         self, i: int, tried: set[int], attempt: int, method: str, exc: httpx.TransportError

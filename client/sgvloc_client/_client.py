@@ -69,6 +69,10 @@ class Client(BaseClient):
             ``retries``. Off by default: a vehicle may prefer a fresh scan to a late answer.
         max_retry_after: a ``Retry-After`` longer than this (seconds) is not waited for:
             the :class:`Overloaded` error is raised at once.
+        total_timeout: the longest (seconds) a call may take with all its tries and
+            waits: each try gets at most the time left, and no try starts past it
+            (:class:`TransportError`). ``timeout`` bounds each try; None (the default):
+            no bound over the tries.
 
     Use as a context manager (or call :meth:`close`). Errors are the exceptions of
     :mod:`sgvloc_client._errors` (see :class:`~sgvloc_client.SgvlocError`).
@@ -87,6 +91,7 @@ class Client(BaseClient):
         wire_format: WireFormat = "msgpack",
         retry_overloaded: bool = False,
         max_retry_after: float = 30.0,
+        total_timeout: float | None = None,
     ) -> None:
         super().__init__(
             base_url,
@@ -98,6 +103,7 @@ class Client(BaseClient):
             wire_format=wire_format,
             retry_overloaded=retry_overloaded,
             max_retry_after=max_retry_after,
+            total_timeout=total_timeout,
         )
         self._http = httpx.Client(transport=transport, **self._http_options())
 
@@ -120,6 +126,7 @@ class Client(BaseClient):
         attempt = 0
         i = self._pick()
         tried = {i}
+        end = self._deadline()
         while True:
             try:
                 response = self._http.request(
@@ -127,13 +134,14 @@ class Client(BaseClient):
                     self._url(i, call.path),
                     content=call.content,
                     headers=call.request_headers,
-                    timeout=call.http_timeout,
+                    timeout=self._attempt_timeout(call, end),
                 )
             except httpx.TransportError as exc:
                 sent = not isinstance(exc, httpx.ConnectError)
                 j = self._failover(call, attempt, i, tried, sent=sent, exc=exc)
                 if j is None:
-                    time.sleep(self._retry_delay(call, attempt, exc, i))
+                    wait = self._retry_delay(call, attempt, exc, i)
+                    time.sleep(self._wait_within(call, end, wait))
                 else:
                     i = j
                     tried.add(j)
@@ -147,7 +155,7 @@ class Client(BaseClient):
                     attempt += 1
                     continue
             delay = self._overload_delay(call, attempt, response)
-            if delay >= 0:
+            if delay >= 0 and (end is None or time.monotonic() + delay < end):
                 time.sleep(delay)
                 attempt += 1
                 continue

@@ -129,3 +129,47 @@ def test_async_client_fails_over(service_url: str, busy_url: str, closed_url: st
                 assert await c.health() == {"status": "ok"}
 
     asyncio.run(run())
+
+
+def test_total_timeout_bounds_a_call_over_its_tries() -> None:
+    """A server that takes connections and never answers: with timeout=1 each try ends
+    after a second, and retries=10 would make it eleven; total_timeout=2.5 stops the
+    call after the tries that fit (at most three) with an error naming it."""
+    import socket
+
+    silent = socket.socket()
+    silent.bind(("127.0.0.1", 0))
+    silent.listen(32)
+    accepted: list[socket.socket] = []
+
+    def take() -> None:
+        while True:
+            try:
+                conn, _ = silent.accept()
+            except OSError:
+                return
+            accepted.append(conn)  # held open, never answered
+
+    threading.Thread(target=take, daemon=True).start()
+    url = f"http://127.0.0.1:{silent.getsockname()[1]}"
+    try:
+        with Client(url, timeout=1.0, retries=10, backoff=0.2, total_timeout=2.5) as c:
+            with pytest.raises(TransportError, match="total_timeout=2.5 s") as info:
+                c.get_map("m")
+        assert info.value.request_id
+        assert 1 <= len(accepted) <= 3, len(accepted)
+
+        async def run() -> None:
+            async with AsyncClient(url, timeout=1.0, retries=10, total_timeout=1.5) as c:
+                await c.get_map("m")
+
+        before = len(accepted)
+        with pytest.raises(TransportError, match="total_timeout=1.5 s"):
+            asyncio.run(run())
+        assert 1 <= len(accepted) - before <= 2
+    finally:
+        silent.close()
+        for conn in accepted:
+            conn.close()
+    with pytest.raises(ValueError, match="total_timeout"):
+        Client(url, total_timeout=0)
