@@ -177,6 +177,9 @@ def test_page_lists_the_map_and_draws_its_keyframes_and_localizations(
     dom = render(f"{ui_server.url}/ui#key={KEYS['viewer']}")
     assert _count(dom, r'class="map-row[^"]*" data-map="campus-loop"') == 1, dom[:3000]
     assert _count(dom, r'class="map-row') == 1
+    # the rows are reached with Tab and say which map is shown
+    row = re.search(r'<tr class="map-row[^>]*>', dom).group(0)
+    assert 'tabindex="0"' in row and 'aria-selected="true"' in row, row
     # every keyframe drawn (two pages of the listing), and the recent answers on top
     assert _count(dom, r'<circle class="kf"') == ui_map.keyframes, dom[:3000]
     locs = _count(dom, r'<circle class="loc ')

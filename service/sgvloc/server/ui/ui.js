@@ -31,6 +31,8 @@
     view: null, // {s, tx, ty}: screen = (tx + s * x, ty - s * y)
     timers: [],
     generation: 0, // bumped when polling stops: late answers of old requests are dropped
+    failing: new Map(), // what -> message, while that poll fails: shown until it succeeds
+    updated: null, // time of the last successful refresh of the selected map (HH:MM:SS)
   };
 
   const $ = (id) => document.getElementById(id);
@@ -112,10 +114,30 @@
     el.classList.toggle("warn", warn);
   }
 
+  // a failing poll's message stays until that poll succeeds again, and the data on the
+  // page is greyed meanwhile: it may be out of date
+  function showProgress() {
+    const stale = state.failing.size > 0;
+    $("content").classList.toggle("stale", stale);
+    if (stale) {
+      const since = state.updated ? ` (data as of ${state.updated} UTC)` : "";
+      setStatus(`${[...state.failing.values()].join("; ")}${since}`, true);
+    } else if (state.updated) {
+      setStatus(`updated ${state.updated} UTC`);
+    }
+  }
+
+  function succeeded(what) {
+    if (state.failing.delete(what)) showProgress();
+  }
+
   function stopPolling() {
     state.timers.forEach(clearInterval);
     state.timers = [];
     state.generation += 1;
+    state.failing.clear();
+    state.updated = null;
+    $("content").classList.remove("stale");
   }
 
   function clearData() {
@@ -155,10 +177,11 @@
       return;
     }
     if (exc instanceof Loading) {
-      setStatus(`${what}: the service is not ready (${exc.message}); retrying…`, true);
-      return;
+      state.failing.set(what, `${what}: the service is not ready (${exc.message}); retrying…`);
+    } else {
+      state.failing.set(what, `${what}: ${exc.message}`);
     }
-    setStatus(`${what}: ${exc.message}`, true);
+    showProgress();
   }
 
   // -- counters -------------------------------------------------------------------------
@@ -205,7 +228,7 @@
     } catch (exc) {
       if (exc instanceof Refused && generation === state.generation) {
         // a key that reads the maps but not the metrics (e.g. a mapper): no counters
-        $("counters").title = exc.message;
+        $("counters").title = "The counters need a viewer or admin key (this key may not read /metrics).";
         return;
       }
       throw exc;
@@ -266,6 +289,8 @@
       row.id = `map-${m.name}`;
       row.classList.toggle("selected", m.name === state.selected);
       row.title = `show map ${m.name}`;
+      row.tabIndex = 0; // reachable with Tab; Enter or Space shows the map
+      row.setAttribute("aria-selected", String(m.name === state.selected));
       cell(row, m.name);
       cell(row, count(m.keyframes), "num");
       cell(row, String(m.version), "num");
@@ -274,6 +299,12 @@
       cell(row, extentText(stats), "num");
       cell(row, stats ? human(stats.disk_bytes) : "–", "num");
       row.addEventListener("click", () => select(m.name));
+      row.addEventListener("keydown", (ev) => {
+        if (ev.key === "Enter" || ev.key === " ") {
+          ev.preventDefault();
+          select(m.name);
+        }
+      });
     }
     $("maps-empty").hidden = state.maps.length > 0;
   }
@@ -327,6 +358,7 @@
     history.replaceState(null, "", `${location.pathname}${location.search}#${params}`);
     for (const row of $("maps").tBodies[0].rows) {
       row.classList.toggle("selected", row.dataset.map === name);
+      row.setAttribute("aria-selected", String(row.dataset.map === name));
     }
     $("map-title").textContent = name;
     $("map-section").hidden = false;
@@ -396,7 +428,9 @@
     state.localizations = body.localizations;
     drawLocalizations();
     renderRecent();
-    setStatus(`updated ${new Date().toISOString().slice(11, 19)} UTC`);
+    state.updated = new Date().toISOString().slice(11, 19);
+    state.failing.delete("localizations");
+    showProgress();
   }
 
   // -- drawing --------------------------------------------------------------------------
@@ -584,9 +618,12 @@
   // -- start ----------------------------------------------------------------------------
 
   function every(ms, fn, what) {
+    const generation = state.generation;
     state.timers.push(
       setInterval(() => {
-        fn().catch((exc) => handle(exc, what));
+        fn()
+          .then(() => generation === state.generation && succeeded(what))
+          .catch((exc) => generation === state.generation && handle(exc, what));
       }, ms),
     );
   }

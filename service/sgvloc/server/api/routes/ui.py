@@ -23,6 +23,7 @@ FILES = {
     "index.html": "text/html; charset=utf-8",
     "ui.js": "text/javascript; charset=utf-8",
     "ui.css": "text/css; charset=utf-8",
+    "favicon.svg": "image/svg+xml",
 }
 
 CSP = (
