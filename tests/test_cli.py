@@ -200,6 +200,10 @@ def test_bad_arguments_are_one_line_usage_errors(tmp_path: Path) -> None:
         (["calibrate-track", "--data", "{tmp}@x", "--out", "{tmp}/m.json"], "DIR@N"),
         (["synth", "{tmp}/afile"], "is a file; name a folder"),
         (["train", "--data", "{tmp}", "--out", "{tmp}/afile", "--steps", "1"], "is a file"),
+        (
+            ["build-map", "--data", "{tmp}", "--map", "m", "--data-dir", "{tmp}/d", "--limit", "0"],
+            "--limit",
+        ),  # fmt: skip
         (["train", "--data", "{tmp}", "--out", "{tmp}/afile/sub", "--steps", "1"], "cannot make"),
         (
             ["build-map", "--data", "{tmp}", "--map", "m", "--data-dir", "{tmp}/afile/d"],

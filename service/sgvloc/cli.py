@@ -430,7 +430,7 @@ def build_map_command(
         int, typer.Option(min=1, help="keyframes per request (or store transaction)")
     ] = 16,
     every: Annotated[int, typer.Option(min=1, help="insert every n-th scan only")] = 1,
-    limit: Annotated[int | None, typer.Option(min=0, help="insert at most this many scans")] = None,
+    limit: Annotated[int | None, typer.Option(min=1, help="insert at most this many scans")] = None,
     until: Annotated[
         float | None,
         typer.Option(
@@ -486,6 +486,7 @@ def build_map_command(
     see them: stop it first, or use --url.
     """
     _cap_threads(threads)
+    _exit_on_sigterm()  # as Ctrl-C: a data directory's index snapshot is saved on the way out
     _output_file(self_test_out, "--self-test-out")
     import sgvloc_client
 

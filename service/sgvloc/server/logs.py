@@ -114,6 +114,9 @@ def configure_logging(level: str, fmt: LogFormat = "text") -> None:
         root.setLevel(level.upper())
     # faiss logs which CPU build it loaded (and every build it could not) at INFO
     logging.getLogger("faiss.loader").setLevel(logging.WARNING)
+    # the pool warns at every failed connection try during a store outage; the service
+    # says once that the store does not answer, and again when it does (sgvloc_store_up)
+    logging.getLogger("psycopg.pool").setLevel(logging.ERROR)
     global _access_level
     _access_level = logging.INFO if fmt == "json" else logging.DEBUG
 

@@ -128,6 +128,10 @@ def choose_l2(X: np.ndarray, y: np.ndarray, seed: int = 0) -> float:
     return L2_GRID[int(np.argmin(losses))]
 
 
+#: fewer correct or wrong answers than this per profile: the fit is reported as weak
+MIN_PER_LABEL = 20
+
+
 def evidence_matrix(evidence: list[Evidence], features: Iterable[str]) -> np.ndarray:
     """The model inputs (unstandardised) of many answers ``[n, F]``."""
     return np.array([[FEATURES[f](e) for f in features] for e in evidence], dtype=np.float64)
@@ -264,6 +268,14 @@ def calibrate(
             f"calibrate: profile {profile}: {len(y)} answers ({int(y.sum())} correct), "
             f"L2 {l2:g}, fitted ECE {fit[profile]['ece']:.3f}, AUC {fit[profile]['auc']:.3f}"
         )
+        fewest = min(int(y.sum()), int((~y).sum()))
+        if fewest < MIN_PER_LABEL:
+            echo(
+                f"calibrate: warning: profile {profile} has only {fewest} "
+                f"{'correct' if fewest == int(y.sum()) else 'wrong'} answers (fewer than "
+                f"{MIN_PER_LABEL}): its figures on these answers say little; add sequences "
+                "and check the calibration on held-out data (sgvloc eval --calibration)"
+            )
     if not models:
         raise InputError("no answers with a pose estimate: nothing to calibrate on")
     fitted_on: dict[str, Any] = {"runs": runs, "fit": fit, "top_k": localizer.top_k}
