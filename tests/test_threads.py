@@ -15,8 +15,10 @@ logging.basicConfig(level="WARNING")
 from sgvloc.server.threads import limit_library_threads
 env = limit_library_threads(1)
 import numba, torch
+from sgvloc.core.o3d import open3d
 print(json.dumps({"env": env, "torch": torch.get_num_threads(),
-                  "numba": numba.config.NUMBA_NUM_THREADS}))
+                  "numba": numba.config.NUMBA_NUM_THREADS,
+                  "open3d": open3d().utility.get_max_threads()}))
 """
 
 
@@ -34,6 +36,7 @@ def test_limits_reach_the_libraries() -> None:
     out, err = _probe()
     assert out["env"] == {var: "1" for var in ENV_VARS}
     assert out["torch"] == 1 and out["numba"] == 1
+    assert out["open3d"] == 1  # its TBB pool reads none of the variables: set by call
     assert "not applied" not in err
 
 

@@ -19,6 +19,7 @@ from . import cores, icp_numba
 from .config import PoseConfig
 from .deadline import check as check_deadline
 from .errors import InputError
+from .o3d import open3d
 from .preprocess import voxel_centroids
 
 log = logging.getLogger(__name__)
@@ -91,7 +92,7 @@ def check_rigid(T: np.ndarray, name: str) -> np.ndarray:
 
 
 def to_cloud(points: np.ndarray):
-    import open3d as o3d
+    o3d = open3d()
 
     return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
 
@@ -283,7 +284,7 @@ def _ransac(src: np.ndarray, dst: np.ndarray, pairs: np.ndarray, cfg: PoseConfig
 
 
 def _fgr(src: np.ndarray, dst: np.ndarray, pairs: np.ndarray, cfg: PoseConfig) -> np.ndarray:
-    import open3d as o3d
+    o3d = open3d()
 
     reg = o3d.pipelines.registration
     o3d.utility.random.seed(cfg.seed)
@@ -466,7 +467,7 @@ def _icp_numba(
 def _icp_open3d(
     src: np.ndarray, dst: np.ndarray, T0: np.ndarray, cfg: PoseConfig
 ) -> tuple[np.ndarray, float, float, np.ndarray | None, int]:
-    import open3d as o3d
+    o3d = open3d()
 
     reg = o3d.pipelines.registration
     source, target = to_cloud(src), to_cloud(dst)

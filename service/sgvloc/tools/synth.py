@@ -38,6 +38,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from sgvloc.core.errors import InputError
+from sgvloc.core.o3d import open3d
 
 from .staging import staged
 
@@ -125,7 +126,7 @@ class _MeshBuilder:
     """Accumulates transformed copies of unit primitives into one vertex/triangle list."""
 
     def __init__(self) -> None:
-        import open3d as o3d
+        o3d = open3d()
 
         box = o3d.geometry.TriangleMesh.create_box(1.0, 1.0, 1.0)  # [0, 1]^3
         cyl = o3d.geometry.TriangleMesh.create_cylinder(radius=1.0, height=1.0, resolution=10)
@@ -328,7 +329,7 @@ class Lidar:
     """A spinning multi-beam LiDAR ray-cast into a :class:`Town`."""
 
     def __init__(self, town: Town, cfg: SynthConfig) -> None:
-        import open3d as o3d
+        o3d = open3d()
 
         self.cfg = cfg
         self.scene = o3d.t.geometry.RaycastingScene()
@@ -372,7 +373,7 @@ class Lidar:
 
     def scan(self, T_world_sensor: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """One scan ``[P, 4]`` float32 (x y z intensity) in the sensor frame."""
-        import open3d as o3d
+        o3d = open3d()
 
         cfg = self.cfg
         el, az = self.directions(rng)

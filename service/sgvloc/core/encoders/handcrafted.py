@@ -44,6 +44,7 @@ import numpy as np
 from ..config import HandcraftedEncoderConfig, PreprocessConfig
 from ..errors import EmptyScanError
 from ..features import EncoderIdentity, Features
+from ..o3d import open3d
 from ..preprocess import ground_fit
 from .base import Encoder
 
@@ -178,7 +179,7 @@ def normals_and_saliency(points: np.ndarray, radius: float) -> tuple[np.ndarray,
     corner-like neighbourhoods). Points with fewer than 3 neighbours get saliency -1 and
     normal +z.
     """
-    import open3d as o3d
+    o3d = open3d()
 
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.astype(np.float64)))
     pcd.estimate_covariances(o3d.geometry.KDTreeSearchParamHybrid(radius, NORMAL_MAX_NN))
@@ -200,7 +201,7 @@ def fpfh_at(
     points: np.ndarray, normals: np.ndarray, indices: np.ndarray, radius: float
 ) -> np.ndarray:
     """FPFH ``[K, 33]`` of ``points[indices]``, neighbourhoods taken in the whole cloud."""
-    import open3d as o3d
+    o3d = open3d()
 
     if len(indices) == 0:
         return np.zeros((0, FPFH_DIM), dtype=np.float32)
