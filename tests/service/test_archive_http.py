@@ -274,7 +274,9 @@ def test_a_stalled_download_is_cut_and_lets_its_snapshot_go(tmp_path: Path) -> N
         with httpx.Client(base_url=srv.url, timeout=120) as c:
             whole = c.get("/v1/maps/big/export")
             assert whole.status_code == 200 and len(whole.content) > 10_000_000
-            assert 'status="500"' not in c.get("/metrics").text
+            metrics = c.get("/metrics").text
+            assert 'status="500"' not in metrics
+            assert 'sgvloc_connections_cut_total{reason="send_timeout"} 1.0' in metrics
     finally:
         if sock is not None:
             sock.close()

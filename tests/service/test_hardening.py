@@ -4,6 +4,7 @@ and leaks no server path."""
 
 from __future__ import annotations
 
+import re
 import shutil
 import socket
 import time
@@ -433,6 +434,10 @@ def test_trickled_headers_are_cut_off(strict_server: Server) -> None:
             assert received.startswith(b"HTTP/1.1 200"), received[:100]
     with httpx.Client(base_url=strict_server.url) as c:  # normal requests are unaffected
         assert c.get("/v1/maps").status_code == 200
+        cut = re.search(
+            r'sgvloc_connections_cut_total\{reason="header_timeout"\} (\S+)', c.get("/metrics").text
+        )
+    assert cut and float(cut.group(1)) >= 2, "the cuts are counted"
 
 
 def test_large_bodies_go_as_msgpack_and_no_list_is_longer_than_a_field(

@@ -132,6 +132,16 @@ class Metrics:
             "Bytes of request bodies held in memory now (max_body_memory_bytes bounds it)",
             registry=r,
         )
+        self.connections_cut = Counter(
+            "sgvloc_connections_cut",
+            "Connections the service closed for a deadline: header_timeout (headers too "
+            "slow), unread_body (a body still trickling after its answer), send_timeout "
+            "(the client took none of an answer)",
+            ["reason"],
+            registry=r,
+        )
+        for reason in ("header_timeout", "unread_body", "send_timeout"):
+            self.connections_cut.labels(reason)
         self.maps_failed = Gauge(
             "sgvloc_maps_failed",
             "Map folders that could not be loaded (/readyz names them to a key holder)",

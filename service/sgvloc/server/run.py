@@ -5,6 +5,7 @@ from __future__ import annotations
 import errno
 import logging
 import socket
+from collections.abc import Callable
 
 from .settings import Settings
 from .threads import limit_library_threads
@@ -53,13 +54,20 @@ def serve(settings: Settings) -> None:
         workers=None,  # one process: an app object cannot be forked into workers anyway
         access_log=settings.log_level == "debug" and not json_logs,
         timeout_graceful_shutdown=settings.shutdown_timeout_s,
-        http=_timed_protocol(settings.header_timeout_s, settings.send_timeout_s),
+        http=_timed_protocol(
+            settings.header_timeout_s,
+            settings.send_timeout_s,
+            lambda reason: application.state.metrics.connections_cut.labels(reason).inc(),
+        ),
     )
     _graceful_server(config).run()
 
 
-def _timed_protocol(header_timeout_s: float, send_timeout_s: float):  # uvicorn imported late
-    """uvicorn's h11 protocol with two deadlines.
+def _timed_protocol(  # uvicorn is imported late
+    header_timeout_s: float, send_timeout_s: float, on_cut: Callable[[str], None]
+):
+    """uvicorn's h11 protocol with two deadlines (``on_cut`` hears of each connection
+    closed by one: ``"header_timeout"``, ``"unread_body"`` or ``"send_timeout"``).
 
     - Request headers: a connection whose next request's headers are not complete within
       ``header_timeout_s`` (from the connection or from the previous answer) is closed.
@@ -100,12 +108,14 @@ def _timed_protocol(header_timeout_s: float, send_timeout_s: float):  # uvicorn 
                     "closing a connection whose request headers took over %g s", header_timeout_s
                 )
                 self.transport.close()
+                on_cut("header_timeout")
             elif self._answered_unread():
                 log.info(
                     "closing a connection still sending a body %g s after its answer",
                     header_timeout_s,
                 )
                 self.transport.close()
+                on_cut("unread_body")
 
         def connection_made(self, transport) -> None:  # noqa: ANN001
             super().connection_made(transport)
@@ -148,6 +158,7 @@ def _timed_protocol(header_timeout_s: float, send_timeout_s: float):  # uvicorn 
                 send_timeout_s,
             )
             self.transport.abort()  # close() would wait for the unsent data
+            on_cut("send_timeout")
 
         def connection_lost(self, exc) -> None:  # noqa: ANN001
             self._disarm_header_timer()
