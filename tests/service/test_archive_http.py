@@ -7,6 +7,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import httpx
@@ -235,8 +236,8 @@ def test_an_archive_past_this_servers_limits_is_refused(
 
 def test_a_stalled_download_is_cut_and_lets_its_snapshot_go(tmp_path: Path) -> None:
     """A client that stops reading an export (its receive window closed) loses the
-    connection send_timeout_s after the server's buffer filled: what it then reads ends
-    without the archive's last chunk, the log says why, and the server serves on."""
+    connection send_timeout_s after the server's buffer filled (a reset): what it reads
+    ends without the archive's last chunk, the log says why, and the server serves on."""
     import socket
     import time
 
@@ -266,7 +267,9 @@ def test_a_stalled_download_is_cut_and_lets_its_snapshot_go(tmp_path: Path) -> N
             while chunk := sock.recv(1 << 16):
                 got += chunk
             closed = True
-        except (TimeoutError, ConnectionResetError):
+        except ConnectionResetError:  # reset: the unsent rest is dropped
+            closed = True
+        except TimeoutError:
             closed = False
         assert closed, f"the connection stayed open ({len(got)} bytes read)"
         assert len(got) < 10_000_000 and not got.endswith(b"0\r\n\r\n"), len(got)
@@ -277,6 +280,50 @@ def test_a_stalled_download_is_cut_and_lets_its_snapshot_go(tmp_path: Path) -> N
             metrics = c.get("/metrics").text
             assert 'status="500"' not in metrics
             assert 'sgvloc_connections_cut_total{reason="send_timeout"} 1.0' in metrics
+    finally:
+        if sock is not None:
+            sock.close()
+        srv.stop()
+
+
+def test_a_stalled_answer_is_cut_also_once_its_connection_is_closing(tmp_path: Path) -> None:
+    """A large answer sent whole (a 5 MB keyframe listing) that the client never reads:
+    uvicorn closes the idle keep-alive connection after 5 s, and a close waits for the
+    buffer; send_timeout_s (7 s here) still resets it, and the cut is counted."""
+    import socket
+
+    from conftest import Server
+
+    srv = Server(tmp_path / "data", tmp_path / "server.log", env={"SGVLOC_SEND_TIMEOUT_S": "7"})
+    srv.start()
+    sock = None
+    try:
+        rng = np.random.default_rng(4)
+        tags = {f"t{i}": "x" * 1000 for i in range(64)}
+        with httpx.Client(base_url=srv.url, timeout=120) as c:
+            assert c.post("/v1/maps", json={"name": "meta", "encoder": PRECOMPUTED}).is_success
+            for _ in range(8):
+                kfs = [{"T_map_sensor": np.eye(4), "features": random_features(rng, 20),
+                        "metadata": {"tags": tags}} for _ in range(10)]  # fmt: skip
+                assert post_msgpack(c, "/v1/maps/meta/keyframes", {"keyframes": kfs}).is_success
+        sock = socket.socket()
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        sock.connect(("127.0.0.1", srv.port))
+        sock.sendall(b"GET /v1/maps/meta/keyframes?limit=1000 HTTP/1.1\r\nHost: x\r\n\r\n")
+        sock.settimeout(30)
+        assert sock.recv(4096).startswith(b"HTTP/1.1 200")
+        time.sleep(12)  # reads nothing: keep-alive closes at 5 s, the deadline cuts at 7 s
+        got, cut = 0, False
+        try:
+            while chunk := sock.recv(1 << 16):
+                got += len(chunk)
+        except ConnectionResetError:
+            cut = True
+        assert cut or got < 5_000_000, got  # reset: the rest of the answer never came
+        with httpx.Client(base_url=srv.url, timeout=60) as c:
+            metrics = c.get("/metrics").text
+        assert 'sgvloc_connections_cut_total{reason="send_timeout"} 1.0' in metrics
+        assert "took none of its answer for 7 s" in srv.log_path.read_text()
     finally:
         if sock is not None:
             sock.close()

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import logging
 import socket
+import struct
 from collections.abc import Callable
 
 from .settings import Settings
@@ -73,10 +75,12 @@ def _timed_protocol(  # uvicorn is imported late
       ``header_timeout_s`` (from the connection or from the previous answer) is closed.
       uvicorn's keep-alive timeout stops at the first byte, so headers trickled a byte at
       a time would hold a connection forever otherwise.
-    - Answers: a client that takes none of an answer for ``send_timeout_s`` while the
-      send buffer is full loses its connection (aborted: the buffer is dropped). Without
-      it a stalled download holds its answer's memory, and an export its snapshot of the
-      store, for as long as the client keeps the connection open.
+    - Answers: a connection whose send buffer stays full for ``send_timeout_s`` (the
+      client takes none of it, or less than about 1 KiB/s), or whose finished answer
+      still waits in the buffer that long, is aborted (the buffer dropped), also when it
+      is already closing (a close waits for the buffer). Without it a stalled download
+      holds its answer's memory, and an export its snapshot of the store, for as long
+      as the client keeps the connection open.
     """
     import h11
     from uvicorn.protocols.http.h11_impl import H11Protocol
@@ -132,6 +136,10 @@ def _timed_protocol(  # uvicorn is imported late
             super().on_response_complete()
             if not self.transport.is_closing():
                 self._arm_header_timer()
+            if self.transport.get_write_buffer_size() and self._send_timer is None:
+                # an answer's tail waits in the buffer (below the pause mark): the same
+                # deadline, also once the connection is closing (close() waits for it)
+                self._send_timer = self.loop.call_later(send_timeout_s, self._send_timeout)
 
         def pause_writing(self) -> None:  # the client is not taking the answer
             super().pause_writing()
@@ -149,14 +157,18 @@ def _timed_protocol(  # uvicorn is imported late
 
         def _send_timeout(self) -> None:
             self._send_timer = None
-            if self.transport.is_closing():
-                return
+            if not self.transport.get_write_buffer_size():
+                return  # all of it went out: nothing stalls
             peer = self.client[0] if getattr(self, "client", None) else "?"
             log.warning(
                 "closing a connection to %s that took none of its answer for %g s (send_timeout_s)",
                 peer,
                 send_timeout_s,
             )
+            sock = self.transport.get_extra_info("socket")
+            if sock is not None:  # a reset: the kernel drops its queue too (no FIN-WAIT)
+                with contextlib.suppress(OSError):
+                    sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
             self.transport.abort()  # close() would wait for the unsent data
             on_cut("send_timeout")
 

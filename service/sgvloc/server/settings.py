@@ -202,9 +202,10 @@ class Settings(BaseSettings):
         60.0,
         gt=0,
         le=3600,
-        description="longest a client may take none of an answer being sent (a map export, a "
-        "large answer) once the send buffer is full; beyond it the connection is closed and "
-        "the answer's resources (an export's snapshot of the store) are let go",
+        description="longest the send buffer of an answer (a map export, a large answer) may "
+        "stay full, or a finished answer's tail wait in it, because the client does not read "
+        "(or reads under about 1 KiB/s); beyond it the connection is reset and the answer's "
+        "resources (an export's snapshot of the store) are let go",
     )
     body_timeout_s: float = Field(
         30.0,
