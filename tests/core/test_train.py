@@ -217,29 +217,37 @@ def test_tiny_training_lowers_the_loss_and_checkpoints(seq: Sequence, tmp_path: 
         train([seq], tmp_path, tiny_config(10), progress=False)
 
 
-def test_an_interrupted_run_keeps_its_steps(
+def test_an_interrupted_run_resumes_as_if_never_stopped(
     seq: Sequence, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """Ctrl-C between checkpoints saves the steps done; a run again resumes after them."""
+    """Ctrl-C (a real SIGINT) in the middle of a step lets that step end, saves it whole
+    (weights, optimiser, random generators) and stops; a run again resumes after it and
+    trains exactly as an uninterrupted run does."""
+    import signal
+
     import sgvloc.tools.train as training
+
+    whole = train([seq], tmp_path / "whole", tiny_config(8), progress=False)
+    _, reference = load_checkpoint(whole)
 
     real, calls = training.losses, []
 
     def interrupting(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
         calls.append(1)
-        if len(calls) == 4:  # in the 4th step, before it is taken
-            raise KeyboardInterrupt
+        if len(calls) == 4:  # the 4th step, after its batch was drawn
+            signal.raise_signal(signal.SIGINT)
         return real(*args, **kwargs)
 
     monkeypatch.setattr(training, "losses", interrupting)
     with pytest.raises(KeyboardInterrupt):
-        train([seq], tmp_path, tiny_config(8), progress=False)
-    _, state = load_checkpoint(tmp_path / "checkpoint.pt")
-    assert state["step"] == 3 and len(state["history"]) == 3
+        train([seq], tmp_path / "cut", tiny_config(8), progress=False)
+    _, state = load_checkpoint(tmp_path / "cut" / "checkpoint.pt")
+    assert state["step"] == 4 and len(state["history"]) == 4
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # put back
     monkeypatch.setattr(training, "losses", real)
-    train([seq], tmp_path, tiny_config(8), progress=False)
-    _, state = load_checkpoint(tmp_path / "checkpoint.pt")
-    assert state["step"] == 8 and len(state["history"]) == 8
+    train([seq], tmp_path / "cut", tiny_config(8), progress=False)
+    _, resumed = load_checkpoint(tmp_path / "cut" / "checkpoint.pt")
+    assert resumed["history"] == reference["history"]
 
 
 def test_exported_weights_make_a_learned_encoder_of_their_own(

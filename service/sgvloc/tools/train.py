@@ -20,14 +20,16 @@ CPU by default, CUDA with ``device="cuda"``/``"auto"``.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
+import signal
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import numpy as np
 import torch
@@ -516,7 +518,7 @@ def train(
     model.train()
     t0 = time.perf_counter()
     saved = step
-    try:
+    with _interruptions_between_steps() as interrupted:
         while step < cfg.steps:
             a, p, pos, corr, _ = sample_batch(train_seqs, cfg, rng)
             parts = losses(model, a, p, pos, corr, cfg, device)
@@ -533,17 +535,58 @@ def train(
             if step % cfg.checkpoint_every == 0 or step == cfg.steps:
                 save()
                 saved = step
-    except (KeyboardInterrupt, SystemExit):  # Ctrl-C, SIGTERM: keep the steps done
-        bar.close()
-        if step > saved:  # the weights, optimiser and RNG are those after ``step``
-            save()
-            log.warning("interrupted: saved step %d in %s; run again to resume", step, ckpt_path)
-        raise
+            if interrupted:  # Ctrl-C or SIGTERM during the step: it is whole, keep it
+                bar.close()
+                if step > saved:  # weights, optimiser and RNG are all those after ``step``
+                    save()
+                log.warning("interrupted: step %d is in %s; run again to resume", step, ckpt_path)
+                interrupted.stop()
     bar.close()
     if not ckpt_path.exists():
         save()
     log.info("trained %d steps in %.0f s", step, time.perf_counter() - t0)
     return ckpt_path
+
+
+class _Interrupted:
+    """The signal received during a training step (falsy while none came)."""
+
+    def __init__(self) -> None:
+        self.signum: int | None = None
+
+    def __bool__(self) -> bool:
+        return self.signum is not None
+
+    def stop(self) -> NoReturn:
+        if self.signum == signal.SIGINT:
+            raise KeyboardInterrupt
+        raise SystemExit(128 + (self.signum or 0))
+
+
+@contextlib.contextmanager
+def _interruptions_between_steps() -> Iterator[_Interrupted]:
+    """Ctrl-C (SIGINT) and SIGTERM wait for the training step under way to end, so that
+    the checkpoint saved then is one state (weights, optimiser, random generators, step);
+    a second one stops at once. Outside the main thread the signals are left alone."""
+    got = _Interrupted()
+
+    def defer(signum: int, _frame: object) -> None:
+        if got:  # asked twice: now
+            got.signum = signum
+            got.stop()
+        got.signum = signum
+        log.warning("interrupted: stopping after this step (again to stop now)")
+
+    try:
+        before = {sig: signal.signal(sig, defer) for sig in (signal.SIGINT, signal.SIGTERM)}
+    except ValueError:  # not the main thread
+        yield got
+        return
+    try:
+        yield got
+    finally:
+        for sig, handler in before.items():
+            signal.signal(sig, handler)
 
 
 def _data_text(data: list[dict[str, Any]]) -> str:
