@@ -171,15 +171,16 @@
     $("key-input").focus();
   }
 
-  function handle(exc, what) {
+  // ``key``: the poll that failed, whose next success clears the message
+  function handle(exc, what, key = what) {
     if (exc instanceof Refused) {
       showKeyForm(exc.message, Boolean(storedKey()));
       return;
     }
     if (exc instanceof Loading) {
-      state.failing.set(what, `${what}: the service is not ready (${exc.message}); retrying…`);
+      state.failing.set(key, `${what}: the service is not ready (${exc.message}); retrying…`);
     } else {
-      state.failing.set(what, `${what}: ${exc.message}`);
+      state.failing.set(key, `${what}: ${exc.message}`);
     }
     showProgress();
   }
@@ -375,8 +376,9 @@
       // fitted again with the answers too: an estimate beyond the keyframes stays in view
       state.view = null;
       applyView();
+      if (generation === state.generation) succeeded("map");
     } catch (exc) {
-      handle(exc, `map ${name}`);
+      if (generation === state.generation) handle(exc, `map ${name}`, "map");
     }
   }
 
