@@ -2,6 +2,7 @@
 
 import json
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -147,6 +148,41 @@ def test_bev_images_of_a_scan_sequence(small, tmp_path):
     res = CliRunner().invoke(app, ["bev-images", str(broken), str(out), "--overwrite"])
     assert res.exit_code == 1 and "000004.bin" in res.output, res.output
     assert files(out) == before and not list(out.glob(".*"))
+
+
+def test_staged_outputs_replace_links_and_undo_a_failed_move(tmp_path, monkeypatch):
+    from sgvloc.tools.staging import staged
+
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (elsewhere / "old.bin").write_bytes(b"old")
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "velodyne").symlink_to(elsewhere)
+    (out / "poses.txt").write_text("old poses")
+    with staged(out, ("velodyne", "poses.txt")) as stage:
+        (stage / "velodyne").mkdir()
+        (stage / "velodyne" / "new.bin").write_bytes(b"new")
+        (stage / "poses.txt").write_text("new poses")
+    assert not (out / "velodyne").is_symlink() and (out / "velodyne" / "new.bin").exists()
+    assert (elsewhere / "old.bin").read_bytes() == b"old"  # the link's target is kept
+    assert (out / "poses.txt").read_text() == "new poses" and not list(out.glob(".*"))
+    # a move that fails half-way puts the previous outputs back
+    real_rename = Path.rename
+
+    def failing(self, target):  # noqa: ANN001, ANN202
+        if self.name == "poses.txt" and ".staging-" in str(self):
+            raise OSError("disk gone")
+        return real_rename(self, target)
+
+    monkeypatch.setattr(Path, "rename", failing)
+    with pytest.raises(OSError, match="disk gone"):
+        with staged(out, ("velodyne", "poses.txt")) as stage:
+            (stage / "velodyne").mkdir()
+            (stage / "poses.txt").write_text("newer")
+    monkeypatch.setattr(Path, "rename", real_rename)
+    assert (out / "velodyne" / "new.bin").exists()
+    assert (out / "poses.txt").read_text() == "new poses" and not list(out.glob(".*"))
 
 
 def test_an_overwrite_that_fails_leaves_the_previous_sequence(small, tmp_path, monkeypatch):
