@@ -69,10 +69,12 @@ class Client(BaseClient):
             ``retries``. Off by default: a vehicle may prefer a fresh scan to a late answer.
         max_retry_after: a ``Retry-After`` longer than this (seconds) is not waited for:
             the :class:`Overloaded` error is raised at once.
-        total_timeout: the longest (seconds) a call may take with all its tries and
-            waits: each try gets at most the time left, and no try starts past it
-            (:class:`TransportError`). ``timeout`` bounds each try; None (the default):
-            no bound over the tries.
+        total_timeout: seconds for a call with all its tries and waits: each try's
+            connect, send and read timeouts are cut to the time left when it starts, and
+            no try or wait goes past it (:class:`TransportError`). ``timeout`` bounds each
+            try; None (the default): no bound over the tries. An answer still arriving is
+            not cut (a server sending a byte at a time keeps each read within its
+            timeout), and map exports and imports keep their own ``timeout``.
 
     Use as a context manager (or call :meth:`close`). Errors are the exceptions of
     :mod:`sgvloc_client._errors` (see :class:`~sgvloc_client.SgvlocError`).
