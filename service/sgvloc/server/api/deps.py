@@ -103,11 +103,13 @@ class Worker:
             if gated and not acquired:
                 self._gate.release()  # type: ignore[union-attr]
         if not acquired:
+            which = "worker" if gated or self._gate is None else "worker for map changes"
+            limit = "" if which == "worker" else f" (write_workers={self._settings.write_limit})"
             raise busy(
                 503,
                 "queue_timeout",
-                f"no worker was free within request_timeout_s="
-                f"{self._settings.request_timeout_s:g} s; retry later",
+                f"no {which} was free within request_timeout_s="
+                f"{self._settings.request_timeout_s:g} s{limit}; retry later",
                 self._settings,
             )
         try:
@@ -204,7 +206,8 @@ MetricsDep = Annotated[Metrics, Depends(get_metrics)]
 ManagerDep = Annotated[MapManager, Depends(get_manager)]
 WorkerDep = Annotated[Worker, Depends(get_worker)]
 WriteWorkerDep = Annotated[Worker, Depends(get_write_worker)]
-BodyDep = Annotated[RawBody, Depends(get_body)]
+# released when the route returns, before its answer is sent (a slow reader holds none)
+BodyDep = Annotated[RawBody, Depends(get_body, scope="function")]
 MapName = Annotated[str, Path(alias="map", description="map name")]
 
 
