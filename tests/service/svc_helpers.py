@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import socket
 from dataclasses import dataclass
 from typing import Any
 
@@ -28,6 +29,19 @@ def post_msgpack(
     return c.post(
         path, content=wire.packb(body), headers={"Content-Type": wire.MSGPACK, **(headers or {})}
     )
+
+
+def answer_head(sock: socket.socket, timeout: float = 30) -> str:
+    """The status line and headers of the answer on a raw socket, lower case ("" when
+    the connection closes before them)."""
+    sock.settimeout(timeout)
+    answer = b""
+    while b"\r\n\r\n" not in answer:
+        chunk = sock.recv(4096)
+        if not chunk:
+            break
+        answer += chunk
+    return answer.split(b"\r\n\r\n")[0].decode().lower()
 
 
 def decode(r: httpx.Response) -> Any:

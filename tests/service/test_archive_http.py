@@ -5,6 +5,7 @@ and foreign uploads refused over HTTP; the SDK's listing, bulk delete and statis
 from __future__ import annotations
 
 import os
+import socket
 import subprocess
 import sys
 import time
@@ -234,13 +235,21 @@ def test_an_archive_past_this_servers_limits_is_refused(
     assert client.get("/v1/maps/arc-wide").status_code == 404
 
 
+def _stalled_get(port: int, path: str) -> tuple[socket.socket, bytes]:
+    """A GET whose client reads the first 4 KiB of the answer and then nothing (a receive
+    window of 4 KiB): the socket and what it read."""
+    sock = socket.socket()
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    sock.connect(("127.0.0.1", port))
+    sock.sendall(f"GET {path} HTTP/1.1\r\nHost: x\r\n\r\n".encode())
+    sock.settimeout(30)
+    return sock, sock.recv(4096)
+
+
 def test_a_stalled_download_is_cut_and_lets_its_snapshot_go(tmp_path: Path) -> None:
     """A client that stops reading an export (its receive window closed) loses the
     connection send_timeout_s after the server's buffer filled (a reset): what it reads
     ends without the archive's last chunk, the log says why, and the server serves on."""
-    import socket
-    import time
-
     from conftest import Server
 
     srv = Server(tmp_path / "data", tmp_path / "server.log", env={"SGVLOC_SEND_TIMEOUT_S": "1.5"})
@@ -254,12 +263,7 @@ def test_a_stalled_download_is_cut_and_lets_its_snapshot_go(tmp_path: Path) -> N
                 kfs = [{"T_map_sensor": np.eye(4), "features": random_features(rng, 4000)}
                        for _ in range(10)]  # fmt: skip
                 assert post_msgpack(c, "/v1/maps/big/keyframes", {"keyframes": kfs}).is_success
-        sock = socket.socket()
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
-        sock.connect(("127.0.0.1", srv.port))
-        sock.sendall(b"GET /v1/maps/big/export HTTP/1.1\r\nHost: x\r\n\r\n")
-        sock.settimeout(30)
-        got = sock.recv(4096)
+        sock, got = _stalled_get(srv.port, "/v1/maps/big/export")
         assert got.startswith(b"HTTP/1.1 200"), got[:200]
         time.sleep(5)  # reads nothing: the server's buffer fills and it waits
         sock.settimeout(10)
@@ -290,8 +294,6 @@ def test_a_stalled_answer_is_cut_also_once_its_connection_is_closing(tmp_path: P
     """A large answer sent whole (a 5 MB keyframe listing) that the client never reads:
     uvicorn closes the idle keep-alive connection after 5 s, and a close waits for the
     buffer; send_timeout_s (7 s here) still resets it, and the cut is counted."""
-    import socket
-
     from conftest import Server
 
     srv = Server(tmp_path / "data", tmp_path / "server.log", env={"SGVLOC_SEND_TIMEOUT_S": "7"})
@@ -306,12 +308,8 @@ def test_a_stalled_answer_is_cut_also_once_its_connection_is_closing(tmp_path: P
                 kfs = [{"T_map_sensor": np.eye(4), "features": random_features(rng, 20),
                         "metadata": {"tags": tags}} for _ in range(10)]  # fmt: skip
                 assert post_msgpack(c, "/v1/maps/meta/keyframes", {"keyframes": kfs}).is_success
-        sock = socket.socket()
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
-        sock.connect(("127.0.0.1", srv.port))
-        sock.sendall(b"GET /v1/maps/meta/keyframes?limit=1000 HTTP/1.1\r\nHost: x\r\n\r\n")
-        sock.settimeout(30)
-        assert sock.recv(4096).startswith(b"HTTP/1.1 200")
+        sock, first = _stalled_get(srv.port, "/v1/maps/meta/keyframes?limit=1000")
+        assert first.startswith(b"HTTP/1.1 200")
         time.sleep(12)  # reads nothing: keep-alive closes at 5 s, the deadline cuts at 7 s
         got, cut = 0, False
         try:

@@ -16,7 +16,7 @@ import msgpack
 import numpy as np
 import pytest
 from conftest import Server
-from svc_helpers import PRECOMPUTED, error_of, post_msgpack, random_features
+from svc_helpers import PRECOMPUTED, answer_head, error_of, post_msgpack, random_features
 
 from sgvloc.core.encoders.learned import shipped_weights_path
 from sgvloc_client import wire
@@ -258,17 +258,10 @@ def test_a_slow_upload_holds_no_localize_slot(strict_server: Server) -> None:
             for _ in range(3):
                 r = post_msgpack(c, "/v1/maps/light/localize", body)
                 assert r.status_code == 200, r.text
-        slow.settimeout(30)
-        answer = b""
-        while b"\r\n\r\n" not in answer:
-            chunk = slow.recv(4096)
-            if not chunk:
-                break
-            answer += chunk
+        head = answer_head(slow)
     finally:
         slow.close()
-    head = answer.split(b"\r\n\r\n")[0].decode().lower()
-    assert head.startswith("http/1.1 408"), answer[:300]
+    assert head.startswith("http/1.1 408"), head
     assert "connection: close" in head
 
 

@@ -21,6 +21,7 @@ from svc_helpers import (
     MAX_POINTS,
     MAX_TOP_K,
     PRECOMPUTED,
+    answer_head,
     error_of,
     post_msgpack,
     random_features,
@@ -322,17 +323,6 @@ def _hold_body(port: int, length: int) -> socket.socket:
     return sock
 
 
-def _answer_head(sock: socket.socket) -> str:
-    sock.settimeout(30)
-    answer = b""
-    while b"\r\n\r\n" not in answer:
-        chunk = sock.recv(4096)
-        if not chunk:
-            break
-        answer += chunk
-    return answer.split(b"\r\n\r\n")[0].decode().lower()
-
-
 def test_bodies_in_memory_are_bounded_over_all_requests(tmp_path: Path) -> None:
     """max_body_memory_bytes = 2 MiB with bodies of at most 1 MiB: two uploads that
     declared 1 MiB and 1 MiB - 1000 bytes leave no room, so a third body is 503 ``overloaded`` at
@@ -381,7 +371,7 @@ def test_bodies_in_memory_are_bounded_over_all_requests(tmp_path: Path) -> None:
                 b"Content-Type: application/msgpack\r\nTransfer-Encoding: chunked\r\n\r\n"
                 + f"{len(chunk):x}\r\n".encode() + chunk + b"\r\n"
             )  # fmt: skip
-            head = _answer_head(streamed)
+            head = answer_head(streamed)
             assert head.startswith("http/1.1 503") and "connection: close" in head, head
             for sock in holders:
                 sock.close()
