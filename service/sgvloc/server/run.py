@@ -159,6 +159,12 @@ def _timed_protocol(  # uvicorn is imported late
             self._send_timer = None
             if not self.transport.get_write_buffer_size():
                 return  # all of it went out: nothing stalls
+            if not (
+                self.flow.write_paused
+                or self.transport.is_closing()
+                or self.conn.our_state is h11.DONE
+            ):
+                return  # an answer under way whose data moves: a healthy download
             peer = self.client[0] if getattr(self, "client", None) else "?"
             log.warning(
                 "closing a connection to %s that took none of its answer for %g s (send_timeout_s)",
