@@ -218,6 +218,9 @@ def test_json_log_lines_with_request_ids_and_access_lines(json_server: Server) -
     by_key = samples(text)
     assert by_key[f'sgvloc_localize_by_key_total{{key_name="truck-17",verdict="{verdict}"}}'] == 1
     assert by_key["sgvloc_maps_failed"] == 1  # the broken folder
+    # what each error answer was, by route and code
+    assert by_key['sgvloc_errors_total{code="map_unavailable",route="/v1/maps/{map}"}'] == 1
+    assert by_key['sgvloc_errors_total{code="unauthorized",route="/v1/maps"}'] == 1
     assert by_key[f'sgvloc_build_info{{version="{__version__}"}}'] == 1
     assert by_key["process_resident_memory_bytes"] > 0
     assert by_key["sgvloc_store_up"] == 1  # SQLite: always

@@ -132,6 +132,13 @@ class Metrics:
             "Bytes of request bodies held in memory now (max_body_memory_bytes bounds it)",
             registry=r,
         )
+        self.errors = Counter(
+            "sgvloc_errors",
+            "Error answers by route template and error code (store_unavailable, "
+            "queue_timeout, map_unavailable, invalid_input, ...): what a 4xx or 5xx was",
+            ["route", "code"],
+            registry=r,
+        )
         self.connections_cut = Counter(
             "sgvloc_connections_cut",
             "Connections the service closed for a deadline: header_timeout (headers too "

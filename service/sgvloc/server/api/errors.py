@@ -69,6 +69,10 @@ def error_response(
 
     body = {"error": {"code": code, "message": message, "field": field}}
     request.state.error_code = code  # for the access line
+    metrics = getattr(request.app.state, "metrics", None)
+    if metrics is not None:  # codes are a fixed set, routes are templates: few series
+        route = getattr(request.scope.get("route"), "path", None) or "unmatched"
+        metrics.errors.labels(route, code).inc()
     response = encode(request, body, status)
     response.headers.update(headers or {})
     return response
