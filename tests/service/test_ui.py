@@ -190,6 +190,8 @@ def test_page_lists_the_map_and_draws_its_keyframes_and_localizations(
     localized = re.search(r'id="c-localized">([^<]*)<', dom).group(1)
     not_localized = re.search(r'id="c-not-localized">([^<]*)<', dom).group(1)
     assert int(localized.replace(",", "")) == ui_map.localized
+    # the start-up's /readyz 503s ("still loading") are no service unavailable answers
+    assert re.search(r'id="c-503">0<', dom), re.search(r'id="c-503">[^<]*<', dom)
     assert int(not_localized.replace(",", "")) == ui_map.answers - ui_map.localized
     assert re.search(r'id="version"[^>]*>version \S+<', dom)
     # the key form is hidden and the key is nowhere in the page

@@ -204,8 +204,9 @@
   }
 
   // Sums of one counter family: the shortest name that starts with `prefix`, ends with
-  // "_total" and carries label `by` (tolerant of renamed or relabelled series).
-  function family(samples, prefix, by) {
+  // "_total" and carries label `by` (tolerant of renamed or relabelled series), over the
+  // samples whose labels `keep` accepts.
+  function family(samples, prefix, by, keep = () => true) {
     const names = [...new Set(samples.map((s) => s.name))]
       .filter((n) => n.startsWith(prefix) && n.endsWith("_total"))
       .filter((n) => samples.some((s) => s.name === n && by in s.labels))
@@ -214,6 +215,7 @@
     const sums = {};
     for (const s of samples) {
       if (s.name !== names[0] || !(by in s.labels) || !Number.isFinite(s.value)) continue;
+      if (!keep(s.labels)) continue;
       sums[s.labels[by]] = (sums[s.labels[by]] || 0) + s.value;
     }
     return sums;
@@ -244,7 +246,9 @@
       if (verdict === "localized") localized += n;
       else other += n;
     }
-    const statuses = family(samples, "sgvloc_http_requests", "status") || {};
+    // a probe's 503 says "not ready yet" (load balancers ask every second): not counted
+    const probes = new Set(["/readyz", "/healthz", "/metrics"]);
+    const statuses = family(samples, "sgvloc_http_requests", "status", (l) => !probes.has(l.route)) || {};
     $("c-localized").textContent = count(localized);
     $("c-not-localized").textContent = count(other);
     $("c-429").textContent = count(statuses["429"] || 0);
