@@ -163,21 +163,25 @@ class MotionModel:
         _check_stamp(stamp)
         if self.pose is None or self.stamp is None:
             return None
-        if odom_delta is not None:
-            return self.pose @ self._odometry(odom_delta)
+        return self._predict(stamp, None if odom_delta is None else _odometry_step(odom_delta))
+
+    def _predict(self, stamp: float, step: np.ndarray | None) -> np.ndarray:
+        """:meth:`predict` from a fix, with this scan's checked odometry ``step``."""
+        assert self.pose is not None and self.stamp is not None
+        if step is not None:
+            return self.pose @ self._since_fix(step)
         dt = stamp - self.stamp
         if self._delta is None or self._delta_dt <= 0 or dt <= 0:
             return self.pose.copy()
         ratio = dt / self._delta_dt
-        step = np.eye(4)
+        motion = np.eye(4)
         turn = _log_rotation(self._delta[:3, :3]) * ratio * self.turn_factor
-        step[:3, :3] = _exp_rotation(turn)
-        step[:3, 3] = self._delta[:3, 3] * ratio
-        return self.pose @ step
+        motion[:3, :3] = _exp_rotation(turn)
+        motion[:3, 3] = self._delta[:3, 3] * ratio
+        return self.pose @ motion
 
-    def _odometry(self, odom_delta: Any) -> np.ndarray:
-        """The odometry since the last fix, with this scan's ``odom_delta``."""
-        step = _odometry_step(odom_delta)
+    def _since_fix(self, step: np.ndarray) -> np.ndarray:
+        """The odometry since the last fix, with this scan's checked ``step``."""
         return (self._pending_odom if self._pending_odom is not None else np.eye(4)) @ step
 
     def seed(self, stamp: float, odom_delta: Any = None) -> Seed | None:
@@ -185,17 +189,15 @@ class MotionModel:
         it once per scan: its ``odom_delta`` adds to the odometry since the last fix
         (ValueError, the track unchanged, if it is not a rigid 4x4 transform)."""
         _check_stamp(stamp)
-        if odom_delta is not None:
-            _odometry_step(odom_delta)  # refused before anything else, even while lost
+        # refused before anything else, even while lost
+        step = None if odom_delta is None else _odometry_step(odom_delta)
         if self.lost or self.stamp is None or stamp - self.stamp > self.max_gap_s:
             return None
         if stamp < self.stamp - MIN_STEP_S:  # before the last fix (a clock reset, a bag
             return None  # played again): what the track says is of another time
-        T = self.predict(stamp, odom_delta)
-        if T is None:
-            return None
-        if odom_delta is not None:
-            self._pending_odom = self._odometry(odom_delta)
+        T = self._predict(stamp, step)  # not lost: there is a fix
+        if step is not None:
+            self._pending_odom = self._since_fix(step)
         dt = max(0.0, stamp - self.stamp)
         widen = self.widen**self.misses
         sigma_m = (self.sigma_m + self.growth_m_per_s * dt) * widen
