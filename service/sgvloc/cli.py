@@ -1786,7 +1786,7 @@ def interruption_exit_code(exc: BaseException) -> int | None:
     interruption as its cause; None for any other error."""
     seen: BaseException | None = exc
     for _ in range(16):
-        seen = seen.__cause__ or seen.__context__ if seen is not None else None
+        seen = seen.__cause__ or seen.__context__
         if seen is None:
             return None
         if isinstance(seen, KeyboardInterrupt):

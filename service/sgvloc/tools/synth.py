@@ -430,10 +430,12 @@ def generate(
         raise InputError(f"{root}: already holds a sequence (velodyne/); pass overwrite")
     # written aside: a run that fails or is interrupted leaves the previous sequence whole
     with staged(root, ("velodyne", "poses.txt", "times.txt", "synth.json")) as stage:
-        return _generate(stage, root, cfg, progress)
+        info = _generate(stage, cfg, progress)
+    log.info("synthetic sequence %s: %s", root, info)
+    return info
 
 
-def _generate(stage: Path, root: Path, cfg: SynthConfig, progress: bool) -> dict[str, Any]:
+def _generate(stage: Path, cfg: SynthConfig, progress: bool) -> dict[str, Any]:
     from sgvloc.core.io import write_kitti_bin
 
     vel = stage / "velodyne"
@@ -475,5 +477,4 @@ def _generate(stage: Path, root: Path, cfg: SynthConfig, progress: bool) -> dict
         "mean_points_per_scan": points / cfg.scans,
     }
     (stage / "synth.json").write_text(json.dumps(info, indent=1))
-    log.info("synthetic sequence %s: %s", root, info)
     return info
