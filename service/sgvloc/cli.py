@@ -472,13 +472,20 @@ def build_map_command(
     self_test_out: Annotated[
         Path | None, typer.Option(help="self-test: also write the report (JSON) here")
     ] = None,
+    key_prefix: Annotated[
+        str | None,
+        typer.Option(
+            help="first part of each keyframe's key, PREFIX/SCAN (default: the folder's "
+            "name); give the earlier name to resume a build from a renamed or moved folder"
+        ),
+    ] = None,
     progress: Annotated[bool, typer.Option(help="show a progress bar")] = True,
     threads: ThreadsOpt = None,
 ) -> None:
     """Insert a KITTI-layout sequence into a map of a running service or a data directory.
 
-    Each keyframe's key is FOLDER/SCAN (e.g. 00/000042), so running the same command
-    again resumes an interrupted build and stores nothing twice.
+    Each keyframe's key is FOLDER/SCAN (e.g. 00/000042; --key-prefix replaces FOLDER), so
+    running the same command again resumes an interrupted build and stores nothing twice.
 
     With --data-dir the keyframes go straight into the map stores of that directory (needs
     the service extra) and the index snapshot is saved at the end, so a service started on
@@ -491,13 +498,17 @@ def build_map_command(
     import sgvloc_client
 
     from .core.errors import SgvlocError
-    from .tools.build_map import build_map
+    from .tools.build_map import build_map, key_prefix_for
 
     if (source is None) == (data is None):
         raise typer.BadParameter(
             "give the sequence folder once: --data FOLDER", ctx=ctx, param_hint="'--data'"
         )
     source = source or data
+    try:
+        key_prefix_for(source, key_prefix)
+    except SgvlocError as exc:
+        raise typer.BadParameter(str(exc), ctx=ctx, param_hint="'--key-prefix'") from None
     if not map_name:
         raise typer.BadParameter("name the map to fill", ctx=ctx, param_hint="'--map'")
     # SGVLOC_URL in the environment is no conflict; --url on the command line is
@@ -536,6 +547,7 @@ def build_map_command(
         encoder = report["chosen"]
     options = dict(create=create, encoder=encoder, batch_size=batch_size, every=every)
     options.update(limit=limit, until=until, progress=progress, self_test=report)
+    options.update(key_prefix=key_prefix)
     try:
         if data_dir is not None:
             result = build_map(source, data_dir, map_name, **options)

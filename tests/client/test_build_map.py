@@ -433,6 +433,32 @@ def test_another_sequence_in_a_folder_of_the_same_name_is_refused(
     assert (rest.created, rest.existing) == (1, 2)
 
 
+def test_a_renamed_folder_resumes_under_its_key_prefix(tmp_path: Path, balm_mini_dir: Path) -> None:
+    """Keys default to FOLDER/SCAN: after a rename the build would store every scan again
+    under the new name; --key-prefix with the earlier name resumes it instead."""
+    import shutil
+
+    data_dir = tmp_path / "data"
+    build_map(balm_mini_dir, data_dir, "m", limit=2, progress=False)
+    moved = tmp_path / "renamed"
+    shutil.copytree(balm_mini_dir, moved)
+    runner = CliRunner()
+    args = ["build-map", "--data", str(moved), "--map", "m", "--data-dir", str(data_dir)]
+    args += ["--limit", "3", "--no-progress"]
+    out = runner.invoke(app, [*args, "--key-prefix", balm_mini_dir.name])
+    assert out.exit_code == 0, out.output
+    assert "1 new keyframes, 2 already present; 3 keyframes" in out.output, out.output
+    fresh = build_map(moved, data_dir, "m", limit=3, progress=False)  # the new name
+    assert (fresh.created, fresh.existing, fresh.keyframes) == (3, 0, 6)
+
+    for bad in ("/", "  ", "a\tb"):
+        out = runner.invoke(app, [*args, "--key-prefix", bad])
+        assert out.exit_code == 2, out.output  # a usage error, before anything is written
+        assert "key_prefix" in out.output, out.output
+    with pytest.raises(InputError, match="key_prefix"):
+        build_map(moved, data_dir, "m", key_prefix="", progress=False)
+
+
 def test_a_build_that_inserts_nothing_leaves_no_map(
     tmp_path: Path, balm_mini_dir: Path, service_url: str
 ) -> None:

@@ -2,9 +2,10 @@
 
 The sequence's poses (``poses.txt``, ``T_world_sensor``) become the keyframes'
 ``T_map_sensor``: the map frame is the sequence's world frame. Each keyframe's key is
-``<folder name>/<scan stem>`` (e.g. ``00/000042``), so re-running the same build resumes
-where it stopped: scans already in the map are answered ``created: false`` and not stored
-twice.
+``<prefix>/<scan stem>`` (e.g. ``00/000042``), the prefix being the folder's name unless
+given (``key_prefix``, ``--key-prefix``), so re-running the same build resumes where it
+stopped: scans already in the map are answered ``created: false`` and not stored twice. A
+build resumed from a renamed or moved folder keeps its keys with the old name as prefix.
 
 Two targets, one loop (:func:`build_map`), each behind a small :class:`KeyframeSink`:
 
@@ -337,6 +338,18 @@ class DataDirSink:
         self.manager.close()  # saves the snapshot of every changed map
 
 
+def key_prefix_for(root: Path, given: str | None) -> str:
+    """The keys' prefix: ``given`` (checked) or the folder's name."""
+    if given is None:
+        return root.resolve().name
+    prefix = given.strip().strip("/")
+    if not prefix or any(not ch.isprintable() for ch in prefix) or len(prefix) > 200:
+        raise InputError(
+            f"key_prefix {given!r} must be 1-200 printable characters other than a bare '/'"
+        )
+    return prefix
+
+
 # -- the build -----------------------------------------------------------------------------
 
 #: a keyframe already in the map under a scan's key lies this close to the scan's pose (m)
@@ -347,9 +360,9 @@ def _check_resumed_poses(
     sink: KeyframeSink, name: str, prefix: str, seq: KittiSequence, frames: list[int]
 ) -> None:
     """Refuse to resume into keyframes of another sequence: keys name the sequence by
-    its folder, so a different drive in a folder of the same name would be skipped scan
-    by scan as "already present". Each scan whose key the map holds must sit where the
-    map has it."""
+    its prefix (by default its folder's name), so a different drive under the same
+    prefix would be skipped scan by scan as "already present". Each scan whose key the
+    map holds must sit where the map has it."""
     held = sink.positions(name, f"{prefix}/")
     if not held:
         return
@@ -360,8 +373,9 @@ def _check_resumed_poses(
             if off > RESUME_TOLERANCE_M:
                 raise ConflictError(
                     f"map {name!r} holds keyframe {key!r} {off:.2f} m from this sequence's "
-                    f"pose of that scan: is this another sequence in a folder also named "
-                    f"{prefix!r}? Build it into another map, or from a folder of another name"
+                    f"pose of that scan: is this another sequence under the same key prefix "
+                    f"{prefix!r} (by default the folder's name)? Build it into another map, "
+                    "or give it another --key-prefix"
                 )
 
 
@@ -409,6 +423,7 @@ def build_map(
     until: float | None = None,
     progress: bool = True,
     self_test: Mapping[str, Any] | None = None,
+    key_prefix: str | None = None,
 ) -> BuildMapResult:
     """Insert a KITTI-layout sequence into map ``map_name`` of a service or a data directory.
 
@@ -432,6 +447,9 @@ def build_map(
         progress: show a tqdm progress bar.
         self_test: an encoder self-test (:func:`sgvloc.tools.self_test.self_test`) to
             record with a map this call creates.
+        key_prefix: the first part of every key (``<prefix>/<scan stem>``) and the
+            ``sequence`` metadata; default: the folder's name. Give the earlier name to
+            resume a build from a renamed or moved folder.
 
     Raises :class:`~sgvloc.core.errors.InputError` for a bad sequence or option, the
     engine's errors (:mod:`sgvloc.core.errors`) for a data directory, and the client's
@@ -444,7 +462,7 @@ def build_map(
     if seq.poses is None:
         raise InputError(f"{root}: no poses.txt; a map needs a pose for every keyframe")
     frames = select_frames(len(seq), every, limit, until=until, times=seq.times)
-    prefix = root.resolve().name
+    prefix = key_prefix_for(root, key_prefix)
     spec = parse_encoder(encoder)
 
     sink: KeyframeSink = (
