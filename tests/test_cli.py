@@ -178,6 +178,9 @@ def test_bad_arguments_are_one_line_usage_errors(tmp_path: Path) -> None:
         (["train", "--data", str(tmp_path), "--out", out, "--device", "gpu"], "--device"),
         (["eval", "--data", str(tmp_path), "--config", missing], "--config"),
         (["calibrate", "--out", str(tmp_path / "c.json"), "--config", missing], "--config"),
+        (["eval", "--data", str(tmp_path), "--config", '{"pose": {"ransac_n": 1}}'], "ransac_n"),
+        (["eval", "--data", str(tmp_path), "--config", '{"pose": '], "--config"),
+        (["calibrate", "--out", str(tmp_path / "c.json"), "--config", '{"top_k": "x"}'], "top_k"),
         (["new-key", "--name", "a", "--role", "viewer", "--keys-file", missing], "--keys-file"),
         (["new-key", "--name", "a", "--role", "viewer", "--key-file", missing], "--key-file"),
     ]  # fmt: skip

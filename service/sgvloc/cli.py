@@ -625,6 +625,40 @@ CacheDirOpt = Annotated[
 ProgressOpt = Annotated[bool, typer.Option(help="show progress bars")]
 
 
+def _localizer_config(ctx: typer.Context, text: str | None) -> Any:
+    """``--config``: a LocalizerConfig from a JSON file or from JSON text (``{...}``);
+    a usage error naming the option when it is neither or does not validate."""
+    from pydantic import ValidationError
+
+    from .core.config import LocalizerConfig
+
+    if text is None:
+        return LocalizerConfig()
+    if text.lstrip().startswith("{"):
+        source, raw = "the JSON given", text
+    else:
+        path = Path(text)
+        if not path.is_file():
+            raise typer.BadParameter(
+                f"{text!r} is neither a JSON file nor JSON text ({{...}})",
+                ctx=ctx,
+                param_hint="'--config'",
+            )
+        try:
+            source, raw = str(path), path.read_text()
+        except (OSError, UnicodeDecodeError) as exc:
+            raise typer.BadParameter(
+                f"cannot read {path}: {exc}", ctx=ctx, param_hint="'--config'"
+            ) from None
+    try:
+        return LocalizerConfig.model_validate_json(raw)
+    except ValidationError as exc:
+        why = "; ".join(
+            f"{'.'.join(map(str, e['loc'])) or 'the JSON'}: {e['msg']}" for e in exc.errors()
+        )
+        raise typer.BadParameter(f"{source}: {why}", ctx=ctx, param_hint="'--config'") from None
+
+
 def _frames(text: str | None, option: str = "--frames") -> tuple[int, int | None] | None:
     """``START:STOP`` (STOP optional) as a pair of frame indices."""
     if text is None:
@@ -675,6 +709,7 @@ def _int_list(text: str, option: str | None = None, *, positive: bool = False) -
 
 @app.command("eval", epilog=ONE_THREAD)
 def eval_command(
+    ctx: typer.Context,
     data: Annotated[
         Path,
         typer.Option(
@@ -736,11 +771,10 @@ def eval_command(
     query_stride: Annotated[int, typer.Option(min=1, help="evaluate every n-th query")] = 1,
     encoder: EncoderOpt = None,
     config: Annotated[
-        Path | None,
+        str | None,
         typer.Option(
-            exists=True,
-            dir_okay=False,
-            help="JSON LocalizerConfig (retrieval, sgv, pose settings)",
+            help="LocalizerConfig (retrieval, sgv, pose settings): a JSON file, or the JSON "
+            """itself ('{"pose": {"min_icp_constraint": 0}}')""",
         ),
     ] = None,
     cache_dir: CacheDirOpt = None,
@@ -795,6 +829,7 @@ def eval_command(
     a reliability diagram).
     """
     _cap_threads(threads)
+    localizer = _localizer_config(ctx, config)
     _output_folder(out, "--out")
     from .core.errors import SgvlocError
     from .tools.evaluation.command import evaluate
@@ -817,7 +852,7 @@ def eval_command(
             max_queries=max_queries,
             query_stride=query_stride,
             encoder=encoder,
-            config=config,
+            localizer=localizer,
             cache_dir=cache_dir,
             frames=_frames(frames),
             negatives=negatives,
@@ -1036,6 +1071,7 @@ def calibrate_track_command(
 
 @app.command("calibrate", epilog=ONE_THREAD)
 def calibrate_command(
+    ctx: typer.Context,
     out: Annotated[Path, typer.Option(help="calibration file to write (JSON)")],
     data: Annotated[
         list[Path] | None,
@@ -1071,9 +1107,9 @@ def calibrate_command(
     query_stride: Annotated[int, typer.Option(min=1, help="every n-th query")] = 1,
     encoder: EncoderOpt = None,
     config: Annotated[
-        Path | None,
+        str | None,
         typer.Option(
-            exists=True, dir_okay=False, help="JSON LocalizerConfig (top_k, sgv, pose settings)"
+            help="LocalizerConfig (top_k, sgv, pose settings): a JSON file, or the JSON itself"
         ),
     ] = None,
     cache_dir: CacheDirOpt = None,
@@ -1090,9 +1126,9 @@ def calibrate_command(
     not report on.
     """
     _cap_threads(threads)
+    localizer = _localizer_config(ctx, config)
     _output_file(out, "--out")
     from .core.confidence import Calibration, shipped_calibration
-    from .core.config import LocalizerConfig
     from .core.encoders import EncoderSpec
     from .core.errors import SgvlocError
     from .tools.build_map import parse_encoder
@@ -1116,9 +1152,7 @@ def calibrate_command(
             min_gap=min_gap,
             refine=modes,
             encoder=spec,
-            localizer=LocalizerConfig.model_validate_json(config.read_text())
-            if config
-            else LocalizerConfig(),
+            localizer=localizer,
             max_queries=max_queries,
             query_stride=query_stride,
             cache_dir=cache_dir,

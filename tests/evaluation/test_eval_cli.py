@@ -111,9 +111,11 @@ def test_match_ratio_drops_with_a_wrong_ground_truth(first_run, balm_mini_dir):
 def test_second_run_reuses_cached_features(first_run):
     _, _, args, out = first_run
     args = [a for a in args] + ["--methods", "none,sgv", "--refine", "none"]
-    res = CliRunner().invoke(app, args)
+    # --config takes the JSON itself as well as a file
+    res = CliRunner().invoke(app, [*args, "--config", '{"pose": {"min_inliers": 7}}'])
     assert res.exit_code == 0, res.output
     report = json.loads((out / "eval.json").read_text())
+    assert report["config"]["localizer"]["pose"]["min_inliers"] == 7
     assert report["timings"]["feature_cache"] == {
         **report["timings"]["feature_cache"],
         "hits": 15,

@@ -40,7 +40,7 @@ def evaluate(
     max_queries: int | None,
     query_stride: int,
     encoder: str | None,
-    config: Path | None,
+    localizer: LocalizerConfig | None,
     cache_dir: Path | None,
     frames: tuple[int, int | None] | None,
     negatives: bool,
@@ -80,9 +80,7 @@ def evaluate(
         prior_radius=prior_radius,
         calibration=str(calibration) if calibration else None,
         encoder=EncoderSpec.model_validate(parse_encoder(encoder) or {}),
-        localizer=LocalizerConfig.model_validate_json(config.read_text())
-        if config
-        else LocalizerConfig(),
+        localizer=localizer or LocalizerConfig(),
     )
     result = run_evaluation(cfg, progress=progress)
     echo(markdown_table(result))
