@@ -10,10 +10,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from svc_helpers import random_features
 from test_store import SPEC, _items, _manager
 
-from sgvloc.core.errors import ConflictError, EncoderMismatchError, NotFoundError
+from sgvloc.core.errors import ConflictError, EncoderMismatchError, InputError, NotFoundError
 from sgvloc.server import archive
 from sgvloc.server.archive import ArchiveError
 from sgvloc.server.maps import LOCK_NAME, FeaturesIn, MapManager
@@ -242,8 +243,21 @@ def test_a_well_formed_but_hostile_archive_is_refused(source: MapManager, tmp_pa
         (_tampered(members, manifest=setting("version", 2**70)), "out of range"),
         (_tampered(members, manifest=setting("settings_version", 2**70)), "out of range"),
         (_tampered(members, manifest=setting("self_test", {"x": "y" * 300_000})), "self_test"),
+        # stored as given and served back before: the API refuses each of these
+        (_tampered(members, manifest=setting("self_test", {"x": float("nan")})), "not finite"),
+        (_tampered(members, manifest=setting("self_test", {"x": "a\x00"})), "NUL"),
+        (_tampered(members, manifest=setting("settings_updated_at", {"a": 1})), "ISO 8601"),
+        (_tampered(members, manifest=setting("created_at", "x" * 100_000)), "ISO 8601"),
+        (_tampered(members, manifest=setting("keep_clouds", "false")), "keep_clouds"),
+        (_tampered(members, _records(lambda r: r.update(created_at=12345))), "ISO 8601"),
     ]
     for data, match in cases:
         _refused(m, data, match)
+    if not torch.cuda.is_available():  # settings this machine cannot run: refused at once
+
+        def cuda(mf: dict) -> None:
+            mf["map"]["localizer_config"].setdefault("sgv", {})["device"] = "cuda"
+
+        _refused(m, _tampered(members, manifest=cuda), "localizer.sgv", InputError)
     assert m.import_archive(io.BytesIO(_tampered(members)), "imported").num_keyframes == 302
     m.close()

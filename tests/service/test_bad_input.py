@@ -10,6 +10,7 @@ import httpx
 import msgpack
 import numpy as np
 import pytest
+import torch
 from svc_helpers import (
     MAX_BATCH,
     MAX_BODY_BYTES,
@@ -299,6 +300,33 @@ def test_invalid_map_settings(client: httpx.Client, body: dict) -> None:
     r = client.post("/v1/maps", json=body)
     _expect(r, 422, "invalid_input")
     assert client.get("/v1/maps/bad-enc").status_code == 404
+
+
+@pytest.mark.usefixtures("unchanged")
+@pytest.mark.skipif(torch.cuda.is_available(), reason="this machine runs CUDA settings")
+@pytest.mark.parametrize(
+    "sgv", [{"device": "cuda"}, {"device": "cuda", "backend": "numba"}, {"backend": "numba"}]
+)
+def test_settings_this_machine_cannot_run_are_refused_where_given(
+    client: httpx.Client, pre_map: str, sgv: dict
+) -> None:
+    """SGV on CUDA without CUDA was stored, and then every localize of the map was a 500;
+    refused at creation and in a PATCH now (and in an import, tests/service/test_archive.py)."""
+    if sgv == {"backend": "numba"}:  # runnable on a CPU: the control
+        r = client.post("/v1/maps", json={"name": "dev-ok", "localizer": {"sgv": sgv}})
+        assert r.status_code == 201, r.text
+        assert client.delete("/v1/maps/dev-ok").status_code == 204
+        return
+    r = client.post("/v1/maps", json={"name": "dev-x", "localizer": {"sgv": sgv}})
+    err = _expect(r, 422, "invalid_input", "localizer.sgv")
+    assert "CUDA is not available" in err["message"], err
+    assert client.get("/v1/maps/dev-x").status_code == 404
+    before = client.get(f"/v1/maps/{pre_map}").json()
+    r = client.patch(f"/v1/maps/{pre_map}", json={"localizer": {"sgv": sgv}})
+    _expect(r, 422, "invalid_input", "localizer.sgv")
+    after = client.get(f"/v1/maps/{pre_map}").json()
+    assert after["settings_version"] == before["settings_version"]
+    assert after["localizer"]["sgv"] == before["localizer"]["sgv"]
 
 
 # -- encoders ----------------------------------------------------------------------------

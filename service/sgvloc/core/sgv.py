@@ -54,7 +54,7 @@ import numpy as np
 import torch
 
 from .config import SGVConfig
-from .errors import InputError, SgvlocError
+from .errors import ConflictError, InputError
 
 log = logging.getLogger(__name__)
 
@@ -86,16 +86,20 @@ def resolve_device(name: str = "auto") -> torch.device:
     """Map a device setting to a :class:`torch.device`.
 
     ``"auto"`` picks CUDA when available, else CPU; ``"cpu"``; ``"cuda"`` or ``"cuda:N"``
-    requires CUDA and raises :class:`SgvlocError` naming the problem when it is missing.
+    requires CUDA and raises :class:`ConflictError` naming the setting when it is missing
+    (a map's settings that this machine cannot run, not a bad request).
     """
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     try:
         device = torch.device(name)
     except (RuntimeError, TypeError) as exc:
-        raise SgvlocError(f"unknown torch device {name!r}") from exc
+        raise InputError(f"unknown torch device {name!r}") from exc
     if device.type == "cuda" and not torch.cuda.is_available():
-        raise SgvlocError(f"device {name!r} requested but CUDA is not available here")
+        raise ConflictError(
+            f"sgv.device {name!r} requested but CUDA is not available here: set it to "
+            "'auto' (CUDA when present) or 'cpu'"
+        )
     return device
 
 
@@ -112,13 +116,13 @@ def resolve_backend(cfg: SGVConfig, device: torch.device) -> Literal["torch", "n
     """The kernel that :func:`sgv_scores` runs for ``cfg`` on ``device``.
 
     ``"auto"``: numba on CPU when importable, else torch; ``"numba"`` requires a CPU
-    device and numba, and raises :class:`SgvlocError` naming the problem otherwise.
+    device and numba, and raises :class:`ConflictError` naming the problem otherwise.
     """
     if cfg.backend == "torch":
         return "torch"
     if device.type != "cpu":
         if cfg.backend == "numba":
-            raise SgvlocError(
+            raise ConflictError(
                 f"SGV backend 'numba' runs on CPU only, but the device is {str(device)!r}; "
                 "use backend 'torch' or 'auto' on CUDA"
             )
@@ -126,8 +130,15 @@ def resolve_backend(cfg: SGVConfig, device: torch.device) -> Literal["torch", "n
     if numba_available():
         return "numba"
     if cfg.backend == "numba":
-        raise SgvlocError("SGV backend 'numba' requested but numba is not installed")
+        raise ConflictError("SGV backend 'numba' requested but numba is not installed")
     return "torch"
+
+
+def check_runnable(cfg: SGVConfig) -> None:
+    """Raise :class:`ConflictError` when this machine cannot run ``cfg``'s device and
+    backend (CUDA asked for and absent, numba on CUDA or not installed), so that a map's
+    settings are refused when they are given rather than at every localization."""
+    resolve_backend(cfg, resolve_device(cfg.device))
 
 
 def warm_up(cfg: SGVConfig | None = None) -> float:

@@ -26,6 +26,7 @@ import tarfile
 import zipfile
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
+from datetime import datetime
 from typing import IO, Any
 
 import numpy as np
@@ -180,9 +181,53 @@ class ArchiveHeader:
 
 
 def _object_or_none(value: Any, name: str) -> dict[str, Any] | None:
-    if value is None or isinstance(value, dict):
+    if value is None:
+        return None
+    if not isinstance(value, dict):
+        raise TypeError(f"{name} is a {type(value).__name__}, not an object")
+    _plain(value, name)
+    return value
+
+
+def _plain(value: Any, name: str, depth: int = 0) -> None:
+    """Refuse what a map's JSON fields may not hold (as the API refuses it): numbers that
+    are not finite, NUL characters, text that is not valid Unicode, deep nesting."""
+    if depth > 32:
+        raise ValueError(f"{name} is nested deeper than 32 levels")
+    if isinstance(value, float) and not np.isfinite(value):
+        raise ValueError(f"{name} holds a number that is not finite")
+    if isinstance(value, str):
+        if "\x00" in value:
+            raise ValueError(f"{name} holds a NUL character")
+        try:
+            value.encode("utf-8")
+        except UnicodeEncodeError:
+            raise ValueError(f"{name} holds text that is not valid Unicode") from None
+    elif isinstance(value, list):
+        for v in value:
+            _plain(v, name, depth + 1)
+    elif isinstance(value, dict):
+        for k, v in value.items():
+            _plain(k, name, depth + 1)
+            _plain(v, name, depth + 1)
+
+
+def _timestamp(value: Any, name: str) -> str:
+    """An ISO 8601 time as the stores write it (``utc_now``), checked."""
+    if isinstance(value, str) and len(value) <= 40:
+        try:
+            datetime.fromisoformat(value)
+            return value
+        except ValueError:
+            pass
+    shown = repr(value) if len(repr(value)) <= 60 else repr(value)[:57] + "..."
+    raise ValueError(f"{name} {shown} is not an ISO 8601 time")
+
+
+def _bool(value: Any, name: str) -> bool:
+    if isinstance(value, bool):
         return value
-    raise TypeError(f"{name} is a {type(value).__name__}, not an object")
+    raise TypeError(f"{name} is a {type(value).__name__}, not true or false")
 
 
 def _header(manifest: dict[str, Any]) -> ArchiveHeader:
@@ -201,13 +246,15 @@ def _header(manifest: dict[str, Any]) -> ArchiveHeader:
             encoder_spec=EncoderSpec.model_validate(m["encoder_spec"]),
             localizer_config=LocalizerConfig.stored(m["localizer_config"]),
             encoder_fingerprint=str(m["encoder_fingerprint"]),
-            keep_clouds=bool(m["keep_clouds"]),
-            created_at=str(m["created_at"]),
+            keep_clouds=_bool(m["keep_clouds"], "keep_clouds"),
+            created_at=_timestamp(m["created_at"], "created_at"),
             calibration=None
             if m.get("calibration") is None
             else Calibration.from_dict(m["calibration"]),
             settings_version=int(m.get("settings_version", 0)),
-            settings_updated_at=m.get("settings_updated_at"),
+            settings_updated_at=None
+            if m.get("settings_updated_at") is None
+            else _timestamp(m["settings_updated_at"], "settings_updated_at"),
             self_test=_object_or_none(m.get("self_test"), "self_test"),
             last_self_test=_object_or_none(m.get("last_self_test"), "last_self_test"),
         )
@@ -274,7 +321,7 @@ def _unpack_chunk(data: bytes, name: str) -> list[KeyframeRow]:
                     local_features=a["local_features"][kp_at[i] : kp_at[i + 1]],
                     cloud=cloud,
                     metadata=rec["metadata"],
-                    created_at=str(rec["created_at"]),
+                    created_at=_timestamp(rec["created_at"], "created_at"),
                 )
             )
         return rows

@@ -57,6 +57,7 @@ from sgvloc.core.localizer import Keyframe, LocalizationResult, Localizer
 from sgvloc.core.pose import check_rigid
 from sgvloc.core.prior import Prior
 from sgvloc.core.retrieval import FaissIndex
+from sgvloc.core.sgv import check_runnable as sgv_check_runnable
 from sgvloc.core.tracking import Seed
 
 from .archive import ArchiveError, read_archive, write_archive
@@ -149,6 +150,16 @@ def field_error(exc: SgvlocError, where: str) -> SgvlocError:
     new.field = where  # type: ignore[attr-defined]
     new.raw_message = raw  # type: ignore[attr-defined]
     return new
+
+
+def check_runnable(config: LocalizerConfig) -> None:
+    """Refuse localizer settings this machine cannot run (``sgv.device`` ``"cuda"``
+    without CUDA, ...) as an input error naming ``localizer.sgv``: given at creation, in a
+    PATCH or an import, they would otherwise fail every localization of the map."""
+    try:
+        sgv_check_runnable(config.sgv)
+    except ConflictError as exc:
+        raise field_error(InputError(str(exc)), "localizer.sgv") from None
 
 
 @contextmanager
@@ -999,6 +1010,7 @@ class MapManager:
         self._check_name(name)
         encoder_spec = encoder_spec or EncoderSpec()
         localizer_config = localizer_config or LocalizerConfig()
+        check_runnable(localizer_config)
 
         def build() -> tuple[MapRecord, Localizer]:
             with at_field("encoder"):
@@ -1109,6 +1121,7 @@ class MapManager:
                         err = exc.errors()[0]
                         where = ".".join(str(x) for x in err["loc"])
                         raise field_error(InputError(err["msg"]), f"localizer.{where}") from None
+                    check_runnable(config)
                     if config.retrieval.index_settings() != current.retrieval.index_settings():
                         raise field_error(
                             InputError(
@@ -1494,6 +1507,7 @@ class MapManager:
         spec = fix_spec(record.encoder_spec) if fix_spec else record.encoder_spec
         if check_settings is not None:
             check_settings(record.localizer_config)
+        check_runnable(record.localizer_config)
         with at_field("encoder"):
             encoder = make_encoder(spec)
         if encoder.identity.fingerprint != record.encoder_fingerprint:
