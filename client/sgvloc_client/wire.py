@@ -26,7 +26,12 @@ MAX_NDIM = 4
 
 
 class WireError(ValueError):
-    """A body cannot be decoded; the message names the field and the problem."""
+    """A body cannot be decoded; the message names the field and the problem, and
+    ``field`` the request field when one is at fault (``keyframes[3].points``)."""
+
+    def __init__(self, message: str, field: str | None = None) -> None:
+        super().__init__(message)
+        self.field = field
 
 
 def encode_array(arr: np.ndarray) -> dict[str, Any]:
@@ -52,22 +57,28 @@ def encode_array(arr: np.ndarray) -> dict[str, Any]:
 
 def decode_array(obj: dict[str, Any], where: str = "array") -> np.ndarray:
     """Inverse of :func:`encode_array`; raises :class:`WireError` on any inconsistency."""
+    field = where.removeprefix("body.") if where.startswith("body.") else None
     dtype, shape, data = obj.get("dtype"), obj.get("shape"), obj.get("data")
     if dtype not in ALLOWED_DTYPES:
-        raise WireError(f"{where}: dtype {dtype!r} not allowed (use one of {ALLOWED_DTYPES})")
+        raise WireError(
+            f"{where}: dtype {dtype!r} not allowed (use one of {ALLOWED_DTYPES})", field
+        )
     if (
         not isinstance(shape, list)
         or len(shape) > MAX_NDIM
-        or not all(isinstance(s, int) and s >= 0 for s in shape)
+        or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in shape)
     ):
-        raise WireError(f"{where}: shape must be a list of at most {MAX_NDIM} non-negative ints")
+        raise WireError(
+            f"{where}: shape must be a list of at most {MAX_NDIM} non-negative ints", field
+        )
     if not isinstance(data, bytes | bytearray):
-        raise WireError(f"{where}: data must be bytes")
+        raise WireError(f"{where}: data must be bytes", field)
     # Python integers: a shape such as [2**62, 4] or [2**64 - 1] must not wrap around
     expected = math.prod(shape) * np.dtype(dtype).itemsize
     if len(data) != expected:
         raise WireError(
-            f"{where}: data has {len(data)} bytes but shape {shape} of {dtype} needs {expected}"
+            f"{where}: data has {len(data)} bytes but shape {shape} of {dtype} needs {expected}",
+            field,
         )
     return np.frombuffer(data, dtype=dtype).reshape(shape)
 
@@ -163,7 +174,10 @@ def unpackb(
             raise WireError(
                 f"body holds a map of more than {max_map_len} keys: more than any object has"
             ) from None
-        raise WireError(f"body is not valid MessagePack: {exc}") from None
+        if isinstance(exc, msgpack.StackError):
+            raise WireError("body is not valid MessagePack: nested too deeply") from None
+        why = str(exc) or type(exc).__name__
+        raise WireError(f"body is not valid MessagePack: {why}") from None
     return _from_wire(obj)
 
 

@@ -149,6 +149,72 @@ def test_scan_with_nothing_to_describe(client: httpx.Client, balm_map: BalmMap) 
 
 
 @pytest.mark.usefixtures("unchanged")
+@pytest.mark.parametrize(
+    ("points", "words"),
+    [
+        ("[[null, 1, 2], [1, 2, 3]]", "null where a number belongs"),
+        # true among integers beyond int64 was read as 1.0 and stored
+        ("[[true, 100000000000000000000, 0], [1, 2, 3]]", "true or false"),
+    ],
+)
+def test_null_and_booleans_among_numbers(
+    client: httpx.Client, balm_map: BalmMap, points: str, words: str
+) -> None:
+    headers = {"Content-Type": "application/json"}
+    r = client.post("/v1/maps/balm/localize", content=f'{{"points": {points}}}', headers=headers)
+    assert words in _expect(r, 422, "invalid_input", "points")["message"]
+    body = f'{{"keyframes": [{{"T_map_sensor": {json.dumps(EYE.tolist())}, "points": {points}}}]}}'
+    r = client.post("/v1/maps/balm/keyframes", content=body, headers=headers)
+    assert words in _expect(r, 422, "invalid_input", "keyframes[0].points")["message"]
+
+
+@pytest.mark.usefixtures("unchanged")
+def test_nan_in_settings_is_named_as_such(client: httpx.Client, pre_map: str) -> None:
+    """NaN in a setting was reported as out of range ("less than or equal to 1")."""
+    headers = {"Content-Type": "application/json"}
+    body = '{"localizer": {"verdict": {"min_confidence": NaN}}}'
+    r = client.patch(f"/v1/maps/{pre_map}", content=body, headers=headers)
+    err = _expect(r, 422, "invalid_input", "localizer.verdict.min_confidence")
+    assert "finite" in err["message"], err
+    body = '{"name": "nan-map", "localizer": {"pose": {"icp_max_distance": Infinity}}}'
+    r = client.post("/v1/maps", content=body, headers=headers)
+    assert "finite" in _expect(r, 422, "invalid_input")["message"]
+    r = client.post(f"/v1/maps/{pre_map}/self-test", content='{"gap_s": NaN}', headers=headers)
+    assert "finite" in _expect(r, 422, "invalid_input", "gap_s")["message"]
+    # an encoder range that leaves every scan empty
+    spec = {"kind": "handcrafted", "preprocess": {"min_range": 70}}
+    r = client.post("/v1/maps", json={"name": "nan-map", "encoder": spec})
+    assert "below max_range" in _expect(r, 422, "invalid_input")["message"]
+    assert client.get("/v1/maps/nan-map").status_code == 404
+
+
+@pytest.mark.usefixtures("unchanged")
+def test_a_map_version_no_map_can_reach_is_refused(client: httpx.Client, balm_map: BalmMap) -> None:
+    """It waited catch_up_wait_s and answered 503 stale, inviting retries for ever."""
+    r = post_msgpack(
+        client, "/v1/maps/balm/localize?min_map_version=" + "9" * 23, {"points": _scan()}
+    )
+    _expect(r, 422, "invalid_input", "min_map_version")
+
+
+@pytest.mark.usefixtures("unchanged")
+def test_msgpack_array_headers_name_their_field(client: httpx.Client, balm_map: BalmMap) -> None:
+    nd = {"__nd__": True, "dtype": "<f4", "shape": [True, 3], "data": b"\0" * 12}
+    r = client.post(
+        "/v1/maps/balm/localize",
+        content=msgpack.packb({"points": nd}, use_bin_type=True),
+        headers={"Content-Type": "application/msgpack"},
+    )
+    err = _expect(r, 400, "bad_body", "points")
+    assert "shape" in err["message"], err
+    deep = b"\x91" * 100_000 + b"\xc0"  # a list in a list in ... 100 000 deep
+    r = client.post(
+        "/v1/maps/balm/localize", content=deep, headers={"Content-Type": "application/msgpack"}
+    )
+    assert "nested too deeply" in _expect(r, 400, "bad_body")["message"]
+
+
+@pytest.mark.usefixtures("unchanged")
 def test_ragged_json_array(client: httpx.Client, balm_map: BalmMap) -> None:
     r = client.post("/v1/maps/balm/localize", json={"points": [[1, 2, 3], [1, 2]]})
     err = _expect(r, 422, "invalid_input", "points")

@@ -131,6 +131,11 @@ def test_patch_changes_settings_and_survives_a_restart(tmp_path: Path) -> None:
             assert after["settings_version"] == 1 and after["settings_updated_at"]
             out = _localize(c, "p", {"features": random_features(rng)})
             assert out["min_confidence"] == 0.8 and len(out["retrieved"]) == 1
+            # the same values again, or nothing: no change, so no new settings version
+            for same in (patch, {"localizer": {}}, {"localizer": {"top_k": 7}}):
+                r = c.patch("/v1/maps/p", json=same)
+                assert r.status_code == 200, r.text
+                assert r.json() == after, same
 
             # a calibration of one's own, then back to the shipped one
             own = shipped_calibration("learned").to_dict()

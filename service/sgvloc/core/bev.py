@@ -53,7 +53,7 @@ from .preprocess import (
 class BEVRasterConfig(BaseModel):
     """Geometry and density scale of the BEV raster (defaults = the kitti-bev images)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     resolution: float = Field(0.4, ge=0.01, le=10.0, description="cell and voxel size (m)")
     extent: float = Field(25.0, gt=0.0, le=1000.0, description="keep |x|, |y|, |z| below this (m)")
@@ -304,7 +304,7 @@ def load_bev_image(path: str | Path, config: BEVRasterConfig = KITTI_BEV) -> np.
 class BEVEncoderConfig(BaseModel):
     """Settings of the handcrafted BEV encoder (:mod:`sgvloc.core.encoders.bev`)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     raster: BEVRasterConfig = KITTI_BEV
     detector: Literal["orb", "sift"] = Field(
@@ -336,7 +336,7 @@ class LearnedEncoderConfig(BaseModel):
     The raster is fixed to the kitti-bev one the network was trained on.
     """
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     num_keypoints: int = Field(
         256, ge=1, le=5776, description="keypoints at most per scan (most salient cells)"

@@ -10,11 +10,11 @@ from collections.abc import Mapping
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 
 class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
 class PreprocessConfig(_Section):
@@ -34,6 +34,14 @@ class PreprocessConfig(_Section):
     ground_max_tilt_deg: float = Field(
         20.0, ge=0.0, le=90.0, description="only planes within this tilt of horizontal are ground"
     )
+
+    @model_validator(mode="after")
+    def _range(self) -> PreprocessConfig:
+        if self.min_range >= self.max_range:  # every scan would be empty
+            raise ValueError(
+                f"min_range {self.min_range:g} must be below max_range {self.max_range:g}"
+            )
+        return self
 
 
 class HandcraftedEncoderConfig(_Section):

@@ -152,6 +152,10 @@ def field_error(exc: SgvlocError, where: str) -> SgvlocError:
     return new
 
 
+class _Unchanged(Exception):
+    """A settings change that changes nothing (raised out of a change, caught)."""
+
+
 def check_runnable(config: LocalizerConfig) -> None:
     """Refuse localizer settings this machine cannot run (``sgv.device`` ``"cuda"``
     without CUDA, ...) as an input error naming ``localizer.sgv``: given at creation, in a
@@ -1131,9 +1135,16 @@ class MapManager:
                             ),
                             "localizer.retrieval",
                         )
-                return config, calibration or self._calibration_of(handle, base)
+                before = self._calibration_of(handle, base)
+                cal = calibration or before
+                if config == current and cal.fingerprint == before.fingerprint:
+                    raise _Unchanged  # nothing to record: no new settings version
+                return config, cal
 
-            record = self._write_settings(handle, change)
+            try:
+                record = self._write_settings(handle, change)
+            except _Unchanged:
+                return handle
             config, cal = record.localizer_config, self._calibration_of(handle, record)
             handle.localizer.update_settings(config, cal)
             handle.record = record

@@ -116,13 +116,18 @@ class TempCluster:
     def pause(self) -> None:
         """Freeze the server (SIGSTOP to every process of it): connections stay open and
         the kernel still takes what clients send, but nothing answers (Linux only)."""
-        for pid in self._processes():
-            os.kill(pid, signal.SIGSTOP)
+        self._signal(signal.SIGSTOP)
 
     def resume(self) -> None:
         """Let a paused server go on (SIGCONT)."""
+        self._signal(signal.SIGCONT)
+
+    def _signal(self, sig: signal.Signals) -> None:
         for pid in self._processes():
-            os.kill(pid, signal.SIGCONT)
+            try:
+                os.kill(pid, sig)
+            except ProcessLookupError:  # a backend that exited since it was listed
+                continue
 
     @property
     def url(self) -> str:

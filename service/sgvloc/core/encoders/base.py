@@ -135,7 +135,7 @@ class EncoderSpec(BaseModel):
       ``device`` and ``runtime`` (the same box crop and voxels as ``bev``).
     """
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     kind: Literal["handcrafted", "torchscript", "precomputed", "bev", "learned"] = "learned"
     preprocess: PreprocessConfig = PreprocessConfig()

@@ -139,7 +139,7 @@ class RawBody:
                 )
             return json.loads(self.data, object_pairs_hook=_object)
         except wire.WireError as exc:
-            raise ApiError(400, "bad_body", str(exc)) from None
+            raise ApiError(400, "bad_body", str(exc), exc.field) from None
         except (ValueError, UnicodeDecodeError) as exc:  # JSONDecodeError is a ValueError
             raise ApiError(400, "bad_body", f"body is not valid JSON: {exc}") from None
         except (RecursionError, TypeError) as exc:

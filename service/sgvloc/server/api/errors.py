@@ -158,7 +158,7 @@ async def _engine_error(request: Request, exc: Exception) -> Response:
 
 
 async def _wire_error(request: Request, exc: Exception) -> Response:
-    return error_response(request, 400, "bad_body", str(exc))
+    return error_response(request, 400, "bad_body", str(exc), getattr(exc, "field", None))
 
 
 async def _request_validation(request: Request, exc: Exception) -> Response:

@@ -125,12 +125,20 @@ def _to_ndarray(value: Any) -> np.ndarray:
             raise ValueError(f"must be an array, got {type(value).__name__}")
         try:
             arr = np.asarray(value)  # its own dtype first: strings and booleans stay so
-            if arr.dtype.kind == "O":  # integers beyond int64
-                arr = arr.astype(np.float64)
         except (ValueError, TypeError):
             raise ValueError("must be a rectangular array of numbers") from None
-        except OverflowError:  # a JSON integer of more than 308 digits
-            raise ValueError("holds a number beyond the float64 range") from None
+        if arr.dtype.kind == "O":  # null, or true/false, among numbers; integers beyond int64
+            flat = arr.ravel()
+            if any(v is None for v in flat):
+                raise ValueError("holds null where a number belongs")
+            if any(isinstance(v, bool | np.bool_) for v in flat):
+                raise ValueError("holds true or false where a number belongs")
+            try:
+                arr = arr.astype(np.float64)
+            except (ValueError, TypeError):
+                raise ValueError("must be a rectangular array of numbers") from None
+            except OverflowError:  # a JSON integer of more than 308 digits
+                raise ValueError("holds a number beyond the float64 range") from None
         if arr.dtype.kind in "fiu":
             arr = arr.astype(np.float64, copy=False)
     if arr.dtype.kind not in "fiu":
@@ -171,7 +179,7 @@ def check_points(arr: np.ndarray, max_points: int | None) -> np.ndarray:
 
 
 class _In(BaseModel):
-    model_config = ConfigDict(extra="forbid", arbitrary_types_allowed=True)
+    model_config = ConfigDict(extra="forbid", arbitrary_types_allowed=True, allow_inf_nan=False)
 
 
 # -- maps ---------------------------------------------------------------------------------
@@ -349,7 +357,7 @@ class MapInfo(BaseModel):
 class SelfTestRequest(BaseModel):
     """``POST /v1/maps/{map}/self-test``: the map's keyframes localized against the others."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     queries: int = Field(
         50, ge=1, le=200, description="at most this many queries in coverage (as many out)"

@@ -140,6 +140,7 @@ async def localize(
         int | None,
         Query(
             ge=0,
+            le=2**63 - 1,  # beyond any version a map can reach: a 422, not a 503 to retry
             description="answer from this map version or later (read-your-writes after an "
             "insert on another replica): the replica waits up to catch_up_wait_s to catch "
             "up, else 503 stale with Retry-After",
