@@ -340,6 +340,7 @@ def test_a_map_stored_before_a_setting_existed_keeps_its_answers(tmp_path: Path)
         del stored["retrieval"]["offset_m"]
         del stored["pose"]["min_icp_constraint"]
         del stored["pose"]["icp_coarse_m"]
+        del stored["tracking"]["min_conditioning"]
         conn.execute(
             "UPDATE meta SET value = ? WHERE key = 'localizer_config'", (json.dumps(stored),)
         )
@@ -357,6 +358,8 @@ def test_a_map_stored_before_a_setting_existed_keeps_its_answers(tmp_path: Path)
     assert m.get("new").record.localizer_config.pose.min_icp_constraint == 0.035
     assert m.get("old").record.localizer_config.pose.icp_coarse_m == 0.0
     assert m.get("new").record.localizer_config.pose.icp_coarse_m == 3.0
+    assert m.get("old").record.localizer_config.tracking.min_conditioning is None
+    assert m.get("new").record.localizer_config.tracking.min_conditioning == -1.4
     m.update_settings("old", {"top_k": 7})  # written back whole, the old value with it
     m.close()
     with sqlite3.connect(db) as conn:

@@ -285,6 +285,14 @@ class TrackingConfig(_Section):
         0.5, ge=0.0, le=1.0, description="share of scan points that must fit the submap"
     )
     max_rmse_m: float = Field(0.25, gt=0.0, le=10.0, description="RMSE of those points (m)")
+    min_conditioning: float | None = Field(
+        -1.4,
+        ge=-20.0,
+        le=0.0,
+        description="a fit whose translation the scene pins down this badly (log10 of the "
+        "smallest over the largest eigenvalue of its information: a corridor, a long wall) "
+        "is not trusted and goes to the fallback; null = no check (docs/EVALUATION.md)",
+    )
     seed_sigmas: float = Field(
         3.0, gt=0.0, le=100.0, description="the fit must lie within this many seed sigmas"
     )
@@ -360,4 +368,5 @@ ADDED_SETTINGS: dict[tuple[str, str], Any] = {
     ("retrieval", "offset_m"): 0.0,
     ("pose", "min_icp_constraint"): 0.0,
     ("pose", "icp_coarse_m"): 0.0,
+    ("tracking", "min_conditioning"): None,
 }

@@ -12,6 +12,7 @@ from __future__ import annotations
 import functools
 import itertools
 import logging
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
@@ -422,9 +423,9 @@ class Localizer:
                 tracked.confidence = tracked_confidence(tracked)
             if tracked.ok and tracked.confidence < threshold:
                 tracked.ok = False  # a fit the confidence does not trust: as a failed one
+                shown = math.floor(tracked.confidence * 1e4) / 1e4  # 0.99998 is not "1.00"
                 tracked.why = (
-                    f"the fit's confidence {tracked.confidence:.2f} is below min_confidence "
-                    f"{threshold:g}"
+                    f"the fit's confidence {shown:.4f} is below min_confidence {threshold:g}"
                 )
             code = None  # of a fit not accepted: tracking_failed unless said otherwise
             if tracked.ok and prior is not None:  # the request's prior bounds the fit too
@@ -676,9 +677,10 @@ class Localizer:
         else:
             check_deadline("tracking")
             out = register(scan, seed, submap, cfg)
-            pos = out.T_map_sensor[:3, 3]
-            nearest = min(poses, key=lambda i: float(np.linalg.norm(poses[i][:3, 3] - pos)))
-            out.nearest_keyframe, out.T_map_nearest = nearest, poses[nearest]
+            if out.T_map_sensor is not None:
+                pos = out.T_map_sensor[:3, 3]
+                nearest = min(poses, key=lambda i: float(np.linalg.norm(poses[i][:3, 3] - pos)))
+                out.nearest_keyframe, out.T_map_nearest = nearest, poses[nearest]
         out.map_version = version
         out.timings_ms["track"] = _ms(t)
         return out

@@ -223,26 +223,33 @@ def build_submap(
     return Submap(cloud, [i for i, _, _ in clouds], len(cloud), voxels, coarse)
 
 
+#: fewest usable scan points (finite, within max_range_m) a fit is tried on
+MIN_SCAN_POINTS = 10
+
+
 def scan_cloud(points: np.ndarray, cfg: TrackingConfig) -> np.ndarray:
     """The scan's finite points within ``max_range_m`` ``[M, 3]`` float64 (tested column
     by column: a NaN or inf coordinate fails the range test)."""
     p = as_points(points)
     x, y, z = p[:, 0], p[:, 1], p[:, 2]
-    pts = p[x * x + y * y + z * z <= np.float32(cfg.max_range_m) ** 2].astype(np.float64)
-    if len(pts) < 10:
-        raise InputError(f"the scan has {len(pts)} usable points; tracking needs at least 10")
-    return pts
-
-
-def scan_source(points: np.ndarray, cfg: TrackingConfig) -> Cloud:
-    """The scan ready for registration: downsampled to ``scan_voxel_m``, with each point's
-    covariance from its ``scan_neighbors`` nearest neighbours."""
-    return Cloud.of(voxel_centroids(scan_cloud(points, cfg), cfg.scan_voxel_m), cfg.scan_neighbors)
+    return p[x * x + y * y + z * z <= np.float32(cfg.max_range_m) ** 2].astype(np.float64)
 
 
 def register(points: np.ndarray, seed: Seed, submap: Submap, cfg: TrackingConfig) -> TrackResult:
-    """VGICP (or GICP) of the scan against the submap from the seed, and the checks."""
-    source = scan_source(points, cfg)
+    """VGICP (or GICP) of the scan against the submap from the seed, and the checks. A
+    scan with fewer than :data:`MIN_SCAN_POINTS` usable points is a failed fit without a
+    pose (the localizer then falls back as for any failed fit)."""
+    usable = scan_cloud(points, cfg)
+    if len(usable) < MIN_SCAN_POINTS:
+        return TrackResult(
+            ok=False,
+            why=f"the scan has {len(usable)} usable points within max_range_m "
+            f"{cfg.max_range_m:g}; tracking needs at least {MIN_SCAN_POINTS}",
+            submap_keyframes=len(submap.keyframe_ids),
+            submap_points=submap.points,
+            scan_points=len(usable),
+        )
+    source = Cloud.of(voxel_centroids(usable, cfg.scan_voxel_m), cfg.scan_neighbors)
     stop = (cfg.max_iterations, cfg.stop_m, math.radians(cfg.stop_deg))
     T = seed.T_map_sensor
     if submap.coarse is not None:  # a rough fit against large voxels first
@@ -284,6 +291,12 @@ def register(points: np.ndarray, seed: Seed, submap: Submap, cfg: TrackingConfig
         out.why = f"only {fitness:.0%} of the scan fits the map (min_fitness {cfg.min_fitness:g})"
     elif rmse > cfg.max_rmse_m:
         out.why = f"the fit's RMSE {rmse:.2f} m exceeds max_rmse_m {cfg.max_rmse_m:g}"
+    elif cfg.min_conditioning is not None and out.conditioning < cfg.min_conditioning:
+        out.why = (
+            f"the scene leaves the fit free to slide one way (conditioning "
+            f"{out.conditioning:.2f} < min_conditioning {cfg.min_conditioning:g}: a corridor "
+            "or a long wall)"
+        )
     elif offset > k * seed.sigma_m + cfg.scan_voxel_m:
         out.why = f"the fit lies {offset:.1f} m from the seed (more than {k:g} sigma_m)"
     elif dyaw > k * seed.sigma_yaw_deg + 1.0:
