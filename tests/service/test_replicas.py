@@ -323,6 +323,36 @@ def test_sdk_spreads_calls_over_replicas(replicas: list[Server]) -> None:
     assert [x - y for x, y in zip(after, before, strict=True)] == [3, 3, 3], (before, after)
 
 
+def test_a_map_is_served_by_every_replica_right_after_it_is_made(
+    replicas: list[Server],
+) -> None:
+    """The SDK takes turns over replicas, so the call after a create lands on another
+    one: it was a 404 there (get, stats, and a DELETE answered "does not exist" for a map
+    that stayed) until that replica had followed the create, tens of ms later. And the
+    same PATCH on two replicas: the second found nothing to change and answered its own
+    settings from before the first."""
+    body = {"encoder": {"kind": "handcrafted"}}
+    a, b, c = (httpx.Client(base_url=s.url, timeout=30) for s in replicas)  # kept alive
+    with a, b, c:
+        for x in (a, b, c):  # connections open before the timed part
+            assert x.get("/healthz").status_code == 200
+        for i in range(4):
+            name = f"fresh-{i}"
+            assert a.post("/v1/maps", json={"name": name, **body}).status_code == 201
+            assert b.get(f"/v1/maps/{name}").status_code == 200
+            assert c.get(f"/v1/maps/{name}/stats").status_code == 200
+            patch = {"localizer": {"top_k": 30 + i}}
+            first = a.patch(f"/v1/maps/{name}", json=patch).json()
+            second = c.patch(f"/v1/maps/{name}", json=patch).json()
+            assert second["localizer"]["top_k"] == first["localizer"]["top_k"] == 30 + i
+            assert second["settings_version"] == first["settings_version"] == 1, second
+            name = f"gone-{i}"
+            assert a.post("/v1/maps", json={"name": name, **body}).status_code == 201
+            assert b.delete(f"/v1/maps/{name}").status_code == 204
+            for x in (a, b, c):
+                _until(lambda x=x, n=name: x.get(f"/v1/maps/{n}").status_code == 404)
+
+
 def test_killed_replica_loses_nothing_and_a_new_one_catches_up(
     replicas: list[Server], balm_mini_dir: Path, balm_mini_roles: list, tmp_path: Path
 ) -> None:

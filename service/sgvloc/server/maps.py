@@ -153,7 +153,12 @@ def field_error(exc: SgvlocError, where: str) -> SgvlocError:
 
 
 class _Unchanged(Exception):
-    """A settings change that changes nothing (raised out of a change, caught)."""
+    """A settings change that changes nothing (raised out of a change, caught), with the
+    settings it found (on a shared store, perhaps newer than this replica's)."""
+
+    def __init__(self, record: MapRecord) -> None:
+        super().__init__("unchanged")
+        self.record = record
 
 
 def check_runnable(config: LocalizerConfig) -> None:
@@ -538,6 +543,9 @@ class MapManager:
             handle = self._load_store(store, None, name)
         except (StoreUnavailableError, NotFoundError):
             raise
+        except StoreClosedError:  # deleted while it loaded: nothing to serve, nothing failed
+            log.info("map %r was deleted while it loaded", name)
+            return
         except Exception as exc:
             why = str(exc) or type(exc).__name__
             log.error("map %r could not be loaded: %s", name, why)
@@ -1058,6 +1066,9 @@ class MapManager:
     def delete(self, name: str) -> None:
         """Delete a map and its folder; raises :class:`NotFoundError`, or
         :class:`MapUnavailableError` for a map that failed to load (not deleted)."""
+        if self.shared:  # a map another replica made since this one last caught up
+            with contextlib.suppress(NotFoundError, MapUnavailableError):
+                self.get(name, load=True)
         with self._lock:
             handle = self._maps.pop(name, None)
             if handle is not None:  # neither the follower nor a reload loads it meanwhile
@@ -1108,7 +1119,7 @@ class MapManager:
         with them; the query's, ``combine`` and the offsets, can). Stored in one
         transaction, then swapped into the running map; the keyframe version is unchanged.
         """
-        handle = self.get(name)
+        handle = self.get(name, load=True)
         with handle.write_lock:
             if handle.closed:
                 raise NotFoundError(f"map {name!r} does not exist")
@@ -1138,12 +1149,19 @@ class MapManager:
                 before = self._calibration_of(handle, base)
                 cal = calibration or before
                 if config == current and cal.fingerprint == before.fingerprint:
-                    raise _Unchanged  # nothing to record: no new settings version
+                    raise _Unchanged(base)  # nothing to record: no new settings version
                 return config, cal
 
             try:
                 record = self._write_settings(handle, change)
-            except _Unchanged:
+            except _Unchanged as same:
+                if same.record.settings_version != handle.record.settings_version:
+                    # another replica's change this one has not followed yet: answer it
+                    found = same.record
+                    handle.localizer.update_settings(
+                        found.localizer_config, self._calibration_of(handle, found)
+                    )
+                    handle.record = found
                 return handle
             config, cal = record.localizer_config, self._calibration_of(handle, record)
             handle.localizer.update_settings(config, cal)
@@ -1194,7 +1212,7 @@ class MapManager:
     ) -> tuple[int, leave_out.Plan]:
         """The map's version and the queries of its leave-out self-test
         (:mod:`sgvloc.core.leave_out`)."""
-        handle = self.get(name)
+        handle = self.get(name, load=True)
         version = handle.version
         ids, xyz, stamps = handle.localizer.keyframe_table()
         plan = leave_out.plan(
@@ -1212,7 +1230,7 @@ class MapManager:
         self, name: str, version: int, plan: leave_out.Plan, keyframe_id: int, radius_m: float
     ) -> dict[str, Any]:
         """One query of a self-test: its record (409 if the map changed since the plan)."""
-        handle = self.get(name)
+        handle = self.get(name, load=True)
         if handle.version != version:
             raise ConflictError(
                 f"map {name!r} changed during the self-test (version {version} -> "
@@ -1226,7 +1244,7 @@ class MapManager:
 
     def record_self_test(self, name: str, summary: dict[str, Any]) -> MapHandle:
         """Store a self-test's summary with the map's settings (``last_self_test``)."""
-        handle = self.get(name)
+        handle = self.get(name, load=True)
         with handle.write_lock:
             if handle.closed:
                 raise NotFoundError(f"map {name!r} does not exist")
@@ -1394,7 +1412,7 @@ class MapManager:
 
     def get_keyframe(self, name: str, keyframe_id: int) -> KeyframeRow:
         """A stored keyframe; raises :class:`NotFoundError`."""
-        handle = self.get(name)
+        handle = self.get(name, load=True)
         try:
             return handle.store.get(keyframe_id)
         except StoreClosedError:  # the map was deleted meanwhile
@@ -1402,7 +1420,7 @@ class MapManager:
 
     def delete_keyframe(self, name: str, keyframe_id: int) -> int:
         """Delete one keyframe; returns the map's new version."""
-        handle = self.get(name)
+        handle = self.get(name, load=True)
         with handle.write_lock:
             if handle.closed:
                 raise NotFoundError(f"map {name!r} does not exist")
@@ -1425,7 +1443,7 @@ class MapManager:
         self, name: str, where: KeyframeFilter, *, after_id: int = 0, limit: int = 1000
     ) -> list[KeyframeSummary]:
         """Keyframes matching ``where`` with ``id > after_id``, by id (at most ``limit``)."""
-        handle = self.get(name)
+        handle = self.get(name, load=True)
         try:
             return handle.store.select(where, after_id=after_id, limit=limit)
         except StoreClosedError:
@@ -1434,7 +1452,7 @@ class MapManager:
     def delete_keyframes(self, name: str, where: KeyframeFilter) -> tuple[int, int]:
         """Delete every keyframe matching ``where`` in one transaction (one version
         step; none when nothing matches). Returns ``(deleted, map version)``."""
-        handle = self.get(name)
+        handle = self.get(name, load=True)
         with handle.write_lock:
             if handle.closed:
                 raise NotFoundError(f"map {name!r} does not exist")
@@ -1458,7 +1476,7 @@ class MapManager:
     def stats(self, name: str) -> dict[str, Any]:
         """Size and shape of a map: keyframes, extent, disk and memory use, index kind,
         last write."""
-        handle = self.get(name)
+        handle = self.get(name, load=True)
         try:
             extent = handle.store.extent()
             last_write = handle.store.last_write()
@@ -1483,7 +1501,7 @@ class MapManager:
     def export_archive(self, name: str) -> Iterator[Iterator[bytes]]:
         """The map as an archive (:mod:`sgvloc.server.archive`), a stream of byte blocks
         read from one consistent state of the store; writers are not blocked."""
-        handle = self.get(name)
+        handle = self.get(name, load=True)
         try:
             with handle.store.archive_snapshot() as (version, count, next_id, rows):
                 yield write_archive(handle.record, version, count, rows, next_id)
@@ -1555,7 +1573,14 @@ class MapManager:
                     with contextlib.suppress(Exception):
                         self.backend.drop(store)
                     raise
-                handle = self._load_store(store, None, name)
+                try:
+                    handle = self._load_store(store, None, name)
+                except StoreUnavailableError as exc:  # published: the import stands
+                    raise StoreUnavailableError(
+                        f"map {name!r} was imported, but the store stopped answering before "
+                        f"this replica could load it ({exc}); every replica serves it once "
+                        "the store answers again: do not import it again"
+                    ) from None
                 self._publish(handle)
         else:
             with self._building(name) as (tmp, folder):

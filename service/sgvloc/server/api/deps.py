@@ -14,8 +14,9 @@ from pydantic import BeforeValidator
 
 from sgvloc.core import cores
 from sgvloc.core.deadline import deadline
+from sgvloc.core.errors import NotFoundError
 
-from ..maps import MapManager
+from ..maps import MapHandle, MapManager
 from ..metrics import Metrics
 from ..settings import Settings
 from .body import BodyHold, RawBody, read_body
@@ -124,6 +125,17 @@ class Worker:
             self._limiter.release()
             if self._gate is not None:
                 self._gate.release()
+
+
+async def served_map(manager: MapManager, name: str) -> MapHandle:
+    """``manager.get(name)``; on a shared store a map another replica made since this one
+    last caught up is loaded first (off the event loop) rather than answered 404."""
+    try:
+        return manager.get(name)
+    except NotFoundError:
+        if not manager.shared:
+            raise
+    return await anyio.to_thread.run_sync(lambda: manager.get(name, load=True))
 
 
 async def get_worker(request: Request) -> Worker:

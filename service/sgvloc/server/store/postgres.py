@@ -169,6 +169,9 @@ _INSERT = (
 
 #: longest wait for a row lock another session holds (seconds)
 LOCK_TIMEOUT_S = 30
+#: how long the connection pool keeps reconnecting after an outage before it gives up
+#: until the next request (psycopg_pool's ``reconnect_timeout``; 0 means at once)
+RECONNECT_TIMEOUT_S = 24 * 3600
 #: longest single statement (seconds): far above any insert of max_batch keyframes
 STATEMENT_TIMEOUT_S = 120
 #: longest a transaction may sit idle (seconds): an export streams inside one, as fast
@@ -299,7 +302,9 @@ class PgBackend(SharedBackend):
             timeout=timeout_s,
             kwargs=connect,
             check=self._check,
-            reconnect_timeout=0,  # keep trying to reconnect for as long as it takes
+            # how long the pool keeps trying to reconnect after an outage (0 gives up at
+            # once, and the requests waiting on it fail after the store is back)
+            reconnect_timeout=RECONNECT_TIMEOUT_S,
             open=False,
             name="sgvloc-store",
         )
@@ -628,7 +633,11 @@ class PgMapStore(MapStore):
                 (json.dumps(patch), self.map_id),
             )
             self._announce(cur)
-        return self.record()
+            # read in the same transaction: once it commits the change has landed, so
+            # no later failure may answer it as failed
+            meta, settings_version, _ = self._meta(cur)
+        meta["settings_version"] = str(settings_version)
+        return record_from_meta(meta, f"map {self.name!r}")
 
     def find_keys(self, keys: list[str]) -> dict[str, int]:
         if not keys:

@@ -10,7 +10,7 @@ from pydantic import BaseModel, Field
 from ...recent import DEFAULT_SIZE, RecentLocalizations
 from ..auth import authorize
 from ..body import encode
-from ..deps import ManagerDep, MapName
+from ..deps import ManagerDep, MapName, served_map
 from ..openapi import error_responses
 
 router = APIRouter(prefix="/v1/maps/{map}", tags=["localize"], dependencies=[Depends(authorize)])
@@ -54,7 +54,7 @@ async def recent_localizations(
     """The map's most recent localize answers, newest first: time, estimated position,
     verdict, confidence, matched keyframe and map version. Kept in memory (the last
     500 per map), not across restarts."""
-    manager.get(map_name)  # 404 (or 503 map_unavailable) for a map that is not served
+    await served_map(manager, map_name)  # 404 (or 503 map_unavailable) for a map that is not served
     recent: RecentLocalizations = request.app.state.recent
     entries = recent.newest(map_name, limit)
     return encode(

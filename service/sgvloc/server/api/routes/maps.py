@@ -15,7 +15,15 @@ from sgvloc.core.errors import InputError
 from ...maps import MapHandle
 from ..auth import authorize, principal_of
 from ..body import encode
-from ..deps import BodyDep, ManagerDep, MapName, SettingsDep, WorkerDep, WriteWorkerDep
+from ..deps import (
+    BodyDep,
+    ManagerDep,
+    MapName,
+    SettingsDep,
+    WorkerDep,
+    WriteWorkerDep,
+    served_map,
+)
 from ..errors import ApiError, validated
 from ..openapi import body_doc, error_responses
 from ..schemas import (
@@ -167,7 +175,7 @@ async def list_maps(request: Request, manager: ManagerDep) -> Response:
 )
 async def get_map(request: Request, map_name: MapName, manager: ManagerDep) -> Response:
     """Describe one map."""
-    return encode(request, map_info(manager.get(map_name)))
+    return encode(request, map_info(await served_map(manager, map_name)))
 
 
 @router.get(
