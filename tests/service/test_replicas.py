@@ -168,6 +168,18 @@ def test_store_outage_fails_writes_fast_and_localizations_go_on(
 
     postgres.cluster.stop()
     try:
+        # a delete that waits on the store and fails: the map is served meanwhile (it
+        # was hidden, 404 and left out of the list, for those seconds) and after
+        answers: list[httpx.Response] = []
+        deleting = threading.Thread(target=lambda: answers.append(ca.delete("/v1/maps/outage")))
+        deleting.start()
+        time.sleep(0.5)
+        assert deleting.is_alive()  # still waiting on the store
+        assert "outage" in {m["name"] for m in ca.get("/v1/maps").json()["maps"]}
+        assert ca.get("/v1/maps/outage").status_code == 200
+        deleting.join(30)
+        assert answers[0].status_code == 503, answers[0].text
+        assert ca.get("/v1/maps/outage").status_code == 200
         t0 = time.monotonic()
         r = post_msgpack(ca, "/v1/maps/outage/keyframes", {"keyframes": _keyframes(seq, db[3:5])})
         took = time.monotonic() - t0

@@ -1069,8 +1069,11 @@ class MapManager:
         if self.shared:  # a map another replica made since this one last caught up
             with contextlib.suppress(NotFoundError, MapUnavailableError):
                 self.get(name, load=True)
+        shared = isinstance(self.backend, SharedBackend)
         with self._lock:
-            handle = self._maps.pop(name, None)
+            # a shared store's map is served until its rows are gone (the drop may wait
+            # on the store for seconds, and fail); a folder is renamed away at once
+            handle = self._maps.get(name) if shared else self._maps.pop(name, None)
             if handle is not None:  # neither the follower nor a reload loads it meanwhile
                 self._reserved.add(name)
         if handle is None:
@@ -1084,15 +1087,16 @@ class MapManager:
         trash = None
         try:
             with handle.write_lock:
-                if isinstance(self.backend, SharedBackend):
-                    try:
+                if handle.closed:  # a delete beside this one got there first
+                    raise NotFoundError(f"map {name!r} does not exist")
+                if shared:
+                    try:  # on StoreUnavailableError nothing changed: it is still served
                         self.backend.drop(handle.store)  # one transaction; replicas follow
-                    except StoreUnavailableError:
-                        with self._lock:  # nothing changed: keep serving it
-                            self._maps.setdefault(name, handle)
-                        raise
                     except NotFoundError:  # another replica deleted it meanwhile
                         pass
+                    with self._lock:
+                        if self._maps.get(name) is handle:
+                            del self._maps[name]
                 handle.closed = True
                 handle.store.close()
                 if handle.path is not None:  # a map folder: one atomic rename, then clean-up
