@@ -1066,10 +1066,10 @@ class MapManager:
     def delete(self, name: str) -> None:
         """Delete a map and its folder; raises :class:`NotFoundError`, or
         :class:`MapUnavailableError` for a map that failed to load (not deleted)."""
-        if self.shared:  # a map another replica made since this one last caught up
+        shared = isinstance(self.backend, SharedBackend)
+        if shared:  # a map another replica made since this one last caught up
             with contextlib.suppress(NotFoundError, MapUnavailableError):
                 self.get(name, load=True)
-        shared = isinstance(self.backend, SharedBackend)
         with self._lock:
             # a shared store's map is served until its rows are gone (the drop may wait
             # on the store for seconds, and fail); a folder is renamed away at once
