@@ -350,14 +350,15 @@ def test_a_map_is_served_by_every_replica_right_after_it_is_made(
             assert x.get("/healthz").status_code == 200
         for i in range(4):
             name = f"fresh-{i}"
-            assert a.post("/v1/maps", json={"name": name, **body}).status_code == 201
-            assert b.get(f"/v1/maps/{name}").status_code == 200
-            assert c.get(f"/v1/maps/{name}/stats").status_code == 200
             patch = {"localizer": {"top_k": 30 + i}}
-            first = a.patch(f"/v1/maps/{name}", json=patch).json()
-            second = c.patch(f"/v1/maps/{name}", json=patch).json()
-            assert second["localizer"]["top_k"] == first["localizer"]["top_k"] == 30 + i
-            assert second["settings_version"] == first["settings_version"] == 1, second
+            assert a.post("/v1/maps", json={"name": name, **body}).status_code == 201
+            first = b.patch(f"/v1/maps/{name}", json=patch)
+            assert first.status_code == 200, first.text
+            assert c.get(f"/v1/maps/{name}/stats").status_code == 200
+            second = a.patch(f"/v1/maps/{name}", json=patch).json()
+            assert second["localizer"]["top_k"] == first.json()["localizer"]["top_k"] == 30 + i
+            assert second["settings_version"] == first.json()["settings_version"] == 1, second
+            assert b.get(f"/v1/maps/{name}").status_code == 200
             name = f"gone-{i}"
             assert a.post("/v1/maps", json={"name": name, **body}).status_code == 201
             assert b.delete(f"/v1/maps/{name}").status_code == 204

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from svc_helpers import feature_keyframes
 
 from sgvloc.core.config import LocalizerConfig
@@ -368,6 +369,35 @@ def test_a_map_stored_before_a_setting_existed_keeps_its_answers(tmp_path: Path)
     assert json.loads(text)["retrieval"]["offset_m"] == 0.0
     assert json.loads(text)["pose"]["min_icp_constraint"] == 0.0
     assert json.loads(text)["pose"]["icp_coarse_m"] == 0.0
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="this machine runs CUDA settings")
+def test_a_patch_that_leaves_sgv_alone_is_not_refused_for_it(tmp_path: Path) -> None:
+    """A map whose stored settings ask for SGV on CUDA (made on a GPU machine) loads on a
+    CPU-only one, and a PATCH of other settings goes through; one that sets SGV to what
+    this machine cannot run is refused naming localizer.sgv."""
+    m = _manager(tmp_path)
+    m.create("gpu", SPEC)
+    m.close()
+    db = tmp_path / "maps" / "gpu" / "map.sqlite"
+    with sqlite3.connect(db) as conn:
+        (text,) = conn.execute("SELECT value FROM meta WHERE key = 'localizer_config'").fetchone()
+        stored = json.loads(text)
+        stored["sgv"]["device"] = "cuda"
+        conn.execute(
+            "UPDATE meta SET value = ? WHERE key = 'localizer_config'", (json.dumps(stored),)
+        )
+    m = _manager(tmp_path)
+    assert m.failed == {}
+    assert m.update_settings("gpu", {"top_k": 7}).record.localizer_config.top_k == 7
+    with pytest.raises(InputError, match="CUDA") as err:
+        m.update_settings("gpu", {"sgv": {"backend": "numba"}})
+    assert err.value.field == "localizer.sgv"
+    assert (
+        m.update_settings("gpu", {"sgv": {"device": "cpu"}}).record.localizer_config.sgv.device
+        == "cpu"
+    )
+    m.close()
 
 
 def test_a_reload_while_a_map_is_deleted_does_not_load_it_back(tmp_path: Path) -> None:

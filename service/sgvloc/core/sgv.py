@@ -97,8 +97,8 @@ def resolve_device(name: str = "auto") -> torch.device:
         raise InputError(f"unknown torch device {name!r}") from exc
     if device.type == "cuda" and not torch.cuda.is_available():
         raise ConflictError(
-            f"sgv.device {name!r} requested but CUDA is not available here: set it to "
-            "'auto' (CUDA when present) or 'cpu'"
+            f"device {name!r} requested but CUDA is not available here: use 'auto' (CUDA "
+            "when present) or 'cpu'"
         )
     return device
 

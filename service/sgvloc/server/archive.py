@@ -215,8 +215,8 @@ def _plain(value: Any, name: str, depth: int = 0) -> None:
 def _timestamp(value: Any, name: str) -> str:
     """An ISO 8601 time as the stores write it (``utc_now``), checked."""
     if isinstance(value, str) and len(value) <= 40:
-        try:
-            datetime.fromisoformat(value)
+        try:  # "...Z" as the stores write it; Python before 3.11 reads no "Z"
+            datetime.fromisoformat(value[:-1] + "+00:00" if value.endswith("Z") else value)
             return value
         except ValueError:
             pass

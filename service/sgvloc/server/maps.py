@@ -704,6 +704,9 @@ class MapManager:
             local = dict(self._maps)
         catalog = backend.catalog()
         for name, handle in local.items():
+            with self._lock:
+                if name in self._reserved:  # being deleted here: the delete decides
+                    continue
             entry = catalog.get(name)
             if entry is None or entry[0] != getattr(handle.store, "incarnation", None):
                 self._forget(handle, "deleted by another replica")
@@ -717,6 +720,8 @@ class MapManager:
         for name, (_, version, settings_version) in catalog.items():
             with self._lock:
                 handle = self._maps.get(name)
+                if name in self._reserved:  # a delete here holds it (maybe for seconds,
+                    continue  # waiting on the store): the other maps catch up meanwhile
             if handle is None:
                 if name not in self.failed:
                     try:
@@ -1140,7 +1145,8 @@ class MapManager:
                         err = exc.errors()[0]
                         where = ".".join(str(x) for x in err["loc"])
                         raise field_error(InputError(err["msg"]), f"localizer.{where}") from None
-                    check_runnable(config)
+                    if config.sgv != current.sgv:  # settings it leaves alone stay as they are
+                        check_runnable(config)
                     if config.retrieval.index_settings() != current.retrieval.index_settings():
                         raise field_error(
                             InputError(

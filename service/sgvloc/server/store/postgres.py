@@ -169,9 +169,6 @@ _INSERT = (
 
 #: longest wait for a row lock another session holds (seconds)
 LOCK_TIMEOUT_S = 30
-#: how long the connection pool keeps reconnecting after an outage before it gives up
-#: until the next request (psycopg_pool's ``reconnect_timeout``; 0 means at once)
-RECONNECT_TIMEOUT_S = 24 * 3600
 #: longest single statement (seconds): far above any insert of max_batch keyframes
 STATEMENT_TIMEOUT_S = 120
 #: longest a transaction may sit idle (seconds): an export streams inside one, as fast
@@ -302,9 +299,11 @@ class PgBackend(SharedBackend):
             timeout=timeout_s,
             kwargs=connect,
             check=self._check,
-            # how long the pool keeps trying to reconnect after an outage (0 gives up at
-            # once, and the requests waiting on it fail after the store is back)
-            reconnect_timeout=RECONNECT_TIMEOUT_S,
+            # keep trying to reconnect for as long as a request waits for a connection,
+            # then give up until the next request asks: the pool's waits between tries
+            # double, so a long timeout leaves it asleep long after the store is back,
+            # and 0 leaves the requests already waiting without a try
+            reconnect_timeout=timeout_s,
             open=False,
             name="sgvloc-store",
         )

@@ -209,7 +209,7 @@ async def update_map(
     """Change a map's localizer settings or calibration (its keyframes and version stay)."""
 
     def work() -> MapInfo:
-        handle = manager.get(map_name)  # 404 before the body is judged
+        handle = manager.get(map_name, load=True)  # 404 before the body is judged
         req = validated(MapPatch, body.decode(), limits(settings))
         cal = req.calibration
         calibration = (
