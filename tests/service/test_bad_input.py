@@ -364,7 +364,9 @@ def test_invalid_map_name(client: httpx.Client, name: str) -> None:
 )
 def test_invalid_map_settings(client: httpx.Client, body: dict) -> None:
     r = client.post("/v1/maps", json=body)
-    _expect(r, 422, "invalid_input")
+    err = _expect(r, 422, "invalid_input")
+    if "top_k" in body.get("localizer", {}):  # the field itself, not its section
+        assert err["field"] == "localizer.top_k", err
     assert client.get("/v1/maps/bad-enc").status_code == 404
 
 
@@ -674,7 +676,7 @@ def test_a_map_top_k_over_the_limit_is_refused_however_written(
     client: httpx.Client, pre_map: str, top_k
 ) -> None:
     r = client.request("PATCH", f"/v1/maps/{pre_map}", json={"localizer": {"top_k": top_k}})
-    err = _expect(r, 422, "invalid_input", "localizer")
+    err = _expect(r, 422, "invalid_input", "localizer.top_k")
     assert "max_top_k" in err["message"]
 
 

@@ -176,7 +176,7 @@ def _with_bias(value: object) -> dict:
         ({"localizer": {"retrieval": {"index": "hnsw"}}}, 422, "localizer.retrieval"),
         ({"localizer": {"nonsense": 1}}, 422, "localizer.nonsense"),
         ({"localizer": {"top_k": 0}}, 422, "localizer.top_k"),
-        ({"localizer": {"top_k": 101}}, 422, "localizer"),  # above the service's max_top_k
+        ({"localizer": {"top_k": 101}}, 422, "localizer.top_k"),  # above the service's max_top_k
         ({"calibration": {"format": "x"}}, 422, "calibration"),
         ({"calibration": "latest"}, 422, "calibration"),
         # stored, a bias that is not a finite number failed every later localize (500)

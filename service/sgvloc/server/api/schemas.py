@@ -111,10 +111,17 @@ def map_top_k_problem(top_k: int, cap: int | None) -> str | None:
     return None
 
 
-def _check_map_top_k(top_k: int, info: ValidationInfo) -> None:
-    why = map_top_k_problem(top_k, _limit(info, "max_top_k"))
-    if why:
-        raise ValueError(why)
+def patch_top_k(localizer: dict[str, Any] | None) -> int | None:
+    """The ``top_k`` a PATCH's localizer settings set, read as the merged settings will
+    read it ("500" and 500.0 are 500 there); None when unset or unreadable (the merge
+    then names what is wrong with it)."""
+    top_k = (localizer or {}).get("top_k")
+    if top_k is None or isinstance(top_k, bool):
+        return None
+    try:
+        return _INT.validate_python(top_k)
+    except ValidationError:
+        return None
 
 
 def _to_ndarray(value: Any) -> np.ndarray:
@@ -210,13 +217,6 @@ class MapCreate(_In):
         f"--choose-encoder writes one); JSON of at most {SELF_TEST_MAX_BYTES} bytes",
     )
 
-    @field_validator("localizer")
-    @classmethod
-    def _map_top_k(cls, v: LocalizerConfig | None, info: ValidationInfo) -> LocalizerConfig | None:
-        if v is not None:
-            _check_map_top_k(v.top_k, info)
-        return v
-
     @field_validator("self_test", "calibration", mode="before")
     @classmethod
     def _plain(cls, v: Any) -> Any:
@@ -273,18 +273,6 @@ class MapPatch(_In):
         description="a calibration written by 'sgvloc calibrate', or 'shipped' for the one "
         "this installation ships for the map's encoder kind",
     )
-
-    @field_validator("localizer")
-    @classmethod
-    def _map_top_k(cls, v: dict[str, Any] | None, info: ValidationInfo) -> dict[str, Any] | None:
-        top_k = (v or {}).get("top_k")
-        if top_k is not None and not isinstance(top_k, bool):
-            try:  # as the merged settings will read it ("500" and 500.0 are 500 there)
-                top_k = _INT.validate_python(top_k)
-            except ValidationError:
-                return v  # the merge names what is wrong with it
-            _check_map_top_k(top_k, info)
-        return v
 
     @field_validator("calibration")
     @classmethod

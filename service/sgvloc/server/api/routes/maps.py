@@ -13,6 +13,7 @@ from sgvloc.core.encoders import EncoderSpec
 from sgvloc.core.errors import InputError
 
 from ...maps import MapHandle
+from ...settings import Settings
 from ..auth import authorize, principal_of
 from ..body import encode
 from ..deps import (
@@ -37,7 +38,9 @@ from ..schemas import (
     SelfTestReport,
     SelfTestRequest,
     limits,
+    map_top_k_problem,
     parse_calibration,
+    patch_top_k,
 )
 
 router = APIRouter(prefix="/v1/maps", tags=["maps"], dependencies=[Depends(authorize)])
@@ -80,6 +83,14 @@ def map_info(handle: MapHandle) -> MapInfo:
     )
 
 
+def _check_top_k(top_k: int, settings: Settings) -> None:
+    """A map's own top_k stays within max_top_k, as a request's (else its settings would
+    take every localize of it past the limit): a 422 naming localizer.top_k."""
+    why = map_top_k_problem(top_k, settings.max_top_k)
+    if why:
+        raise ApiError(422, "invalid_input", f"localizer.top_k: {why}", "localizer.top_k")
+
+
 @router.post(
     "",
     status_code=201,
@@ -101,6 +112,8 @@ async def create_map(
 
     def work() -> MapInfo:
         req = validated(MapCreate, body.decode(), limits(settings))
+        if req.localizer is not None:
+            _check_top_k(req.localizer.top_k, settings)
         if not caller.may_use_map(req.name):
             raise ApiError(403, "forbidden", f"this key may not use map {req.name!r}", "name")
         check_keypoint_budget(req.encoder, settings.max_keypoints)
@@ -211,6 +224,9 @@ async def update_map(
     def work() -> MapInfo:
         handle = manager.get(map_name, load=True)  # 404 before the body is judged
         req = validated(MapPatch, body.decode(), limits(settings))
+        top_k = patch_top_k(req.localizer)
+        if top_k is not None:
+            _check_top_k(top_k, settings)
         cal = req.calibration
         calibration = (
             shipped_calibration(handle.record.encoder_spec.kind)
