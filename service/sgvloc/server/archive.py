@@ -37,7 +37,7 @@ from sgvloc.core.config import LocalizerConfig
 from sgvloc.core.encoders import EncoderSpec
 from sgvloc.core.errors import InputError
 
-from .store import KeyframeRow, MapRecord, utc_now
+from .store import KeyframeRow, MapRecord, plain_json, utc_now
 
 FORMAT = "sgvloc-map-archive"
 FORMAT_VERSION = 1
@@ -185,31 +185,11 @@ def _object_or_none(value: Any, name: str) -> dict[str, Any] | None:
         return None
     if not isinstance(value, dict):
         raise TypeError(f"{name} is a {type(value).__name__}, not an object")
-    _plain(value, name)
+    try:  # as the API refuses it: non-finite numbers, NUL, lone surrogates, deep nesting
+        plain_json(value)
+    except ValueError as exc:
+        raise ValueError(f"{name} {exc}") from None
     return value
-
-
-def _plain(value: Any, name: str, depth: int = 0) -> None:
-    """Refuse what a map's JSON fields may not hold (as the API refuses it): numbers that
-    are not finite, NUL characters, text that is not valid Unicode, deep nesting."""
-    if depth > 32:
-        raise ValueError(f"{name} is nested deeper than 32 levels")
-    if isinstance(value, float) and not np.isfinite(value):
-        raise ValueError(f"{name} holds a number that is not finite")
-    if isinstance(value, str):
-        if "\x00" in value:
-            raise ValueError(f"{name} holds a NUL character")
-        try:
-            value.encode("utf-8")
-        except UnicodeEncodeError:
-            raise ValueError(f"{name} holds text that is not valid Unicode") from None
-    elif isinstance(value, list):
-        for v in value:
-            _plain(v, name, depth + 1)
-    elif isinstance(value, dict):
-        for k, v in value.items():
-            _plain(k, name, depth + 1)
-            _plain(v, name, depth + 1)
 
 
 def _timestamp(value: Any, name: str) -> str:

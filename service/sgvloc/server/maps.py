@@ -76,6 +76,7 @@ from .store import (
     StoreClosedError,
     StoreError,
     StoreUnavailableError,
+    no_nul,
     raise_if_full,
     utc_now,
 )
@@ -234,12 +235,10 @@ def _check_text(value: Any, what: str, max_chars: int, min_chars: int = 1) -> No
     """A string a store keeps: ``min_chars`` to ``max_chars``, no NUL, valid Unicode."""
     if not isinstance(value, str) or not min_chars <= len(value) <= max_chars:
         raise InputError(f"{what} must be a string of {min_chars} to {max_chars} characters")
-    if "\x00" in value:
-        raise InputError(f"{what} must not contain a NUL character")
     try:
-        value.encode("utf-8")
-    except UnicodeEncodeError:
-        raise InputError(f"{what} must be valid Unicode text (it holds a lone surrogate)") from None
+        no_nul(value)
+    except ValueError as exc:
+        raise InputError(f"{what} {exc}") from None
 
 
 def _check_metadata(metadata: Any) -> None:

@@ -50,43 +50,11 @@ from ..maps import (
     field_error,
 )
 from ..settings import Settings
+from ..store import no_nul, plain_json
 
 #: bound of a map's recorded self-test (JSON bytes)
 SELF_TEST_MAX_BYTES = 16384
-#: deepest nesting of a free-form JSON object a map records (self-test, calibration)
-JSON_MAX_DEPTH = 32
 _INT = TypeAdapter(int)
-
-
-def plain_json(value: Any, depth: int = 0) -> Any:
-    """``value`` as plain JSON data that every store can keep and every answer can carry:
-    arrays (MessagePack bodies decode into NumPy) become lists, NumPy scalars numbers;
-    ValueError for other types, non-finite numbers, text that is not valid Unicode or
-    holds NUL, or nesting deeper than :data:`JSON_MAX_DEPTH`."""
-    if depth > JSON_MAX_DEPTH:
-        raise ValueError(f"nested deeper than {JSON_MAX_DEPTH} levels")
-    if isinstance(value, np.ndarray | np.generic):
-        value = value.tolist()
-    if value is None or isinstance(value, bool):
-        return value
-    if isinstance(value, int):
-        return value
-    if isinstance(value, float):
-        if not np.isfinite(value):
-            raise ValueError("holds a number that is not finite")
-        return value
-    if isinstance(value, str):
-        return _no_nul(value)
-    if isinstance(value, list | tuple):
-        return [plain_json(v, depth + 1) for v in value]
-    if isinstance(value, dict):
-        out = {}
-        for k, v in value.items():
-            if not isinstance(k, str):
-                raise ValueError(f"has a key of type {type(k).__name__}; keys must be text")
-            out[_no_nul(k)] = plain_json(v, depth + 1)
-        return out
-    raise ValueError(f"holds a value of type {type(value).__name__}, not JSON data")
 
 
 def limits(settings: Settings) -> dict[str, int]:
@@ -422,24 +390,11 @@ class FeaturesBody(_In):
         )
 
 
-def _no_nul(v: str) -> str:
-    # stores keep text in PostgreSQL too, which refuses NUL in text and in jsonb
-    if "\x00" in v:
-        raise ValueError("must not contain a NUL character")
-    try:  # a lone surrogate (JSON "\ud800") can be neither stored nor answered
-        v.encode("utf-8")
-    except UnicodeEncodeError:
-        raise ValueError("must be valid Unicode text (it holds a lone surrogate)") from None
-    return v
-
-
 #: text a store keeps: any string without NUL characters
-Text = Annotated[str, AfterValidator(_no_nul)]
+Text = Annotated[str, AfterValidator(no_nul)]
 #: a keyframe tag's name and value
-TagName = Annotated[str, StringConstraints(max_length=TAG_NAME_MAX_CHARS), AfterValidator(_no_nul)]
-TagValue = Annotated[
-    str, StringConstraints(max_length=TAG_VALUE_MAX_CHARS), AfterValidator(_no_nul)
-]
+TagName = Annotated[str, StringConstraints(max_length=TAG_NAME_MAX_CHARS), AfterValidator(no_nul)]
+TagValue = Annotated[str, StringConstraints(max_length=TAG_VALUE_MAX_CHARS), AfterValidator(no_nul)]
 
 
 class KeyframeMetadata(_In):
