@@ -322,14 +322,11 @@ class BaseClient:
         Raises :class:`TransportError` when ``retries`` are spent."""
         if attempt >= self.retries:
             raise self._unanswered(method, self.base_urls[i], exc) from exc
-        n = len(self.base_urls)
-        if n > 1:
-            self._mark_down(i)
-            for k in range(1, n):
-                j = (i + k) % n
-                if j not in tried:
-                    tried.add(j)
-                    return j, 0.0
+        if len(self.base_urls) > 1:
+            j = self._untried(i, tried)
+            if j is not None:
+                tried.add(j)
+                return j, 0.0
         return i, min(self.max_backoff, self.backoff * 2**attempt)
 
     def _failover(
@@ -350,6 +347,11 @@ class BaseClient:
             return None
         if sent and not _may_resend(call, exc):
             return None
+        return self._untried(i, tried)
+
+    def _untried(self, i: int, tried: set[int]) -> int | None:
+        """URL ``i`` failed: mark it down and name the next URL after it not ``tried``
+        yet (None when every one was)."""
         self._mark_down(i)
         n = len(self.base_urls)
         for k in range(1, n):
