@@ -3,6 +3,7 @@ calls, and get exactly the answers they get alone (real scans, real encoder)."""
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 from pathlib import Path
@@ -25,13 +26,18 @@ def _no_batcher_left():
     batching.reset()
 
 
-def _threads(fns) -> list:
+def _threads(fns, localizations: bool = False) -> list:
+    """Run ``fns`` on threads started together. ``localizations``: each thread counts as
+    a localization under way (batching.localizing) before any starts, as the localizer's
+    own count would once all had begun, so that a busy machine starting one thread late
+    cannot split the batch the test is about."""
     out = [None] * len(fns)
     start = threading.Barrier(len(fns))
 
     def run(i: int) -> None:
-        start.wait()
-        out[i] = fns[i]()
+        with batching.localizing() if localizations else contextlib.nullcontext():
+            start.wait()
+            out[i] = fns[i]()
 
     ts = [threading.Thread(target=run, args=(i,)) for i in range(len(fns))]
     for t in ts:
@@ -187,7 +193,9 @@ def test_batched_answers_equal_unbatched_ones_across_maps(two_maps) -> None:
         for m, q in [(m, i) for i in range(len(queries)) for m in range(2)]
     ]
     b = batching.configure(wait_ms=5000, max_size=8)
-    together = _threads([lambda m=m, q=q: _key(maps[m].localize(q)) for m, q in jobs])
+    together = _threads(
+        [lambda m=m, q=q: _key(maps[m].localize(q)) for m, q in jobs], localizations=True
+    )
     assert together == alone
     for stage in ("forward", "sgv"):
         s = b.stats[stage]
@@ -199,7 +207,9 @@ def test_two_maps_share_one_forward_and_one_sgv_call(two_maps) -> None:
     maps, queries = two_maps
     alone = [_key(maps[m].localize(queries[0])) for m in range(2)]
     b = batching.configure(wait_ms=10_000, max_size=8)
-    together = _threads([lambda m=m: _key(maps[m].localize(queries[0])) for m in range(2)])
+    together = _threads(
+        [lambda m=m: _key(maps[m].localize(queries[0])) for m in range(2)], localizations=True
+    )
     assert together == alone
     assert b.stats["forward"] == {"batches": 1, "items": 2, "largest": 2, "waited_out": 0}
     assert b.stats["sgv"] == {"batches": 1, "items": 2, "largest": 2, "waited_out": 0}
@@ -210,7 +220,9 @@ def test_wait_zero_is_the_unbatched_path(two_maps) -> None:
     before = [_key(maps[0].localize(q)) for q in queries[:3]]
     b = batching.configure(wait_ms=0, max_size=8)
     assert batching.current() is None  # every stage calls straight through
-    after = _threads([lambda q=q: _key(maps[0].localize(q)) for q in queries[:3]])
+    after = _threads(
+        [lambda q=q: _key(maps[0].localize(q)) for q in queries[:3]], localizations=True
+    )
     assert after == before and b.stats == {}
 
 
