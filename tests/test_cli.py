@@ -92,6 +92,39 @@ def test_new_key_with_the_client_only_install(tmp_path: Path) -> None:
     assert entry["maps"] == ["a", "b"] and entry["key"] == hash_key(run.stderr[5:].strip())
 
 
+def test_new_key_adds_to_a_json_keys_file(tmp_path: Path) -> None:
+    """A .json keys file stays JSON: each entry joins its "keys" list, and the service
+    reads both; a JSON file of another shape is refused before a key is written."""
+    import json
+
+    keys = tmp_path / "keys.json"
+    keys.write_text('{"keys": [{"name": "a", "role": "viewer", "key": "%s"}]}' % ("a" * 25))
+    for name in ("b", "c"):
+        run = sgvloc("new-key", "--role", "vehicle", "--name", name, "--maps", "m1",
+                     "--keys-file", str(keys), "--key-file", str(tmp_path / name),
+                     client_only=True)  # fmt: skip
+        assert run.returncode == 0, run.stderr
+    parsed = parse_keys(json.loads(keys.read_text()), "keys.json")
+    assert [(k.principal.name, k.principal.role) for k in parsed] == [
+        ("a", "viewer"),
+        ("b", "vehicle"),
+        ("c", "vehicle"),
+    ]
+    assert json.loads(keys.read_text())["keys"][1]["maps"] == ["m1"]
+    # a new .json file is made as one document
+    fresh = tmp_path / "fresh.json"
+    run = sgvloc("new-key", "--role", "admin", "--name", "op", "--keys-file", str(fresh),
+                 "--key-file", str(tmp_path / "op"), client_only=True)  # fmt: skip
+    assert run.returncode == 0, run.stderr
+    assert [k["name"] for k in json.loads(fresh.read_text())["keys"]] == ["op"]
+    odd = tmp_path / "odd.json"
+    odd.write_text('{"keys": {"name": "a"}}')
+    run = sgvloc("new-key", "--role", "admin", "--name", "x", "--keys-file", str(odd),
+                 "--key-file", str(tmp_path / "x"), client_only=True)  # fmt: skip
+    assert run.returncode == 2 and '"keys" list' in run.stderr, run.stderr
+    assert odd.read_text() == '{"keys": {"name": "a"}}' and not (tmp_path / "x").exists()
+
+
 def test_serve_on_a_busy_port_fails_at_once(tmp_path: Path) -> None:
     with socket.socket() as busy:
         busy.bind(("127.0.0.1", 0))

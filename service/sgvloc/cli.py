@@ -269,6 +269,7 @@ def new_key_command(
         key_names,
         keys_entry,
         new_key,
+        toml_entry,
         write_key,
     )
 
@@ -304,13 +305,14 @@ def new_key_command(
     if keys_file is not None:
         try:
             append_entry(keys_file, entry)
-        except OSError as exc:
-            typer.echo(f"new-key: {keys_file}: {exc.strerror}; the entry was not added", err=True)
-            typer.echo(entry)
+        except (OSError, KeysError) as exc:
+            why = exc.strerror if isinstance(exc, OSError) else str(exc)
+            typer.echo(f"new-key: {keys_file}: {why}; the entry was not added", err=True)
+            typer.echo(toml_entry(entry))
             raise typer.Exit(1) from None
         typer.echo(f"added {name!r} ({role}) to {keys_file}", err=True)
     else:
-        typer.echo(entry)
+        typer.echo(toml_entry(entry))
 
 
 # -- loadtest (sgvloc.tools.loadtest) -----------------------------------------------------
