@@ -335,6 +335,25 @@ def test_sdk_spreads_calls_over_replicas(replicas: list[Server]) -> None:
     assert [x - y for x, y in zip(after, before, strict=True)] == [3, 3, 3], (before, after)
 
 
+def test_build_map_over_replicas_reports_what_it_wrote(
+    replicas: list[Server], balm_mini_dir: Path
+) -> None:
+    """build-map through several replicas (as through a load balancer) ends with the map's
+    state: read from a replica that has caught up with the build's last insert, not from
+    one still behind it (which gave "12 new keyframes; 0 keyframes, version 0")."""
+    from sgvloc.tools.build_map import build_map
+
+    for i in range(3):
+        with Client([s.url for s in replicas]) as sdk:
+            name = f"built-{i}"
+            out = build_map(balm_mini_dir, sdk, name, batch_size=1, limit=4, progress=False)
+            assert (out.created, out.keyframes) == (4, 4), out
+            for s in replicas:
+                _until(lambda u=f"{s.url}/v1/maps/{name}": httpx.get(u).json()["keyframes"] == 4)
+            info = httpx.get(f"{replicas[0].url}/v1/maps/{name}").json()
+            assert out.map_version == info["version"]
+
+
 def test_a_map_is_served_by_every_replica_right_after_it_is_made(
     replicas: list[Server],
 ) -> None:

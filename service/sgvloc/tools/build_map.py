@@ -29,6 +29,7 @@ import logging
 import math
 import os
 import re
+import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from functools import partial
@@ -179,9 +180,13 @@ def _check_encoder_kind(name: str, kind: str | None, encoder: dict[str, Any] | N
 class ClientSink:
     """Batches to a running service through the SDK (closes the client only if it made it)."""
 
+    #: how long :meth:`state` waits for the replica it asks to show this build's writes
+    CATCH_UP_S = 10.0
+
     def __init__(self, target: str | Client) -> None:
         self.client = Client(target) if isinstance(target, str) else target
         self._owned = self.client is not target
+        self._written: dict[str, int] = {}  # map -> the version its last insert made
 
     def ensure_map(
         self,
@@ -222,10 +227,29 @@ class ClientSink:
             )
             for kf in batch
         ]
-        return self.client.insert_keyframes(name, items).num_created
+        result = self.client.insert_keyframes(name, items)
+        self._written[name] = max(self._written.get(name, 0), result.map_version)
+        return result.num_created
 
     def state(self, name: str) -> tuple[int, int]:
-        info = self.client.get_map(name)
+        """Keyframes and version of the map as some replica serves it, once that replica
+        has caught up with this build's inserts (behind a load balancer the next request
+        may reach a replica that has not yet followed them)."""
+        written = self._written.get(name, 0)
+        deadline = time.monotonic() + self.CATCH_UP_S
+        while True:
+            info = self.client.get_map(name)
+            if info.version >= written or time.monotonic() >= deadline:
+                break
+            time.sleep(0.1)
+        if info.version < written:
+            log.warning(
+                "map %s: the replica asked is at version %d, this build wrote version %d; "
+                "its keyframe count may not include the last inserts yet",
+                name,
+                info.version,
+                written,
+            )
         return info.keyframes, info.version
 
     def positions(self, name: str, key_prefix: str) -> dict[str, np.ndarray]:
