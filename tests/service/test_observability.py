@@ -212,6 +212,12 @@ def test_json_log_lines_with_request_ids_and_access_lines(json_server: Server) -
         assert r.status_code == 401
         r = c.get("/v1/maps/broken", headers={**_as("prometheus"), "X-Request-ID": "unavailable-1"})
         assert r.status_code == 503, r.text
+        r = c.post(
+            "/v1/maps", json={"name": "x"}, headers={**_as("truck-17"), "X-Request-ID": "f-1"}
+        )
+        assert r.status_code == 403, r.text
+        assert c.get("/ui", headers={"X-Request-ID": "ui-1"}).status_code == 200
+        assert c.get("/readyz", headers={"X-Request-ID": "ready-1"}).status_code == 503  # broken
         text = c.get("/metrics", headers=_as("prometheus")).text
     json_server.stop()  # every line written
 
@@ -256,6 +262,18 @@ def test_json_log_lines_with_request_ids_and_access_lines(json_server: Server) -
         "map_unavailable",
         "WARNING",
     )
+    # a known key refused for its role is named; open routes answer "anonymous"; the
+    # readiness probe's 503 says why
+    (forbidden,) = [r for r in access if r["request_id"] == "f-1"]
+    assert (forbidden["status"], forbidden["code"], forbidden["key_name"]) == (
+        403,
+        "forbidden",
+        "truck-17",
+    )
+    (ui,) = [r for r in access if r["request_id"] == "ui-1"]
+    assert (ui["route"], ui["status"], ui["key_name"]) == ("/ui", 200, "anonymous")
+    (ready,) = [r for r in access if r["request_id"] == "ready-1"]
+    assert (ready["status"], ready["code"], ready["key_name"]) == (503, "degraded", "anonymous")
     # keys are never logged
     log_text = json_server.log()
     assert not any(key in log_text for _, key in KEYS.values())

@@ -240,6 +240,7 @@ async def authorize(request: Request) -> Principal:
         if found is None:
             raise _unauthorized("the API key is not valid")
         principal = found
+        request.state.principal = principal  # a refusal's access line names the key too
         if principal.role not in allowed:
             log.info("key %r (%s) refused for %s", principal.name, principal.role, operation)
             raise ApiError(

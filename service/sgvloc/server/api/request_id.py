@@ -53,14 +53,20 @@ class RequestIdMiddleware:
         try:
             await self.app(scope, receive, send_with_id)
         finally:
+            route = getattr(scope.get("route"), "path", None)
+            # no caller identified: a route open to all (the status page, /docs) that
+            # answered, else a request refused before a key was accepted
             principal = state.get("principal")
+            key_name = getattr(principal, "name", None)
+            if key_name is None and route is not None and status < 400:
+                key_name = "anonymous"
             peer = scope.get("client")
             log_access(
                 scope["method"],
-                getattr(scope.get("route"), "path", None) or "unmatched",
+                route or "unmatched",
                 status,
                 (time.perf_counter() - start) * 1e3,
-                getattr(principal, "name", None),
+                key_name,
                 state.get("error_code"),
                 peer[0] if peer else None,
             )

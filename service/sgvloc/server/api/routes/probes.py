@@ -40,6 +40,7 @@ async def readyz(request: Request) -> Response:
     manager: MapManager = request.app.state.manager
     store = manager.store_reachable
     if not manager.loaded.is_set():
+        request.state.error_code = "loading"  # for the access line
         return encode(request, Ready(status="loading", maps=0, store_reachable=store), 503)
     maps, failed = len(manager.list()), dict(manager.failed)
     if not failed:
@@ -47,6 +48,7 @@ async def readyz(request: Request) -> Response:
     caller = principal_of(request)
     if caller is ANONYMOUS:  # an open probe: names and reasons only for a key's holder
         caller = key_holder(request) or ANONYMOUS
+    request.state.error_code = "degraded"
     shown = {} if caller is ANONYMOUS else {
         name: why for name, why in failed.items() if caller.may_use_map(name)
     }  # fmt: skip
