@@ -96,8 +96,11 @@ def test_writes_on_both_keep_both_in_step(
     assert a.get("m").localizer.keyframe_ids() == ra.ids + rb.ids
 
 
-def test_start_up_waits_for_the_store(postgres, tmp_path: Path) -> None:
-    """A replica started while PostgreSQL is down is not ready until it can load."""
+def test_start_up_waits_for_the_store(postgres, tmp_path: Path, caplog) -> None:
+    """A replica started while PostgreSQL is down is not ready until it can load; one
+    stopped while it waits says it stops unready (it logged "ready" then)."""
+    from sgvloc.server.api.main import _load_maps
+
     if postgres.cluster is None:
         pytest.skip("needs the throwaway cluster (SGVLOC_TEST_PG_URL names an outside server)")
     url = postgres.new_database()
@@ -107,14 +110,24 @@ def test_start_up_waits_for_the_store(postgres, tmp_path: Path) -> None:
     seed.close()
     postgres.cluster.stop()
     m = MapManager(tmp_path / "late", backend=open_backend(url))
+    stopped = MapManager(tmp_path / "stopped", backend=open_backend(url))
     try:
         loader = threading.Thread(target=m.load_all)
         loader.start()
+        quitter = threading.Thread(target=_load_maps, args=(stopped,))
+        quitter.start()
         time.sleep(2.0)
         assert not m.loaded.is_set()
         with pytest.raises(StoreUnavailableError):
             m.create("n", SPEC)  # a write meanwhile fails fast, naming the store
+        with caplog.at_level("INFO", logger="sgvloc"):
+            stopped.stop_loading()
+            quitter.join(timeout=30)
+        assert not quitter.is_alive() and not stopped.loaded.is_set()
+        assert "stopping: not ready (0 map(s) loaded)" in caplog.text
+        assert "ready: " not in caplog.text.replace("not ready", "")
     finally:
+        stopped.close()
         postgres.cluster.start()
     loader.join(timeout=60)
     try:

@@ -104,6 +104,9 @@ def _load_maps(manager: MapManager) -> None:
     try:
         _warm_up()
         manager.load_all()
+        if not manager.loaded.is_set():  # stopped first (the store may never have answered)
+            log.info("stopping: not ready (%d map(s) loaded)", len(manager.list()))
+            return
         manager.start_snapshotter()
         log.info("ready: %d map(s) loaded", len(manager.list()))
     except Exception:  # readiness stays 503: the process is not fit to serve
