@@ -23,7 +23,13 @@ BLOCKED = ("torch", "faiss", "open3d", "scipy", "numba", "fastapi", "uvicorn",
            "pydantic_settings", "prometheus_client", "matplotlib", "cv2")  # fmt: skip
 
 
-def sgvloc(*args: str, client_only: bool = False, cwd: Path | None = None, timeout=120):
+def sgvloc(
+    *args: str,
+    client_only: bool = False,
+    cwd: Path | None = None,
+    timeout=120,
+    env: dict[str, str] | None = None,
+):
     block = f"[sys.modules.__setitem__(m, None) for m in {BLOCKED!r}]; " if client_only else ""
     code = f"import sys; {block}sys.argv = ['sgvloc', *sys.argv[1:]]; "
     code += "from sgvloc.cli import main; main()"
@@ -33,7 +39,7 @@ def sgvloc(*args: str, client_only: bool = False, cwd: Path | None = None, timeo
         text=True,
         timeout=timeout,
         cwd=cwd,
-        env={**os.environ, "COLUMNS": "200"},
+        env={**os.environ, "COLUMNS": "200", **(env or {})},
     )
 
 
@@ -137,6 +143,26 @@ def test_serve_on_a_busy_port_fails_at_once(tmp_path: Path) -> None:
     assert "another process listens there" in line
     # nothing was loaded: no data directory made, no map or kernel work (seconds otherwise)
     assert not (tmp_path / "d").exists()
+
+
+def test_serve_names_the_option_or_variable_of_a_bad_setting(tmp_path: Path) -> None:
+    """A bad setting is named as it was given (option or SGVLOC_ variable), and a
+    variable that is no setting (a typo) is warned about instead of silently ignored."""
+    run = sgvloc("serve", "--dev", "--workers", "0", "--data-dir", str(tmp_path / "d"),
+                 env={"SGVLOC_MAX_POINTS": "-1"})  # fmt: skip
+    assert run.returncode == 2 and "Traceback" not in run.stderr, run.stderr
+    text = " ".join(run.stderr.split())
+    assert "--workers: Input should be greater than or equal to 1 (got 0)" in text, text
+    assert "SGVLOC_MAX_POINTS: Input should be greater than or equal to 1 (got '-1')" in text
+    with socket.socket() as busy:  # the service stops at once after the warning
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = str(busy.getsockname()[1])
+        run = sgvloc("serve", "--dev", "--port", port, "--data-dir", str(tmp_path / "d"),
+                     env={"SGVLOC_WORKRS": "3", "SGVLOC_URL": "http://x"})  # fmt: skip
+    assert run.returncode == 2, run.stderr
+    assert "SGVLOC_WORKRS is not a setting (ignored); SGVLOC_WORKERS?" in run.stderr
+    assert "SGVLOC_URL" not in run.stderr  # the CLI's own variable
 
 
 def test_serve_starts_without_library_noise(tmp_path: Path) -> None:

@@ -123,6 +123,21 @@ def _configure_logging(level: str, fmt: str = "text") -> None:
     configure_logging(level, "json" if fmt == "json" else "text")
 
 
+#: the serve options of settings, as an error names them
+SERVE_OPTIONS = {
+    "host": "--host",
+    "port": "--port",
+    "data_dir": "--data-dir",
+    "store_url": "--store",
+    "workers": "--workers",
+    "threads_per_worker": "--threads",
+    "log_level": "--log-level",
+    "log_format": "--log-format",
+    "keys_file": "--keys-file",
+    "dev": "--dev",
+}
+
+
 @app.command(
     epilog="Threads: each numeric library (OpenMP in Open3D and FAISS, BLAS, numba, torch) "
     "gets --threads threads per worker (env SGVLOC_THREADS_PER_WORKER), default usable "
@@ -203,9 +218,14 @@ def serve(
     one PostgreSQL store (--store): each loads the maps and follows the others' writes.
     """
     # nothing that loads numpy, FAISS, Open3D or torch before run_service caps their threads
+    import logging
+    import os
+
+    from pydantic import ValidationError
+
     from .server.run import StartupError
     from .server.run import serve as run_service
-    from .server.settings import Settings
+    from .server.settings import Settings, describe_error, unknown_env
 
     overrides = {
         "host": host,
@@ -219,11 +239,15 @@ def serve(
         "keys_file": keys_file,
         "dev": True if dev else None,
     }
+    given = {k: v for k, v in overrides.items() if v is not None}
     try:
-        settings = Settings(**{k: v for k, v in overrides.items() if v is not None})
-    except ValueError as exc:  # pydantic's ValidationError
-        raise typer.BadParameter(str(exc)) from None
+        settings = Settings(**given)
+    except ValidationError as exc:
+        options = {k: SERVE_OPTIONS[k] for k in given}
+        raise typer.BadParameter(describe_error(exc, options)) from None
     _configure_logging(settings.log_level, settings.log_format)
+    for line in unknown_env(os.environ):
+        logging.getLogger("sgvloc.cli").warning("%s", line)
     try:
         run_service(settings)
     except StartupError as exc:
