@@ -1620,6 +1620,8 @@ def _sdk_call(command: str, fn: Callable[[], T]) -> T:
 
     try:
         return fn()
+    except BrokenPipeError:  # the reader went away (| head): click exits 1 quietly
+        raise
     except (sgvloc_client.SgvlocError, OSError) as exc:
         typer.echo(f"sgvloc map {command}: {exc}", err=True)
         raise typer.Exit(1) from None

@@ -194,6 +194,16 @@ def test_cli_lists_filters_and_deletes(server, client: httpx.Client) -> None:
     assert run.returncode == 1 and "does not exist" in run.stderr
     run = _sgvloc("map", "keyframes", "arc-cli", "--bbox", "1,2", url=server.url)
     assert run.returncode == 2 and "--bbox" in run.stderr
+    # a reader that stops early (| head): a quiet exit (it printed "[Errno 32] Broken pipe")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "sgvloc.cli", "map", "keyframes", "arc-cli"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        env={**os.environ, "SGVLOC_URL": server.url},
+    )
+    proc.stdout.close()  # before the command (seconds of imports) writes a line
+    _, err = proc.communicate(timeout=300)
+    assert (proc.returncode, err.decode()) == (1, ""), err.decode()
 
 
 @pytest.mark.parametrize(
