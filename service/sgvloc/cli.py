@@ -581,7 +581,7 @@ def build_map_command(
             with _sdk(url, api_key, timeout) as client:
                 result = build_map(source, client, map_name, **options)
     except (SgvlocError, sgvloc_client.SgvlocError) as exc:
-        typer.echo(f"build-map: {exc}", err=True)
+        typer.echo(f"build-map: {_sdk_error(exc)}", err=True)
         raise typer.Exit(1) from None
     typer.echo(
         f"map {result.map}: {result.scans} scans sent, {result.created} new keyframes, "
@@ -1623,8 +1623,18 @@ def _sdk_call(command: str, fn: Callable[[], T]) -> T:
     except BrokenPipeError:  # the reader went away (| head): click exits 1 quietly
         raise
     except (sgvloc_client.SgvlocError, OSError) as exc:
-        typer.echo(f"sgvloc map {command}: {exc}", err=True)
+        typer.echo(f"sgvloc map {command}: {_sdk_error(exc)}", err=True)
         raise typer.Exit(1) from None
+
+
+def _sdk_error(exc: Exception) -> str:
+    """An SDK error as the CLI says it: a missing or unknown key (401) names the option
+    that gives one."""
+    import sgvloc_client
+
+    if isinstance(exc, sgvloc_client.Unauthorized):
+        return f"{exc} (the CLI sends the key given by --api-key or SGVLOC_API_KEY)"
+    return str(exc)
 
 
 def _sdk(url: str, api_key: str | None, timeout: float) -> Any:

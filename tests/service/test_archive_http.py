@@ -62,7 +62,7 @@ def test_cli_export_import_gives_the_same_answers(
     orig = client.get("/v1/maps/balm/keyframes", params={"limit": 1000}).json()
     assert page == orig  # ids, keys, poses, metadata, creation times
     run = _sgvloc("map", "import", str(archive), "--name", "balm-copy", url=server.url)
-    assert run.returncode == 1 and "exists already" in run.stderr
+    assert run.returncode == 1 and "exists already; import it under another name" in run.stderr
     assert client.delete("/v1/maps/balm-copy").status_code == 204
 
 

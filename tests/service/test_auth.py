@@ -274,6 +274,28 @@ def test_sdk_sends_the_key(auth_server: Server, maps: dict) -> None:
     assert info.value.status == 401
 
 
+def test_the_cli_says_how_to_give_a_key(auth_server: Server, maps: dict) -> None:
+    """A 401 to the CLI names its option and variable, not only the header."""
+    env = {k: v for k, v in os.environ.items() if k != "SGVLOC_API_KEY"}
+    run = subprocess.run(
+        [sys.executable, "-m", "sgvloc.cli", "map", "list", "--url", auth_server.url],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=120,
+    )
+    assert run.returncode == 1, run.stderr
+    assert "--api-key or SGVLOC_API_KEY" in run.stderr, run.stderr
+    run = subprocess.run(
+        [sys.executable, "-m", "sgvloc.cli", "map", "list", "--url", auth_server.url],
+        capture_output=True,
+        text=True,
+        env={**env, "SGVLOC_API_KEY": KEYS["viewer"]},
+        timeout=120,
+    )
+    assert run.returncode == 0 and "auth-a" in run.stdout, run.stderr
+
+
 def test_keys_never_logged(auth_server: Server, maps: dict) -> None:
     # every key was used above (some refused); the debug log names keys, never their value
     log = auth_server.log()
@@ -334,7 +356,15 @@ def test_keys_file_formats(tmp_path: Path) -> None:
         ({"keys": [{"role": "admin", "key": "short"}]}, "at least 16"),
         ({"keys": [{"role": "admin", "key": "sha256:abc"}]}, "64 hex digits"),
         ({"keys": [{"role": "admin", "key": "x" * 20, "extra": 1}]}, "unknown field"),
-        ({"keys": [{"role": "admin", "key": "x" * 20}] * 2}, "twice"),
+        (
+            {
+                "keys": [
+                    {"name": "ops", "role": "admin", "key": "x" * 20},
+                    {"name": "bot", "role": "viewer", "key": hash_key("x" * 20)},
+                ]
+            },
+            r"the same key appears twice \('ops' and 'bot'\)",
+        ),
         (
             {
                 "keys": [

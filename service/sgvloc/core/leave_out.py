@@ -100,7 +100,8 @@ def plan(
         raise InputError(
             f"no keyframe has a revisit: none lies within {radius_m:g} m of a keyframe "
             f"at least {gap:g} {'s' if basis == 'timestamp' else 'keyframes'} away from it "
-            f"({basis}); a self-test needs a map whose drive passes a place twice"
+            f"({basis}); a self-test needs a map whose drive passes a place twice, or a "
+            "shorter gap (gap_s, gap_keyframes)"
         )
     return Plan(chosen_in, chosen_out, basis, ids, key, float(gap))
 

@@ -960,11 +960,12 @@ class MapManager:
                 "name",
             )
 
-    def _reserve(self, name: str) -> None:
-        """Reserve a new map's name while it is built (ConflictError if taken)."""
+    def _reserve(self, name: str, taken: str = "") -> None:
+        """Reserve a new map's name while it is built (ConflictError if taken, ending
+        with ``taken``: what to do instead)."""
         with self._lock:
             if name in self._maps or name in self._reserved:
-                raise ConflictError(f"map {name!r} exists already")
+                raise ConflictError(f"map {name!r} exists already{taken}")
             if not self.shared and (self.maps_dir / name).exists():
                 why = self.failed.get(name, "unknown reason")
                 raise ConflictError(
@@ -974,9 +975,9 @@ class MapManager:
             self._reserved.add(name)
 
     @contextmanager
-    def _reserving(self, name: str) -> Iterator[None]:
+    def _reserving(self, name: str, taken: str = "") -> Iterator[None]:
         """Hold ``name`` (ConflictError if taken) while a new map is made under it."""
-        self._reserve(name)
+        self._reserve(name, taken)
         try:
             yield
         finally:
@@ -984,12 +985,12 @@ class MapManager:
                 self._reserved.discard(name)
 
     @contextmanager
-    def _building(self, name: str) -> Iterator[tuple[Path, Path]]:
+    def _building(self, name: str, taken: str = "") -> Iterator[tuple[Path, Path]]:
         """Reserve ``name`` and give ``(tmp, folder)``: a new map is built whole in
         ``tmp`` (store, index snapshot) and renamed to ``folder`` by the block, so a map
         folder exists only once it is complete. If the block fails, both are removed (a
         full disk raises :class:`~sgvloc.core.errors.StorageFullError`)."""
-        self._reserve(name)
+        self._reserve(name, taken)
         try:
             self.maps_dir.mkdir(parents=True, exist_ok=True)
             tmp = self.maps_dir / f"{_TMP_PREFIX}{name}-{uuid.uuid4().hex[:8]}"
@@ -1571,9 +1572,10 @@ class MapManager:
             if not filled:  # no keyframes: the version and the next id all the same
                 store.insert_exact([], header.version, header.next_id)
 
+        taken = "; import it under another name (?name=, sgvloc map import --name)"
         if isinstance(self.backend, SharedBackend):
             # filled under a hidden name, published (renamed) in one step at the end
-            with self._reserving(name):
+            with self._reserving(name, taken):
                 store = self.backend.staging(record)
                 try:
                     fill(store)
@@ -1592,7 +1594,7 @@ class MapManager:
                     ) from None
                 self._publish(handle)
         else:
-            with self._building(name) as (tmp, folder):
+            with self._building(name, taken) as (tmp, folder):
                 store = self.backend.create(tmp, record)
                 try:
                     fill(store)

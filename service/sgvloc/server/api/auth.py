@@ -136,9 +136,14 @@ def parse_keys(data: Any, source: str = "keys") -> list[ApiKey]:
     if not isinstance(data, dict) or not isinstance(data.get("keys"), list):
         raise KeysError(f"{source}: expected a list of keys under 'keys'")
     keys = [_entry(raw, i, source) for i, raw in enumerate(data["keys"])]
-    digests = [k.digest for k in keys]
-    if len(set(digests)) != len(digests):
-        raise KeysError(f"{source}: the same key appears twice")
+    first: dict[bytes, str] = {}
+    for k in keys:
+        if k.digest in first:
+            raise KeysError(
+                f"{source}: the same key appears twice ({first[k.digest]!r} and "
+                f"{k.principal.name!r})"
+            )
+        first[k.digest] = k.principal.name
     names = [k.principal.name for k in keys]
     twice = sorted({n for n in names if names.count(n) > 1})
     if twice:

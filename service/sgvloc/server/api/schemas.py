@@ -29,6 +29,7 @@ from pydantic import (
     field_validator,
     model_validator,
 )
+from pydantic.json_schema import SkipJsonSchema
 
 from sgvloc.core.confidence import Calibration
 from sgvloc.core.config import LocalizerConfig, RerankMethod, RetrievalConfig
@@ -242,12 +243,24 @@ class MapPatch(_In):
         "this installation ships for the map's encoder kind",
     )
 
+    # not a setting to change: named only to say why (keyframes hold its features)
+    encoder: SkipJsonSchema[Any] = Field(None, exclude=True)
+
     @field_validator("calibration")
     @classmethod
     def _calibration(cls, v: Any) -> Any:
         if v is not None and v != "shipped" and not isinstance(v, dict):
             raise ValueError("must be a calibration object or 'shipped'")
         return plain_json(v) if isinstance(v, dict) else v
+
+    @field_validator("encoder")
+    @classmethod
+    def _encoder(cls, v: Any) -> Any:
+        raise ValueError(
+            "cannot be changed: the keyframes hold this encoder's features; build a new "
+            "map with the other encoder (sgvloc build-map, or POST /v1/maps and insert the "
+            "scans again)"
+        )
 
     @model_validator(mode="after")
     def _something(self) -> MapPatch:
