@@ -342,6 +342,8 @@ def test_a_map_stored_before_a_setting_existed_keeps_its_answers(tmp_path: Path)
         del stored["pose"]["min_icp_constraint"]
         del stored["pose"]["icp_coarse_m"]
         del stored["tracking"]["min_conditioning"]
+        for key in ("ransac_first_batch", "icp_backend", "icp_method", "icp_source_voxel_m"):
+            del stored["pose"][key]
         conn.execute(
             "UPDATE meta SET value = ? WHERE key = 'localizer_config'", (json.dumps(stored),)
         )
@@ -361,6 +363,12 @@ def test_a_map_stored_before_a_setting_existed_keeps_its_answers(tmp_path: Path)
     assert m.get("new").record.localizer_config.pose.icp_coarse_m == 3.0
     assert m.get("old").record.localizer_config.tracking.min_conditioning is None
     assert m.get("new").record.localizer_config.tracking.min_conditioning == -1.4
+    # the RANSAC batches and ICP of the releases before these settings
+    old, new = m.get("old").record.localizer_config.pose, m.get("new").record.localizer_config.pose
+    assert (old.ransac_first_batch, new.ransac_first_batch) == (1000, 64)
+    assert (old.icp_backend, new.icp_backend) == ("open3d", "numba")
+    assert (old.icp_method, new.icp_method) == ("point_to_point", "point_to_plane")
+    assert (old.icp_source_voxel_m, new.icp_source_voxel_m) == (0.0, 0.6)
     m.update_settings("old", {"top_k": 7})  # written back whole, the old value with it
     m.close()
     with sqlite3.connect(db) as conn:
@@ -369,6 +377,38 @@ def test_a_map_stored_before_a_setting_existed_keeps_its_answers(tmp_path: Path)
     assert json.loads(text)["retrieval"]["offset_m"] == 0.0
     assert json.loads(text)["pose"]["min_icp_constraint"] == 0.0
     assert json.loads(text)["pose"]["icp_coarse_m"] == 0.0
+
+
+def test_the_documented_patch_gives_a_stored_map_every_current_default(tmp_path: Path) -> None:
+    """OPERATIONS.md's "every current default at once" PATCH, on a map stored before
+    every added setting, leaves it with the settings of a new map."""
+    import re
+
+    from sgvloc.core.config import ADDED_SETTINGS
+
+    doc = (Path(__file__).parents[2] / "docs" / "OPERATIONS.md").read_text()
+    after = doc[doc.index("every current default at") :]
+    body = json.loads(re.search(r"-d '(\{.*?\})'", after, re.S).group(1))
+    m = _manager(tmp_path)
+    m.create("old", SPEC)
+    m.close()
+    db = tmp_path / "maps" / "old" / "map.sqlite"
+    with sqlite3.connect(db) as conn:  # none of the added settings stored
+        (text,) = conn.execute("SELECT value FROM meta WHERE key = 'localizer_config'").fetchone()
+        stored = json.loads(text)
+        for section, key in ADDED_SETTINGS:
+            del stored[section][key]
+        stored["pose"]["min_icp_fitness"] = 0.5  # an earlier default
+        conn.execute(
+            "UPDATE meta SET value = ? WHERE key = 'localizer_config'", (json.dumps(stored),)
+        )
+    m = _manager(tmp_path)
+    try:
+        assert m.get("old").record.localizer_config != LocalizerConfig()
+        m.update_settings("old", body["localizer"])
+        assert m.get("old").record.localizer_config == LocalizerConfig()
+    finally:
+        m.close()
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="this machine runs CUDA settings")

@@ -369,4 +369,10 @@ ADDED_SETTINGS: dict[tuple[str, str], Any] = {
     ("pose", "min_icp_constraint"): 0.0,
     ("pose", "icp_coarse_m"): 0.0,
     ("tracking", "min_conditioning"): None,
+    # before these four, RANSAC drew hypotheses 1000 at a time and ICP was Open3D's
+    # point-to-point on every point of the query cloud
+    ("pose", "ransac_first_batch"): 1000,
+    ("pose", "icp_backend"): "open3d",
+    ("pose", "icp_method"): "point_to_point",
+    ("pose", "icp_source_voxel_m"): 0.0,
 }
