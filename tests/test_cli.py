@@ -165,6 +165,21 @@ def test_serve_names_the_option_or_variable_of_a_bad_setting(tmp_path: Path) -> 
     assert "SGVLOC_URL" not in run.stderr  # the CLI's own variable
 
 
+def test_serve_on_a_data_directory_it_cannot_use_exits(tmp_path: Path) -> None:
+    """A maps folder that cannot be made (here a file is in the way) is a start-up error
+    with status 2 and the reason (it was a traceback)."""
+    (tmp_path / "d").mkdir()
+    (tmp_path / "d" / "maps").write_text("not a folder")
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = str(s.getsockname()[1])
+    run = sgvloc("serve", "--dev", "--port", port, "--data-dir", str(tmp_path / "d"))
+    assert run.returncode == 2, run.stderr
+    last = [ln for ln in run.stderr.splitlines() if ln.strip()][-1]
+    assert last.startswith("sgvloc serve: cannot use "), run.stderr
+    assert last.endswith("maps as the maps folder: File exists"), run.stderr
+
+
 def test_serve_starts_without_library_noise(tmp_path: Path) -> None:
     """Start-up at the default log level: no faiss loader lines, no numba or torch
     warnings (the SGV kernels are compiled before /readyz says ready)."""

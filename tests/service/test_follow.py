@@ -426,3 +426,26 @@ def test_a_store_that_refuses_the_replica_ends_its_start(postgres, url: str) -> 
     open_backend(url).check_access()
     port = postgres.cluster.port
     open_backend(url.replace(f":{port}/", ":1/")).check_access()  # nothing listens there
+
+
+def test_a_store_of_a_newer_sgvloc_ends_the_start(url: str, tmp_path: Path) -> None:
+    """A store whose schema a newer sgvloc wrote is refused by the start-up check (it
+    stayed 'loading' for ever, the reason only in a logged traceback)."""
+    m = MapManager(tmp_path / "a", backend=open_backend(url))
+    m.load_all()  # creates the schema
+    m.close()
+    with psycopg.connect(url, autocommit=True) as conn:
+        conn.execute("UPDATE sgvloc_schema SET version = version + 1")
+    with pytest.raises(StoreError, match="newer than this sgvloc understands"):
+        open_backend(url).check_access()
+    # the same found by the loading thread (the store came back after the start-up
+    # check): the process is told to stop, and /readyz says failed meanwhile
+    from sgvloc.server.api.main import _load_maps
+
+    late = MapManager(tmp_path / "b", backend=open_backend(url))
+    stop = threading.Event()
+    try:
+        _load_maps(late, on_fatal=stop.set)
+        assert stop.is_set() and "newer than this sgvloc" in (late.load_error or "")
+    finally:
+        late.close()

@@ -34,3 +34,18 @@ def test_not_ready_until_maps_are_loaded(tmp_path: Path) -> None:
         assert r.json()["error"]["code"] == "unavailable"
     # nothing was created: the maps folder holds only the lock taken at start-up
     assert [p.name for p in (tmp_path / "maps").iterdir()] == [LOCK_NAME]
+
+
+def test_a_failed_load_is_failed_not_loading(tmp_path: Path) -> None:
+    """A load that failed as a whole (the process is stopping) is not 'loading'."""
+    app = create_app(Settings(data_dir=tmp_path, dev=True))
+    app.state.manager.load_error = "the store's schema is version 2, newer than ..."
+
+    async def probe() -> httpx.Response:
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://test") as c:
+            return await c.get("/readyz")
+
+    ready = asyncio.run(probe())
+    assert ready.status_code == 503 and ready.json()["status"] == "failed"
+    app.state.manager.close()

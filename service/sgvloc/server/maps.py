@@ -297,8 +297,13 @@ def _lock_folder(maps_dir: Path) -> int:
     ``.lock`` file, which holds the owner's pid): two processes on one folder would each
     serve their own copy of the maps and overwrite each other's files. The lock goes
     with the process, even a killed one. Returns the lock file's descriptor."""
-    maps_dir.mkdir(parents=True, exist_ok=True)
-    fd = os.open(maps_dir / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        maps_dir.mkdir(parents=True, exist_ok=True)
+        fd = os.open(maps_dir / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError as exc:  # not a folder, no permission, a full or read-only disk
+        raise StoreError(
+            f"cannot use {maps_dir} as the maps folder: {exc.strerror or exc}"
+        ) from None
     try:
         fcntl.lockf(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except OSError:
@@ -420,6 +425,8 @@ class MapManager:
         #: shared store: the incarnation of each map in ``failed`` when it failed
         self._failed_incarnation: dict[str, int | None] = {}
         self.loaded = threading.Event()
+        #: why loading the maps failed as a whole (the process is unfit to serve), or None
+        self.load_error: str | None = None
         self._stop = threading.Event()
         self._snapshotter: threading.Thread | None = None
         #: the embedded store's folder lock (one process per folder)

@@ -25,7 +25,7 @@ def serve(settings: Settings) -> None:
     The port is checked first, so a busy one fails at once; library threads are capped
     before numpy, Open3D, FAISS and torch are loaded (by the app's modules), so this
     module imports none of them at the top. Raises :class:`StartupError` when the port
-    is taken or the keys file is unusable.
+    is taken, the keys file or the store is unusable, or loading the maps failed.
     """
     check_port(settings.host, settings.port)
     # an explicit threads_per_worker wins over OMP_NUM_THREADS & co.; the default does not
@@ -62,7 +62,16 @@ def serve(settings: Settings) -> None:
             lambda reason: application.state.metrics.connections_cut.labels(reason).inc(),
         ),
     )
-    _graceful_server(config).run()
+    server = _graceful_server(config)
+
+    def stop() -> None:  # loading the maps failed for good: stop as on SIGTERM
+        server.should_exit = True
+
+    application.state.on_fatal = stop
+    server.run()
+    why = application.state.manager.load_error
+    if why is not None:
+        raise StartupError(f"loading the maps failed: {why}")
 
 
 def _timed_protocol(  # uvicorn is imported late

@@ -100,7 +100,11 @@ def _warm_up() -> None:
         log.debug("%s kernels ready in %.1f s", name, time.perf_counter() - t0)
 
 
-def _load_maps(manager: MapManager) -> None:
+def _load_maps(manager: MapManager, on_fatal: Callable[[], None] | None = None) -> None:
+    """Load every map (the start-up's thread). A failure of the whole load (a store this
+    sgvloc cannot read, say) leaves the process unfit to serve: it is recorded in
+    ``manager.load_error`` (``/readyz`` answers ``failed``) and ``on_fatal`` is called
+    (``sgvloc serve`` stops and exits with status 2, saying why)."""
     try:
         _warm_up()
         manager.load_all()
@@ -109,8 +113,11 @@ def _load_maps(manager: MapManager) -> None:
             return
         manager.start_snapshotter()
         log.info("ready: %d map(s) loaded", len(manager.list()))
-    except Exception:  # readiness stays 503: the process is not fit to serve
+    except Exception as exc:
         log.exception("loading the maps failed")
+        manager.load_error = str(exc) or type(exc).__name__
+        if on_fatal is not None:
+            on_fatal()
 
 
 def _reload_keys_on_sighup(app: FastAPI) -> Callable[[], None]:
@@ -157,7 +164,12 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
         "dynamic batching: %s",
         f"wait {batcher.wait_ms:g} ms, at most {batcher.max_size}" if batcher.enabled else "off",
     )
-    loader = threading.Thread(target=_load_maps, args=(manager,), name="sgvloc-load", daemon=True)
+    loader = threading.Thread(
+        target=_load_maps,
+        args=(manager, getattr(app.state, "on_fatal", None)),
+        name="sgvloc-load",
+        daemon=True,
+    )
     loader.start()
     hup = _reload_keys_on_sighup(app)
     try:

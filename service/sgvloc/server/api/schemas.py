@@ -777,8 +777,10 @@ class Health(BaseModel):
 class Ready(BaseModel):
     """``GET /readyz``."""
 
-    status: Literal["ready", "loading", "degraded"] = Field(
-        description="degraded (503): every map loaded except those under failed"
+    status: Literal["ready", "loading", "degraded", "failed"] = Field(
+        description="degraded (503): every map loaded except those under failed; failed "
+        "(503): loading the maps failed as a whole (a store this sgvloc cannot read) and "
+        "the process stops, its log saying why"
     )
     maps: int
     failed: dict[str, str] = Field(

@@ -75,6 +75,15 @@ from .base import (
 log = logging.getLogger(__name__)
 
 SCHEMA_VERSION = 1
+
+
+def _newer_schema(version: int) -> str:
+    return (
+        f"the store's schema is version {version}, newer than this sgvloc understands "
+        f"({SCHEMA_VERSION}): upgrade sgvloc (every replica of a store runs one version)"
+    )
+
+
 CHANNEL = "sgvloc_changes"
 CHANGES_KEPT = 10_000  # changes kept per map; a replica further behind reloads the map
 _STAGING = ".tmp-"  # hidden names of maps being imported
@@ -410,7 +419,12 @@ class PgBackend(SharedBackend):
 
     def check_access(self) -> None:
         try:
-            psycopg.connect(self.url, autocommit=True, **self._connect_kwargs).close()
+            with psycopg.connect(self.url, autocommit=True, **self._connect_kwargs) as conn:
+                # a store written by a newer sgvloc: refused now, not after loading starts
+                if conn.execute("SELECT to_regclass('sgvloc_schema')").fetchone()[0]:
+                    row = conn.execute("SELECT max(version) FROM sgvloc_schema").fetchone()
+                    if row[0] is not None and int(row[0]) > SCHEMA_VERSION:
+                        raise StoreError(_newer_schema(int(row[0])))
         except psycopg.OperationalError as exc:
             text = str(exc).strip()
             state = getattr(exc, "sqlstate", None) or ""
@@ -446,10 +460,7 @@ class PgBackend(SharedBackend):
                 version += 1
                 cur.execute("UPDATE sgvloc_schema SET version = %s", (version,))
             if version != SCHEMA_VERSION:
-                raise StoreError(
-                    f"the store's schema is version {version}, newer than this sgvloc "
-                    f"understands ({SCHEMA_VERSION}): upgrade sgvloc"
-                )
+                raise StoreError(_newer_schema(version))
             cur.execute(
                 f"DELETE FROM sgvloc_maps WHERE starts_with(name, '{_STAGING}') "
                 f"AND made < now() - interval '{_STAGING_MAX_AGE}'"

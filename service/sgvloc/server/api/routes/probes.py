@@ -39,6 +39,9 @@ async def readyz(request: Request) -> Response:
     says."""
     manager: MapManager = request.app.state.manager
     store = manager.store_reachable
+    if manager.load_error is not None:  # the process stops (its log says why)
+        request.state.error_code = "failed"
+        return encode(request, Ready(status="failed", maps=0, store_reachable=store), 503)
     if not manager.loaded.is_set():
         request.state.error_code = "loading"  # for the access line
         return encode(request, Ready(status="loading", maps=0, store_reachable=store), 503)
