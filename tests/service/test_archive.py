@@ -3,6 +3,7 @@ truncated and foreign archives without leaving anything behind."""
 
 from __future__ import annotations
 
+import hashlib
 import io
 import tarfile
 from dataclasses import replace
@@ -144,14 +145,23 @@ def test_damaged_truncated_and_foreign_archives_are_refused(
             [
                 (
                     "manifest.json",
-                    members[0][1].replace(b'"format_version": 1', b'"format_version": 9'),
+                    members[0][1].replace(b'"format_version": 2', b'"format_version": 9'),
                 ),
                 *members[1:],
             ]
         ),
         "format version 9 is not supported",
     )
+    truth = members[0][1].replace(b'"format_version": 2', b'"format_version": true')
+    _refused(m, _tar([("manifest.json", truth), *members[1:]]), "format version True")
     assert m.import_archive(io.BytesIO(data), "imported").num_keyframes == 302  # name free
+    # the archives of earlier releases (version 1) are read too
+    v1 = members[0][1].replace(b'"format_version": 2', b'"format_version": 1')
+    old_sum = hashlib.sha256(members[0][1]).hexdigest().encode()
+    sums = members[3][1].replace(old_sum, hashlib.sha256(v1).hexdigest().encode())
+    assert sums != members[3][1]
+    v1_archive = _tar([("manifest.json", v1), *members[1:3], ("SHA256SUMS", sums)])
+    assert m.import_archive(io.BytesIO(v1_archive), "v1").num_keyframes == 302
     m.close()
 
 

@@ -40,7 +40,12 @@ from sgvloc.core.errors import InputError
 from .store import KeyframeRow, MapRecord, plain_json, utc_now
 
 FORMAT = "sgvloc-map-archive"
-FORMAT_VERSION = 1
+#: the version this sgvloc writes: 2 since the settings a manifest carries outgrew what
+#: the readers of version 1 accept (those now refuse it by its version, not as damaged)
+FORMAT_VERSION = 2
+#: the versions it reads: a version 1 archive has the settings of its day, and a
+#: setting added since takes the value that keeps the map's answers (ADDED_SETTINGS)
+READABLE_VERSIONS = (1, 2)
 CHUNK = 256  # keyframes per member
 MANIFEST = "manifest.json"
 SUMS = "SHA256SUMS"
@@ -214,10 +219,11 @@ def _header(manifest: dict[str, Any]) -> ArchiveHeader:
     if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
         raise ArchiveError(f"not an sgvloc map archive ({MANIFEST} names no {FORMAT!r} format)")
     fv = manifest.get("format_version")
-    if fv != FORMAT_VERSION:
+    if type(fv) is not int or fv not in READABLE_VERSIONS:
         raise ArchiveError(
             f"archive format version {fv!r} is not supported (this sgvloc reads "
-            f"{FORMAT_VERSION}); export it again with a matching sgvloc"
+            f"{' and '.join(map(str, READABLE_VERSIONS))}); export it again with a "
+            "matching sgvloc"
         )
     try:
         m = manifest["map"]
