@@ -263,9 +263,9 @@ class AsyncClient(BaseClient):
             self._self_test_map(name, queries, gap_s, gap_keyframes, radius_m, timeout)
         )
 
-    async def delete_map(self, name: str) -> None:
-        """Delete a map and its keyframes; raises :class:`NotFound` if it does not exist."""
-        await self._send(self._delete_map(name))
+    async def delete_map(self, name: str, force: bool = False) -> None:
+        """See :meth:`Client.delete_map`."""
+        await self._send(self._delete_map(name, force))
 
     # ----------------------------------------------------------------------------------
     # Keyframes

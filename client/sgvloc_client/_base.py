@@ -578,10 +578,11 @@ class BaseClient:
         )
         return replace(call, timeout=timeout, own_timeout=True)
 
-    def _delete_map(self, name: str) -> Call[None]:
+    def _delete_map(self, name: str, force: bool = False) -> Call[None]:
         # Not resent: a delete that went through but whose answer was lost would answer
         # 404 the second time, reporting a failure for a success.
-        return self._call("DELETE", _map_path(name), lambda _s, _b: None, idempotent=False)
+        path = _map_path(name) + ("?force=true" if force else "")
+        return self._call("DELETE", path, lambda _s, _b: None, idempotent=False)
 
     def _insert_keyframes(
         self, map: str, keyframes: Sequence[KeyframeIn | Mapping[str, Any]]

@@ -266,9 +266,10 @@ class Client(BaseClient):
             self._self_test_map(name, queries, gap_s, gap_keyframes, radius_m, timeout)
         )
 
-    def delete_map(self, name: str) -> None:
-        """Delete a map and its keyframes; raises :class:`NotFound` if it does not exist."""
-        self._send(self._delete_map(name))
+    def delete_map(self, name: str, force: bool = False) -> None:
+        """Delete a map and its keyframes; raises :class:`NotFound` if it does not exist.
+        A map the service could not load is deleted (unread) only with ``force``."""
+        self._send(self._delete_map(name, force))
 
     # ----------------------------------------------------------------------------------
     # Keyframes

@@ -449,3 +449,36 @@ def test_a_store_of_a_newer_sgvloc_ends_the_start(url: str, tmp_path: Path) -> N
         assert stop.is_set() and "newer than this sgvloc" in (late.load_error or "")
     finally:
         late.close()
+
+
+def test_a_map_no_replica_can_load_is_deleted_with_force(
+    pair: tuple[MapManager, MapManager], url: str, tmp_path: Path
+) -> None:
+    """A map whose stored settings no replica reads (say, from another version) is not
+    deleted by a plain delete; with force its rows go, and every replica forgets it."""
+    import json
+
+    a, b = pair
+    a.create("bad", SPEC)
+    with psycopg.connect(url) as conn:
+        conn.execute(
+            "UPDATE sgvloc_maps SET meta = meta || %s::jsonb WHERE name = 'bad'",
+            (json.dumps({"localizer_config": "{not json"}),),
+        )
+    c = MapManager(tmp_path / "c", backend=open_backend(url))
+    try:
+        c.load_all()
+        assert "bad" in c.failed
+        with pytest.raises(MapUnavailableError, match=r"\?force=true"):
+            c.delete("bad")
+        c.delete("bad", force=True)
+        assert "bad" not in c.failed
+        with psycopg.connect(url) as conn:
+            assert not conn.execute("SELECT 1 FROM sgvloc_maps WHERE name = 'bad'").fetchall()
+        a.sync()
+        with pytest.raises(NotFoundError):
+            a.get("bad")
+        with pytest.raises(NotFoundError):
+            c.delete("bad", force=True)
+    finally:
+        c.close()

@@ -18,6 +18,7 @@ import pytest
 from conftest import Server
 from svc_helpers import PRECOMPUTED, answer_head, error_of, post_msgpack, random_features
 
+import sgvloc_client
 from sgvloc.core.encoders.learned import shipped_weights_path
 from sgvloc_client import wire
 
@@ -164,7 +165,7 @@ def test_a_bad_map_folder_blocks_no_other_map_and_leaks_no_path(tmp_path: Path) 
             assert gone.status_code == 503 and error_of(gone)["code"] == "map_unavailable"
             kept = c.delete("/v1/maps/broken")  # not deleted, and not said to be missing
             assert kept.status_code == 503 and error_of(kept)["code"] == "map_unavailable"
-            assert "remove its folder" in error_of(kept)["message"]
+            assert "?force=true" in error_of(kept)["message"]
             assert (maps / "broken" / "map.sqlite").exists()
             text = r.text + gone.text + c.post("/v1/maps", json={"name": "broken"}).text
             assert str(tmp_path) not in text, text
@@ -176,9 +177,15 @@ def test_a_bad_map_folder_blocks_no_other_map_and_leaks_no_path(tmp_path: Path) 
             assert back.status_code == 200 and back.json()["name"] == "moved", back.text
             assert c.get("/v1/maps/moved").status_code == 200
             assert c.post("/v1/maps/good/reload").status_code == 409
-            for name in ("broken", "empty"):  # removed by the operator
-                shutil.rmtree(maps / name)
-                assert c.post(f"/v1/maps/{name}/reload").status_code == 404
+            # removed by the operator, or deleted unread through the API
+            shutil.rmtree(maps / "empty")
+            assert c.post("/v1/maps/empty/reload").status_code == 404
+            assert c.delete("/v1/maps/broken", params={"force": "true"}).status_code == 204
+            assert not (maps / "broken").exists()
+            assert c.post("/v1/maps/broken/reload").status_code == 404
+            with sgvloc_client.Client(srv.url) as sdk:  # the SDK's force (a loaded map too)
+                sdk.delete_map("good", force=True)
+            assert c.get("/v1/maps/good").status_code == 404
             ready = c.get("/readyz")
             assert ready.status_code == 200 and ready.json()["status"] == "ready", ready.text
     finally:

@@ -1075,9 +1075,10 @@ class MapManager:
         log.info("created map %r (encoder %r)", name, localizer.encoder.identity.name)
         return handle
 
-    def delete(self, name: str) -> None:
+    def delete(self, name: str, force: bool = False) -> None:
         """Delete a map and its folder; raises :class:`NotFoundError`, or
-        :class:`MapUnavailableError` for a map that failed to load (not deleted)."""
+        :class:`MapUnavailableError` for a map that failed to load, unless ``force``
+        (then its folder or rows go, unread: :meth:`_discard_failed`)."""
         shared = isinstance(self.backend, SharedBackend)
         if shared:  # a map another replica made since this one last caught up
             with contextlib.suppress(NotFoundError, MapUnavailableError):
@@ -1090,10 +1091,14 @@ class MapManager:
                 self._reserved.add(name)
         if handle is None:
             why = self.failed.get(name)
+            if why is not None and force:
+                self._discard_failed(name, why)
+                return
             if why is not None:  # its folder or rows are left to the operator
                 raise MapUnavailableError(
                     f"map {name!r} could not be loaded ({why}), so it is not deleted: fix "
-                    f"the cause and POST /v1/maps/{name}/reload (admin), or remove its folder"
+                    f"the cause and POST /v1/maps/{name}/reload (admin), or delete it "
+                    f"unread with DELETE /v1/maps/{name}?force=true (its keyframes are lost)"
                 )
             raise NotFoundError(f"map {name!r} does not exist")
         trash = None
@@ -1121,6 +1126,32 @@ class MapManager:
             shutil.rmtree(trash, ignore_errors=True)
         self._on_change(name, None)
         log.info("deleted map %r", name)
+
+    def _discard_failed(self, name: str, why: str) -> None:
+        """Delete a map that could not be loaded without reading it: its folder, or its
+        rows of a shared store (the other replicas drop it from their failed list)."""
+        with self._lock:
+            if name in self._maps or name in self._reserved or name not in self.failed:
+                raise ConflictError(f"map {name!r} is being loaded, made or deleted; retry")
+            self._reserved.add(name)
+        try:
+            if isinstance(self.backend, SharedBackend):
+                with contextlib.suppress(NotFoundError):  # gone already
+                    self.backend.drop(self.backend.open(name))
+            else:
+                folder = self.maps_dir / name
+                if folder.exists():
+                    trash = self.maps_dir / f"{_TRASH_PREFIX}{name}-{uuid.uuid4().hex[:8]}"
+                    folder.rename(trash)
+                    shutil.rmtree(trash, ignore_errors=True)
+            with self._lock:
+                self.failed.pop(name, None)
+                self._failed_incarnation.pop(name, None)
+        finally:
+            with self._lock:
+                self._reserved.discard(name)
+        self._on_change(name, None)
+        log.warning("deleted map %r unread: it could not be loaded (%s)", name, why)
 
     def update_settings(
         self,

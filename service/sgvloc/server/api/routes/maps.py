@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
+from typing import Annotated
 
-from fastapi import APIRouter, Depends, Request, Response
+from fastapi import APIRouter, Depends, Query, Request, Response
 
 from sgvloc.core import leave_out
 from sgvloc.core.confidence import shipped_calibration
@@ -308,9 +309,20 @@ async def reload_map(
     status_code=204,
     response_class=Response,
     operation_id="delete_map",
-    responses=error_responses(404),
+    responses=error_responses(404, 409),
 )
-async def delete_map(map_name: MapName, manager: ManagerDep, worker: WriteWorkerDep) -> Response:
+async def delete_map(
+    map_name: MapName,
+    manager: ManagerDep,
+    worker: WriteWorkerDep,
+    force: Annotated[
+        bool,
+        Query(
+            description="also delete a map that could not be loaded (503 map_unavailable "
+            "otherwise), unread: its folder or rows, with every keyframe"
+        ),
+    ] = False,
+) -> Response:
     """Delete a map with all its keyframes."""
-    await worker.run(lambda: manager.delete(map_name))
+    await worker.run(lambda: manager.delete(map_name, force=force))
     return Response(status_code=204)
