@@ -321,7 +321,12 @@ def test_schema_1_is_migrated_on_open(tmp_path: Path) -> None:
     with sqlite3.connect(db) as conn:  # a schema from the future is refused, not guessed at
         conn.execute("UPDATE meta SET value = '99' WHERE key = 'schema_version'")
     m = _manager(tmp_path)
-    assert "unknown schema version '99'" in m.failed["old"]
+    assert "schema version 99 is newer than this sgvloc" in m.failed["old"]
+    m.close()
+    with sqlite3.connect(db) as conn:  # and one that is no version at all is named as such
+        conn.execute("UPDATE meta SET value = 'x' WHERE key = 'schema_version'")
+    m = _manager(tmp_path)
+    assert "unknown schema version 'x'" in m.failed["old"]
     m.close()
 
 

@@ -198,6 +198,11 @@ class SqliteMapStore(MapStore):
             raise StoreError(f"{path}: migrating schema {schema} failed: {exc}") from None
         if schema != str(SCHEMA_VERSION):
             conn.close()
+            if schema is not None and schema.isdigit() and int(schema) > SCHEMA_VERSION:
+                raise StoreError(
+                    f"{path}: schema version {schema} is newer than this sgvloc understands "
+                    f"({SCHEMA_VERSION}): a newer sgvloc wrote it; upgrade sgvloc"
+                )
             raise StoreError(f"{path}: unknown schema version {schema!r}")
         return cls(path, conn)
 
