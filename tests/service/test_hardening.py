@@ -49,6 +49,17 @@ def test_map_settings_have_upper_bounds(client: httpx.Client, body: dict, field:
     assert client.get("/v1/maps/bounded").status_code == 404
 
 
+def test_config_reports_every_limit_and_timeout(client: httpx.Client) -> None:
+    """OPERATIONS.md: every limit is reported by GET /v1/config (each max_* and *_timeout_s
+    setting, under limits or at the top)."""
+    from sgvloc.server.settings import Settings
+
+    cfg = client.get("/v1/config").json()
+    shown = set(cfg) | set(cfg["limits"])
+    wanted = {f for f in Settings.model_fields if f.startswith("max_") or f.endswith("_timeout_s")}
+    assert wanted - shown == set(), wanted - shown
+
+
 def test_keypoints_per_feature_set_are_limited(client: httpx.Client) -> None:
     """Precomputed features beyond max_keypoints (4096 by default) are refused before
     any work; a new map's encoder may not make more either."""

@@ -817,6 +817,9 @@ class LimitsOut(BaseModel):
     max_inflight_localize: int = Field(description="localize requests admitted at once (429)")
     request_timeout_s: float = Field(description="longest wait for a worker thread (503)")
     retry_after_s: int = Field(description="Retry-After of 429/503 answers")
+    header_timeout_s: float = Field(
+        description="longest a request's headers may take to arrive (then the connection is closed)"
+    )
     body_timeout_s: float = Field(description="longest a request body may take to arrive (408)")
     send_timeout_s: float = Field(
         description="longest a client may take none of an answer (then the connection is closed)"
@@ -887,6 +890,9 @@ class ConfigOut(BaseModel):
     store: StoreOut
     snapshot_every: int
     snapshot_delay_s: float
+    shutdown_timeout_s: float = Field(
+        description="on SIGTERM, longest wait for open requests and for map loading"
+    )
 
 
 class ErrorDetail(BaseModel):

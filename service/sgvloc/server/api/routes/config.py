@@ -47,6 +47,7 @@ async def get_config(request: Request, settings: SettingsDep) -> Response:
                 max_inflight_localize=s.inflight_limit,
                 request_timeout_s=s.request_timeout_s,
                 retry_after_s=s.retry_after_s,
+                header_timeout_s=s.header_timeout_s,
                 body_timeout_s=s.body_timeout_s,
                 send_timeout_s=s.send_timeout_s,
                 workers=s.workers,
@@ -64,6 +65,7 @@ async def get_config(request: Request, settings: SettingsDep) -> Response:
             store=_store(request, s),
             snapshot_every=s.snapshot_every,
             snapshot_delay_s=s.snapshot_delay_s,
+            shutdown_timeout_s=s.shutdown_timeout_s,
         ),
     )
 
