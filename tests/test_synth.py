@@ -246,3 +246,32 @@ def test_a_range_that_reaches_nothing_is_refused(tmp_path):
         SynthConfig(min_range_m=3.0, max_range_m=2.0)
     with pytest.raises(InputError, match="holds no point"):
         generate(tmp_path / "s", SynthConfig(scans=2, max_range_m=2.0), progress=False)
+
+
+def test_sigterm_mid_run_leaves_no_staging_folder(tmp_path):
+    """`sgvloc synth` stopped by SIGTERM (a job runner's stop) cleans up as after Ctrl-C:
+    the half-written sequence in its staging folder is removed."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "town"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "sgvloc.cli", "synth", str(out), "--scans", "400", "--no-progress"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        env={**os.environ, "OMP_NUM_THREADS": "1"},
+    )
+    try:
+        deadline = time.monotonic() + 120
+        while not list(out.glob(".staging-*/velodyne/*.bin")) and time.monotonic() < deadline:
+            assert proc.poll() is None, proc.communicate()
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    assert proc.returncode == 128 + signal.SIGTERM, err.decode()
+    assert list(out.iterdir()) == [], list(out.iterdir())

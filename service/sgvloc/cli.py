@@ -70,6 +70,13 @@ def _threads_epilog(default: str) -> str:
 ONE_THREAD = _threads_epilog("1 (measured fastest: several small calls per scan)")
 
 
+def _above_zero(value: float | None) -> float | None:
+    """An option's callback: a number that must be above 0 (None: not given)."""
+    if value is not None and not value > 0:
+        raise typer.BadParameter(f"must be above 0, got {value:g}")
+    return value
+
+
 def _exit_on_sigterm() -> None:
     """SIGTERM ends the command through its ``finally`` blocks (what it started is removed):
     :func:`sgvloc.tools.service_process.exit_on_sigterm`."""
@@ -102,6 +109,11 @@ def _writable_folder(folder: Path, option: str) -> None:
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
+        above = next((p for p in (folder, *folder.parents) if p.exists()), None)
+        if above is not None and not above.is_dir():
+            raise typer.BadParameter(
+                f"{above} is a file, not a folder", param_hint=option
+            ) from None
         raise typer.BadParameter(
             f"cannot make {folder}: {exc.strerror}", param_hint=option
         ) from None
@@ -401,7 +413,9 @@ def loadtest_command(
         raise typer.Exit(2) from None
     typer.echo(result.summary())
     if json_out is not None:
-        json_out.write_text(json.dumps(result.as_dict(), indent=2))
+        from .core.files import write_text_whole
+
+        write_text_whole(json_out, json.dumps(result.as_dict(), indent=2))
     if result.errors:
         raise typer.Exit(1)
 
@@ -567,7 +581,9 @@ def build_map_command(
             source, every, limit, until, self_test_queries, self_test_gap, progress
         )
         if self_test_out is not None:
-            self_test_out.write_text(json.dumps(report, indent=1))
+            from .core.files import write_text_whole
+
+            write_text_whole(self_test_out, json.dumps(report, indent=1))
         if dry_run:
             return
         encoder = report["chosen"]
@@ -685,6 +701,44 @@ def _localizer_config(ctx: typer.Context, text: str | None) -> Any:
         raise typer.BadParameter(f"{source}: {why}", ctx=ctx, param_hint="'--config'") from None
 
 
+def _why(exc: BaseException, names: dict[str, str] | None = None, option: str = "") -> str:
+    """An error as one line for stderr. pydantic's ValidationError is said per error as
+    ``OPTION: message``: every error under ``option`` when given (a JSON option: its
+    fields follow), else the option of the field that failed (``names``, or the field
+    as ``--field-name``); not pydantic's multi-line dump with its links."""
+    from pydantic import ValidationError
+
+    if not isinstance(exc, ValidationError):
+        return str(exc)
+    parts = []
+    for e in exc.errors(include_url=False):
+        loc = [str(x) for x in e["loc"]]
+        msg = str(e["msg"]).removeprefix("Value error, ")
+        if option:
+            parts.append(f"{option}: {'.'.join(loc) + ': ' if loc else ''}{msg}")
+        elif loc:
+            head = (names or {}).get(loc[0]) or "--" + loc[0].replace("_", "-")
+            rest = "".join(f".{x}" for x in loc[1:])
+            parts.append(f"{head}{rest}: {msg}")
+        else:
+            parts.append(msg)
+    return "; ".join(parts)
+
+
+def _encoder_spec(value: str | None) -> Any:
+    """``--encoder``: an EncoderSpec (None without one); a usage error naming the option."""
+    from .core.encoders import EncoderSpec
+    from .core.errors import InputError
+    from .tools.build_map import parse_encoder
+
+    try:
+        spec = parse_encoder(value)
+        return None if spec is None else EncoderSpec.model_validate(spec)
+    except (InputError, ValueError) as exc:
+        why = _why(exc, option="--encoder").removeprefix("encoder: ")
+        raise typer.BadParameter(why, param_hint="'--encoder'") from None
+
+
 def _frames(text: str | None, option: str = "--frames") -> tuple[int, int | None] | None:
     """``START:STOP`` (STOP optional) as a pair of frame indices."""
     if text is None:
@@ -713,6 +767,17 @@ def _scan_span(spec: str, option: str) -> tuple[Path, int, int | None]:
         raise typer.BadParameter(
             f"{spec!r}: give DIR, DIR@N or DIR@A:B with scan numbers 0 <= A < B",
             param_hint=option,
+        )
+    from .core.errors import SgvlocError
+    from .core.sequence import KittiSequence
+
+    try:
+        scans = len(KittiSequence(Path(path)))
+    except SgvlocError as exc:
+        raise typer.BadParameter(f"{spec!r}: {exc}", param_hint=option) from None
+    if first >= scans or (end is not None and end > scans):
+        raise typer.BadParameter(
+            f"{spec!r}: {path} has {scans} scans (0..{scans - 1})", param_hint=option
         )
     return Path(path), first, end
 
@@ -772,8 +837,8 @@ def eval_command(
     fov: Annotated[
         float | None,
         typer.Option(
-            min=0.0,
             max=360.0,
+            callback=_above_zero,
             help="crop every scan to this horizontal field of view (deg) about the "
             "sensor's forward axis before encoding: a forward-looking sensor on 360-degree data",
         ),
@@ -831,7 +896,7 @@ def eval_command(
         ),
     ] = None,
     prior_radius: Annotated[
-        float, typer.Option(min=0.0, help="radius of the simulated prior (m)")
+        float, typer.Option(callback=_above_zero, help="radius of the simulated prior (m)")
     ] = 20.0,
     calibration: Annotated[
         Path | None,
@@ -855,10 +920,18 @@ def eval_command(
     a reliability diagram).
     """
     _cap_threads(threads)
-    localizer = _localizer_config(ctx, config)
-    _output_folder(out, "--out")
     from .core.errors import SgvlocError
     from .tools.evaluation.command import evaluate
+
+    if sum(x is not None for x in (db_until, min_gap, db_range, leave_out)) != 1:
+        raise typer.BadParameter(
+            "give exactly one split: --db-until (time), --min-gap (loops), --db-range "
+            "(frame ranges) or --leave-out (self-test)",
+            ctx=ctx,
+            param_hint="'--db-until' / '--min-gap' / '--db-range' / '--leave-out'",
+        )
+    localizer = _localizer_config(ctx, config)
+    _output_folder(out, "--out")
 
     _configure_logging("warning")
     try:
@@ -871,9 +944,9 @@ def eval_command(
             fov=fov,
             leave_out=leave_out,
             methods=methods,
-            topk=_int_list(topk),
-            sweep=_int_list(sweep),
-            sweep_rir=_int_list(sweep_rir) or None,
+            topk=_int_list(topk, "--topk", positive=True),
+            sweep=_int_list(sweep, "--sweep", positive=True),
+            sweep_rir=_int_list(sweep_rir, "--sweep-rir") or None,
             refine=refine,
             max_queries=max_queries,
             query_stride=query_stride,
@@ -891,7 +964,7 @@ def eval_command(
             echo=typer.echo,
         )
     except ValueError as exc:  # pydantic's ValidationError and InputError
-        typer.echo(f"eval: {exc}", err=True)
+        typer.echo(f"eval: {_why(exc)}", err=True)
         raise typer.Exit(2) from None
     except SgvlocError as exc:
         typer.echo(f"eval: {exc}", err=True)
@@ -950,26 +1023,25 @@ def eval_track_command(
     _cap_threads(threads)
     _exit_on_sigterm()  # the map folder it builds is removed
     _output_folder(out, "--out")
-    from .core.encoders import EncoderSpec
     from .core.errors import SgvlocError
-    from .tools.build_map import parse_encoder
     from .tools.eval_track import eval_track, report_lines
 
     _configure_logging("warning")
     jumps = [_kidnap(k) for k in kidnap or []]
+    enc = _encoder_spec(encoder)
+    settings = _tracking_settings(tracking)
     try:
-        spec = parse_encoder(encoder)
         report = eval_track(
             data,
             out,
             map_every=map_every,
             map_until=map_until,
-            encoder=None if spec is None else EncoderSpec.model_validate(spec),
+            encoder=enc,
             kidnaps=jumps,
             max_scans=max_scans,
             first_scan=first_scan,
             coverage_m=coverage,
-            tracking=None if tracking is None else json.loads(tracking),
+            tracking=settings,
             progress=(lambda m: typer.echo(m, err=True)) if progress else None,
         )
     except (ValueError, SgvlocError) as exc:
@@ -978,6 +1050,26 @@ def eval_track_command(
     for line in report_lines(report):
         typer.echo(line)
     typer.echo(f"wrote {out / 'track.json'} and {out / 'trajectory.png'}")
+
+
+def _tracking_settings(text: str | None) -> dict[str, Any] | None:
+    """``--tracking``: the map's tracking settings as JSON, checked; a usage error naming
+    the option."""
+    from pydantic import ValidationError
+
+    from .core.config import TrackingConfig
+
+    if text is None:
+        return None
+    try:
+        settings = json.loads(text)
+        TrackingConfig.model_validate(settings)
+    except json.JSONDecodeError as exc:
+        raise typer.BadParameter(f"not valid JSON: {exc}", param_hint="'--tracking'") from None
+    except ValidationError as exc:
+        why = _why(exc, option="--tracking").removeprefix("--tracking: ")
+        raise typer.BadParameter(why, param_hint="'--tracking'") from None
+    return settings
 
 
 def _tracking_registration() -> dict[str, object]:
@@ -996,6 +1088,31 @@ def _tracking_registration() -> dict[str, object]:
     )
     # the registration's code as well: its Hessian gives two of the features
     return {**{k: getattr(t, k) for k in keys}, "implementation": "sgvloc.core.gicp_numba"}
+
+
+def _saved_samples(
+    path: Path, data: list[str], check: list[str]
+) -> tuple[list[dict], dict[str, list[dict]], list[str]]:
+    """``--samples`` read back: (training fits, held-out fits per sequence, the training
+    sequences they came from); a usage error naming the option when the file is not one
+    this command wrote. A file of other sequences than --data/--check is used as it is,
+    with a warning: the samples are what the fit sees."""
+    try:
+        saved = json.loads(path.read_text())
+        train, held, came = saved["train"], saved["check"], saved.get("data", data)
+        if not (isinstance(train, list) and isinstance(held, dict) and isinstance(came, list)):
+            raise TypeError("train, check or data of another type")
+    except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as exc:
+        why = f"{path} is not a samples file of calibrate-track ({exc}); remove it to sample"
+        raise typer.BadParameter(why, param_hint="'--samples'") from None
+    if sorted(came) != sorted(data) or sorted(held) != sorted(check):
+        typer.echo(
+            f"calibrate-track: {path} holds the samples of --data {', '.join(came)} and "
+            f"--check {', '.join(held) or '(none)'}; fitting those, not the sequences "
+            "given (remove the file to sample them)",
+            err=True,
+        )
+    return train, held, came
 
 
 @app.command("calibrate-track", epilog=ONE_THREAD)
@@ -1038,19 +1155,15 @@ def calibrate_track_command(
     _output_file(out, "--out")
     _output_file(samples_file, "--samples")
     from .core.config import VerdictConfig
-    from .core.encoders import EncoderSpec
     from .core.errors import SgvlocError
-    from .tools.build_map import parse_encoder
+    from .core.files import write_text_whole
     from .tools.eval_track import confidence_figures, fit_track_confidence, track_samples
 
     _configure_logging("warning")
     say = (lambda m: typer.echo(m, err=True)) if progress else None
     cut = VerdictConfig().min_confidence if threshold is None else threshold
+    options = dict(map_every=map_every, encoder=_encoder_spec(encoder), draws=draws)
     try:
-        spec = parse_encoder(encoder)
-        enc = None if spec is None else EncoderSpec.model_validate(spec)
-        options = dict(map_every=map_every, encoder=enc, draws=draws)
-
         spans = {d: _scan_span(d, "--data") for d in data}
         spans.update({d: _scan_span(d, "--check") for d in check or []})
 
@@ -1066,16 +1179,12 @@ def calibrate_track_command(
             )
 
         trained_on = list(data)
-        if samples_file is not None and samples_file.is_file():
-            saved = json.loads(samples_file.read_text())
-            train, held = saved["train"], saved["check"]
-            trained_on = saved.get("data", trained_on)  # what the samples came from
+        fresh = samples_file is None or not samples_file.is_file()
+        if not fresh:
+            train, held, trained_on = _saved_samples(samples_file, data, check or [])
         else:
             train = [s for d in data for s in samples(d, 0)]
             held = {d: samples(d, 1) for d in check or []}
-            if samples_file is not None:
-                saved = {"data": trained_on, "train": train, "check": held}
-                samples_file.write_text(json.dumps(saved))
         model = fit_track_confidence(
             train,
             {
@@ -1085,7 +1194,10 @@ def calibrate_track_command(
                 "tracking": _tracking_registration(),
             },
         )
-        out.write_text(json.dumps(model.to_dict(), indent=1) + "\n")
+        if fresh and samples_file is not None:  # only the samples of a fit that worked
+            saved = {"data": trained_on, "train": train, "check": held}
+            write_text_whole(samples_file, json.dumps(saved))
+        write_text_whole(out, json.dumps(model.to_dict(), indent=1) + "\n")
         typer.echo(f"training: {confidence_figures(train, model, cut)}")
         for d, fits in held.items():
             typer.echo(f"held out ({d}): {confidence_figures(fits, model, cut)}")
@@ -1152,20 +1264,33 @@ def calibrate_command(
     not report on.
     """
     _cap_threads(threads)
+    if data and (db_until is None) == (min_gap is None):
+        raise typer.BadParameter(
+            "--data sequences need one split: --db-until (time) or --min-gap (loops)",
+            ctx=ctx,
+            param_hint="'--db-until' / '--min-gap'",
+        )
     localizer = _localizer_config(ctx, config)
     _output_file(out, "--out")
     from .core.confidence import Calibration, shipped_calibration
     from .core.encoders import EncoderSpec
     from .core.errors import SgvlocError
-    from .tools.build_map import parse_encoder
     from .tools.calibrate import calibrate
 
     _configure_logging("warning")
+    modes = [m.strip() for m in refine.split(",") if m.strip()]
+    if not modes or set(modes) - {"icp", "none"}:
+        raise typer.BadParameter(
+            f"expected icp and/or none, got {refine!r}", param_hint="'--refine'"
+        )
+    if "none" not in modes and base is None:  # the fit needs a model without ICP
+        raise typer.BadParameter(
+            "a calibration needs its answers without ICP too: add none (--refine icp,none), "
+            "or keep that profile from --base (shipped or a file)",
+            param_hint="'--refine'",
+        )
+    spec = _encoder_spec(encoder) or EncoderSpec()
     try:
-        modes = [m.strip() for m in refine.split(",") if m.strip()]
-        if not modes or set(modes) - {"icp", "none"}:
-            raise typer.BadParameter(f"expected icp and/or none, got {refine!r}")
-        spec = EncoderSpec.model_validate(parse_encoder(encoder) or {})
         base_cal = None
         if base == "shipped":
             base_cal = shipped_calibration(spec.kind)
@@ -1188,7 +1313,7 @@ def calibrate_command(
             echo=typer.echo,
         )
     except ValueError as exc:
-        typer.echo(f"calibrate: {exc}", err=True)
+        typer.echo(f"calibrate: {_why(exc)}", err=True)
         raise typer.Exit(2) from None
     except SgvlocError as exc:
         typer.echo(f"calibrate: {exc}", err=True)
@@ -1207,8 +1332,8 @@ def synth_command(
     fov: Annotated[
         float,
         typer.Option(
-            min=0.0,
             max=360.0,
+            callback=_above_zero,
             help="horizontal field of view (deg) about the forward axis",
         ),
     ] = 360.0,
@@ -1234,7 +1359,10 @@ def synth_command(
     its range and the spacing of the scans (keyframes).
     """
     _cap_threads(threads)
+    _exit_on_sigterm()  # the staging folder is removed
     _output_folder(out, "OUT")
+    from pydantic import ValidationError
+
     from .core.errors import SgvlocError
     from .tools.synth import SynthConfig, generate
 
@@ -1257,6 +1385,11 @@ def synth_command(
             overwrite=overwrite,
             progress=progress,
         )
+    except ValidationError as exc:  # a setting out of range: a usage error
+        names = {"fov_h_deg": "--fov", "fov_up_deg": "--fov-up", "fov_down_deg": "--fov-down"}
+        names.update(max_range_m="--max-range", step_m="--step")
+        typer.echo(f"synth: {_why(exc, names)}", err=True)
+        raise typer.Exit(2) from None
     except (ValueError, SgvlocError) as exc:
         typer.echo(f"synth: {exc}", err=True)
         raise typer.Exit(1) from None
@@ -1279,6 +1412,7 @@ def bev_images_command(
 ) -> None:
     """Write a scan sequence as kitti-bev images (imgs/*.png, pose.txt, times.txt)."""
     _cap_threads(threads)
+    _exit_on_sigterm()  # the staging folder is removed
     _output_folder(out, "OUT")
     from .core.errors import SgvlocError
     from .tools.bev_images import export_bev_images
@@ -1459,7 +1593,14 @@ def train_command(
         list[Path] | None, typer.Option(help="held-out sequence for validation curves; repeat")
     ] = None,
     steps: Annotated[int, typer.Option(min=1, help="optimiser steps in all")] = 3000,
-    batch: Annotated[int, typer.Option(min=1, help="scan pairs per step")] = 8,
+    batch: Annotated[
+        int,
+        typer.Option(
+            min=1,
+            max=64,
+            help="scan pairs per step (each holds about 40 MB while a step runs on CPU)",
+        ),
+    ] = 8,
     seed: Annotated[int, typer.Option(help="random seed")] = 0,
     device: Annotated[str, typer.Option(help="cpu | cuda | auto")] = "cpu",
     resume: Annotated[bool, typer.Option(help="continue from OUT/checkpoint.pt")] = True,
@@ -1522,6 +1663,7 @@ def export_weights_command(
     A map uses them with the encoder spec {"kind": "learned", "model_path": OUT}.
     """
     _cap_threads(threads)
+    _output_file(out, "OUT")
     from .core.errors import SgvlocError
     from .tools.train import export_weights
 
@@ -1553,6 +1695,7 @@ def export_onnx_command(
     (the dev extra).
     """
     _cap_threads(threads)
+    _output_file(out, "--out")
     from .core.encoders.learned import shipped_weights_path
     from .core.errors import SgvlocError
     from .tools.train import export_onnx

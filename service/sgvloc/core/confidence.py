@@ -56,6 +56,7 @@ import numpy as np
 from sgvloc.about import PACKAGE_DIR
 
 from .errors import InputError
+from .files import write_text_whole
 from .pose import rotation_angle_deg
 
 #: candidates farther than this from the top-1 keyframe count as another place (margin)
@@ -557,7 +558,7 @@ class Calibration:
             raise InputError(f"damaged calibration: {exc}") from None
 
     def save(self, path: str | Path) -> None:
-        Path(path).write_text(json.dumps(self.to_dict(), indent=1) + "\n")
+        write_text_whole(path, json.dumps(self.to_dict(), indent=1) + "\n")
 
     @classmethod
     def load(cls, path: str | Path) -> Calibration:

@@ -33,7 +33,7 @@ def export_bev_images(
         raise InputError(f"{src}: needs poses.txt and times.txt")
     imgs = Path(out) / "imgs"
     if imgs.exists() and any(imgs.iterdir()) and not overwrite:
-        raise InputError(f"{out}: already holds images (imgs/); pass overwrite")
+        raise InputError(f"{out}: already holds images (imgs/); replace them with --overwrite")
     # written aside: a run that fails or is interrupted leaves the previous images whole
     with staged(Path(out), ("imgs", "pose.txt", "times.txt")) as stage:
         (stage / "imgs").mkdir()

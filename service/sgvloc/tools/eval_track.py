@@ -32,6 +32,7 @@ from sgvloc.core.confidence import CORRECT_DEG, CORRECT_M  # a fix beyond either
 from sgvloc.core.config import LocalizerConfig
 from sgvloc.core.encoders import EncoderSpec
 from sgvloc.core.errors import EmptyScanError, InputError
+from sgvloc.core.files import write_text_whole
 from sgvloc.core.sequence import KittiSequence
 from sgvloc.core.tracking import Seed
 from sgvloc.server.maps import KeyframeIn, MapManager
@@ -179,7 +180,7 @@ def eval_track(
         finally:
             manager.close()
     report.data = str(data)
-    (out / "track.json").write_text(json.dumps(asdict(report), indent=1))
+    write_text_whole(out / "track.json", json.dumps(asdict(report), indent=1))
     plot_trajectory(report, seq, map_ids, out / "trajectory.png")
     return report
 

@@ -427,7 +427,9 @@ def generate(
     root = Path(out)
     vel = root / "velodyne"
     if vel.exists() and any(vel.iterdir()) and not overwrite:
-        raise InputError(f"{root}: already holds a sequence (velodyne/); pass overwrite")
+        raise InputError(
+            f"{root}: already holds a sequence (velodyne/); replace it with --overwrite"
+        )
     # written aside: a run that fails or is interrupted leaves the previous sequence whole
     with staged(root, ("velodyne", "poses.txt", "times.txt", "synth.json")) as stage:
         info = _generate(stage, cfg, progress)

@@ -26,7 +26,7 @@ import logging
 import math
 import signal
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, NoReturn
@@ -54,6 +54,7 @@ from sgvloc.core.bevnet import (
     to_input,
 )
 from sgvloc.core.errors import InputError
+from sgvloc.core.files import write_whole
 
 log = logging.getLogger(__name__)
 
@@ -329,14 +330,6 @@ def load_checkpoint(path: str | Path) -> tuple[BEVNet, dict]:
 RESUMABLE_CHANGES = frozenset({"steps", "val_every", "checkpoint_every", "device"})
 
 
-def _write_whole(path: Path, write: Callable[[Path], object]) -> None:
-    """``write`` a file beside ``path`` and rename it onto ``path``: a write cut short
-    (Ctrl-C, a full disk) leaves the previous file whole."""
-    part = path.with_suffix(path.suffix + ".tmp")
-    write(part)
-    part.replace(path)
-
-
 def _plot(history: list[dict], val: list[dict], path: Path) -> None:
     try:
         import matplotlib
@@ -479,9 +472,17 @@ def train(
                 "start over"
             ) from None
         log.info("resumed from %s at step %d", ckpt_path, step)
+        if step >= cfg.steps:
+            log.warning(
+                "nothing to train: %s is at step %d, not below --steps %d (give more steps "
+                "to go on)",
+                ckpt_path,
+                step,
+                cfg.steps,
+            )
 
     def save() -> None:
-        _write_whole(
+        write_whole(
             ckpt_path,
             lambda part: torch.save(
                 {
@@ -619,7 +620,7 @@ def export_weights(checkpoint: str | Path, out: str | Path, note: str = "") -> P
         },
     }
     out.parent.mkdir(parents=True, exist_ok=True)
-    _write_whole(out, lambda part: torch.save(blob, part))
+    write_whole(out, lambda part: torch.save(blob, part))
     return out
 
 
@@ -668,5 +669,5 @@ def export_onnx(weights: str | Path, out: str | Path | None = None) -> Path:
     proto = program.model_proto
     onnx.helper.set_model_props(proto, {ONNX_WEIGHTS_KEY: file_sha256(weights)})
     out.parent.mkdir(parents=True, exist_ok=True)
-    _write_whole(out, lambda part: onnx.save(proto, str(part)))
+    write_whole(out, lambda part: onnx.save(proto, str(part)))
     return out

@@ -11,6 +11,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from sgvloc.core.files import write_text_whole
+
 SECTIONS = (
     "rerank",
     "retrieval",
@@ -101,6 +103,6 @@ def run_bench(
                 result["cuda"] = cuda
                 echo(f"## SGV on CUDA ({cuda['device']})")
                 echo(engine.format_cuda(cuda))
-        out.write_text(json.dumps(result, indent=1))
+        write_text_whole(out, json.dumps(result, indent=1))
     echo(f"wrote {out}")
     return result

@@ -6,9 +6,10 @@ from __future__ import annotations
 import json
 import math
 import os
-import uuid
 from pathlib import Path
 from typing import Any
+
+from sgvloc.core.files import write_text_whole
 
 from .runner import EvalResult
 
@@ -169,18 +170,7 @@ def write_json(result: EvalResult, path: str | os.PathLike) -> Path:
     """Every figure and the exact configuration as JSON (NaN written as null), atomically."""
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
-    text = json.dumps(report_dict(result), indent=1)
-    # beside it under a name of this process, opened as any file (the umask's mode, not
-    # mkstemp's owner-only one: a report is read by others)
-    tmp = p.with_name(f".{p.name}.{os.getpid()}-{uuid.uuid4().hex[:8]}.tmp")
-    try:
-        with open(tmp, "x") as fh:
-            fh.write(text)
-        os.replace(tmp, p)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return p
+    return write_text_whole(p, json.dumps(report_dict(result), indent=1))
 
 
 def _save(fig, path: str | Path) -> Path:
