@@ -14,6 +14,7 @@ import datetime
 import email.utils
 import itertools
 import json
+import logging
 import os
 import threading
 import time
@@ -45,6 +46,8 @@ from ._models import (
     features_body,
     points_array,
 )
+
+log = logging.getLogger("sgvloc_client")
 
 T = TypeVar("T")
 
@@ -413,7 +416,18 @@ class BaseClient:
         not be resent."""
         tries = attempt + 1
         if _may_resend(call, exc) and isinstance(exc, _RETRYABLE) and attempt < self.retries:
-            return min(self.max_backoff, self.backoff * 2**attempt)
+            wait = min(self.max_backoff, self.backoff * 2**attempt)
+            log.warning(
+                "%s %s%s failed (%s); resending in %.1f s (try %d of %d)",
+                call.method,
+                self.base_urls[i],
+                call.path,
+                type(exc).__name__,
+                wait,
+                tries + 1,
+                self.retries + 1,
+            )
+            return wait
         kind = type(exc).__name__
         detail = str(exc) or kind
         raise TransportError(

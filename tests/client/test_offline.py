@@ -236,6 +236,18 @@ def test_retries_on_closed_port_only_for_idempotent_calls(closed_url: str) -> No
         c.health()
 
 
+def test_each_resend_is_logged(closed_url: str, caplog) -> None:
+    """A call that keeps failing says so as it resends (a stuck build was silent for
+    its whole timeout times its tries)."""
+    with Client(closed_url, retries=2, backoff=0.01) as c, caplog.at_level("WARNING"):
+        with pytest.raises(TransportError):
+            c.get_map("m")
+    lines = [r.getMessage() for r in caplog.records if r.name == "sgvloc_client"]
+    assert len(lines) == 2, lines
+    assert "GET " in lines[0] and "/v1/maps/m failed (ConnectError)" in lines[0], lines
+    assert lines[0].endswith("(try 2 of 3)") and lines[1].endswith("(try 3 of 3)"), lines
+
+
 def test_async_client_retries_and_errors(closed_url: str) -> None:
     url = closed_url
 

@@ -136,6 +136,15 @@ def test_eval_refuses_bad_arguments(balm_mini_dir, tmp_path):
     assert res.exit_code == 2 and "--db-range" in res.output
     res = CliRunner().invoke(app, [*base, "--min-gap", "30", "--query-range", "9:"])
     assert res.exit_code == 2 and "query_range needs db_range" in res.output
+    # a zero-byte scan is named
+    import shutil
+
+    data = tmp_path / "seq"
+    shutil.copytree(balm_mini_dir, data)
+    (data / "velodyne" / "000003.bin").write_bytes(b"")
+    args = ["eval", "--data", str(data), "--no-progress", "--out", str(tmp_path / "o")]
+    res = CliRunner().invoke(app, [*args, "--min-gap", "30", "--encoder", "bev"])
+    assert res.exit_code == 2 and "000003.bin: scan is empty" in res.output, res.output
 
 
 def test_eval_by_frame_ranges_with_merged_descriptors(balm_mini_dir, tmp_path):

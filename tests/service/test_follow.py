@@ -482,3 +482,54 @@ def test_a_map_no_replica_can_load_is_deleted_with_force(
             c.delete("bad", force=True)
     finally:
         c.close()
+
+
+def test_build_map_waits_for_a_service_still_loading(
+    postgres, url: str, tmp_path: Path, balm_mini_dir: Path
+) -> None:
+    """A build started with its service (here one whose store is not up yet, so it stays
+    'loading') waits for the maps to load instead of failing at once with 503."""
+    if postgres.cluster is None:
+        pytest.skip("needs the throwaway cluster (SGVLOC_TEST_PG_URL names an outside server)")
+    import httpx
+    from conftest import Server
+
+    from sgvloc.tools.build_map import build_map
+
+    postgres.cluster.stop()
+    down = True
+    srv = Server(tmp_path / "d", tmp_path / "log", env={"SGVLOC_STORE_URL": url})
+    starting = threading.Thread(target=srv.start)  # returns once ready
+    out: dict = {}
+    try:
+        starting.start()
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:  # up and answering "loading"
+            try:
+                if httpx.get(f"{srv.url}/readyz", timeout=2).json()["status"] == "loading":
+                    break
+            except (httpx.TransportError, ValueError):
+                pass
+            time.sleep(0.1)
+
+        def build() -> None:
+            try:
+                out["result"] = build_map(balm_mini_dir, srv.url, "m", limit=3, progress=False)
+            except Exception as exc:  # noqa: BLE001 - reported below
+                out["error"] = exc
+
+        builder = threading.Thread(target=build)
+        builder.start()
+        time.sleep(2.0)  # the build has met the loading service by now
+        assert builder.is_alive(), out
+        postgres.cluster.start()
+        down = False
+        builder.join(timeout=180)
+        starting.join(timeout=60)
+        assert "error" not in out, out
+        assert out["result"].created == 3 and out["result"].keyframes == 3
+    finally:
+        if down:
+            postgres.cluster.start()
+        srv.stop()
+        starting.join(timeout=60)

@@ -41,7 +41,7 @@ from tqdm import tqdm
 
 from sgvloc.core.errors import ConflictError, EmptyScanError, InputError, NotFoundError
 from sgvloc.core.sequence import KittiSequence
-from sgvloc_client import Client, Conflict, NotFound
+from sgvloc_client import Client, Conflict, NotFound, Overloaded
 from sgvloc_client import KeyframeIn as ClientKeyframeIn
 
 if TYPE_CHECKING:
@@ -182,6 +182,8 @@ class ClientSink:
 
     #: how long :meth:`state` waits for the replica it asks to show this build's writes
     CATCH_UP_S = 10.0
+    #: how long a build waits for a service still loading its maps (just started)
+    LOADING_WAIT_S = 300.0
 
     def __init__(self, target: str | Client) -> None:
         self.client = Client(target) if isinstance(target, str) else target
@@ -197,7 +199,7 @@ class ClientSink:
     ) -> bool:
         client = self.client
         try:
-            info = client.get_map(name)
+            info = self._first_get(name)
         except NotFound:
             if not create:
                 raise NotFoundError(f"map {name!r} does not exist (and create is off)") from None
@@ -216,6 +218,22 @@ class ClientSink:
         _self_test_not_recorded(name, self_test)
         log.info("map %s exists with %d keyframes; resuming", name, info.keyframes)
         return False
+
+    def _first_get(self, name: str) -> Any:
+        """``get_map``, waiting while the service answers that it is still loading its
+        maps (a build started together with the service), at most LOADING_WAIT_S."""
+        deadline = time.monotonic() + self.LOADING_WAIT_S
+        said = False
+        while True:
+            try:
+                return self.client.get_map(name)
+            except Overloaded as exc:
+                if exc.code != "unavailable" or time.monotonic() >= deadline:
+                    raise
+                if not said:
+                    log.warning("the service is still loading its maps; waiting for it")
+                    said = True
+                time.sleep(1.0)
 
     def discard(self, name: str) -> None:
         self.client.delete_map(name)

@@ -295,6 +295,8 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
         except EmptyScanError as exc:
             unencodable[str(path)] = str(exc)
             return None
+        except InputError as exc:  # a malformed or empty file: which one
+            raise InputError(f"{path}: {exc}") from None
 
     everything = {
         i: encoded(seq.paths[i], i in as_query)
