@@ -701,11 +701,11 @@ def _localizer_config(ctx: typer.Context, text: str | None) -> Any:
         raise typer.BadParameter(f"{source}: {why}", ctx=ctx, param_hint="'--config'") from None
 
 
-def _why(exc: BaseException, names: dict[str, str] | None = None, option: str = "") -> str:
+def _why(exc: BaseException, names: dict[str, str] | None = None, json_option: bool = False) -> str:
     """An error as one line for stderr. pydantic's ValidationError is said per error as
-    ``OPTION: message``: every error under ``option`` when given (a JSON option: its
-    fields follow), else the option of the field that failed (``names``, or the field
-    as ``--field-name``); not pydantic's multi-line dump with its links."""
+    ``--option: message``, the option of the field that failed (``names``, or the field
+    as ``--field-name``), or for a JSON option's value (``json_option``) as
+    ``field.path: message``; not pydantic's multi-line dump with its links."""
     from pydantic import ValidationError
 
     if not isinstance(exc, ValidationError):
@@ -714,14 +714,13 @@ def _why(exc: BaseException, names: dict[str, str] | None = None, option: str = 
     for e in exc.errors(include_url=False):
         loc = [str(x) for x in e["loc"]]
         msg = str(e["msg"]).removeprefix("Value error, ")
-        if option:
-            parts.append(f"{option}: {'.'.join(loc) + ': ' if loc else ''}{msg}")
-        elif loc:
-            head = (names or {}).get(loc[0]) or "--" + loc[0].replace("_", "-")
-            rest = "".join(f".{x}" for x in loc[1:])
-            parts.append(f"{head}{rest}: {msg}")
-        else:
+        if not loc:
             parts.append(msg)
+        elif json_option:
+            parts.append(f"{'.'.join(loc)}: {msg}")
+        else:
+            head = (names or {}).get(loc[0]) or "--" + loc[0].replace("_", "-")
+            parts.append(f"{head}{''.join(f'.{x}' for x in loc[1:])}: {msg}")
     return "; ".join(parts)
 
 
@@ -735,7 +734,7 @@ def _encoder_spec(value: str | None) -> Any:
         spec = parse_encoder(value)
         return None if spec is None else EncoderSpec.model_validate(spec)
     except (InputError, ValueError) as exc:
-        why = _why(exc, option="--encoder").removeprefix("encoder: ")
+        why = _why(exc, json_option=True).removeprefix("encoder: ")
         raise typer.BadParameter(why, param_hint="'--encoder'") from None
 
 
@@ -1067,8 +1066,7 @@ def _tracking_settings(text: str | None) -> dict[str, Any] | None:
     except json.JSONDecodeError as exc:
         raise typer.BadParameter(f"not valid JSON: {exc}", param_hint="'--tracking'") from None
     except ValidationError as exc:
-        why = _why(exc, option="--tracking").removeprefix("--tracking: ")
-        raise typer.BadParameter(why, param_hint="'--tracking'") from None
+        raise typer.BadParameter(_why(exc, json_option=True), param_hint="'--tracking'") from None
     return settings
 
 

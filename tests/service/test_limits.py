@@ -54,6 +54,7 @@ def test_config_reports_the_limits(client: httpx.Client) -> None:
         "max_inflight_localize": 8,  # 4 x 2 workers
         "request_timeout_s": 30.0,
         "retry_after_s": 1,
+        "header_timeout_s": 10.0,
         "body_timeout_s": 30.0,
         "send_timeout_s": 60.0,
         "workers": 2,
