@@ -163,6 +163,20 @@ def test_serve_names_the_option_or_variable_of_a_bad_setting(tmp_path: Path) -> 
     assert run.returncode == 2, run.stderr
     assert "SGVLOC_WORKRS is not a setting (ignored); SGVLOC_WORKERS?" in run.stderr
     assert "SGVLOC_URL" not in run.stderr  # the CLI's own variable
+    # a variable in other case is read (so not warned about); a check of two settings
+    # says what is wrong without pydantic's prefix
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = str(busy.getsockname()[1])
+        run = sgvloc("serve", "--dev", "--port", port, "--data-dir", str(tmp_path / "d"),
+                     env={"SGVLOC_Log_Level": "debug"})  # fmt: skip
+    assert run.returncode == 2 and "not a setting" not in run.stderr, run.stderr
+    run = sgvloc("serve", "--dev", "--workers", "2", "--data-dir", str(tmp_path / "d"),
+                 env={"SGVLOC_WRITE_WORKERS": "5"})  # fmt: skip
+    text = " ".join(run.stderr.replace("│", " ").split())
+    assert run.returncode == 2 and "write_workers (5) may not exceed workers (2)" in text, text
+    assert "Value error" not in text, text
 
 
 def test_serve_on_a_data_directory_it_cannot_use_exits(tmp_path: Path) -> None:
@@ -328,9 +342,28 @@ def test_bad_arguments_are_one_line_usage_errors(tmp_path: Path) -> None:
         (["eval", "--data", "{tmp}", "--min-gap", "30", "--prior-radius", "0"], "--prior-radius"),
         (["eval", "--data", "{tmp}", "--min-gap", "30", "--topk", "0"], "--topk"),
         (["eval", "--data", "{tmp}", "--min-gap", "30", "--sweep", "x"], "--sweep"),
-        (["eval-track", "--data", "{tmp}", "--tracking", '{{"nosuch": 1}}'], "--tracking"),
+        (
+            ["eval-track", "--data", "{tmp}", "--tracking", '{{"nosuch": 1, "stop_m": -1}}'],
+            "'--tracking': stop_m: Input should be greater than 0; nosuch: Extra inputs",
+        ),  # fmt: skip
         (["eval-track", "--data", "{tmp}", "--tracking", "{{bad"], "not valid JSON"),
-        (["eval-track", "--data", "{tmp}", "--encoder", "nosuch"], "--encoder"),
+        (["eval-track", "--data", "{tmp}", "--encoder", "nosuch"], "'--encoder': kind: Input"),
+        (
+            [
+                "eval",
+                "--data",
+                "{tmp}",
+                "--min-gap",
+                "9",
+                "--encoder",
+                '{{"kind": "bev", "foo": 1}}',
+            ],
+            "Invalid value for '--encoder': foo: Extra inputs are not permitted",
+        ),  # fmt: skip
+        (
+            ["build-map", "--data", "{tmp}", "--map", "m", "--encoder", '{{"kind": "x"}}'],
+            "Invalid value for '--encoder': kind: Input should be",
+        ),  # fmt: skip
         (["calibrate-track", "--data", "{balm}@20:30", "--out", "{tmp}/m.json"], "has 15 scans"),
         (
             [

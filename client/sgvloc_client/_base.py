@@ -325,12 +325,16 @@ class BaseClient:
         Raises :class:`TransportError` when ``retries`` are spent."""
         if attempt >= self.retries:
             raise self._unanswered(method, self.base_urls[i], exc) from exc
+        why = type(exc).__name__
         if len(self.base_urls) > 1:
             j = self._untried(i, tried)
             if j is not None:
                 tried.add(j)
+                self._log_resend(method, i, "", why, attempt, to=j)
                 return j, 0.0
-        return i, min(self.max_backoff, self.backoff * 2**attempt)
+        wait = min(self.max_backoff, self.backoff * 2**attempt)
+        self._log_resend(method, i, "", why, attempt, wait=wait)
+        return i, wait
 
     def _failover(
         self,
@@ -350,7 +354,36 @@ class BaseClient:
             return None
         if sent and not _may_resend(call, exc):
             return None
-        return self._untried(i, tried)
+        j = self._untried(i, tried)
+        if j is not None:
+            why = "503" if exc is None else type(exc).__name__
+            self._log_resend(call.method, i, call.path, why, attempt, to=j)
+        return j
+
+    def _log_resend(
+        self,
+        method: str,
+        i: int,
+        path: str,
+        why: str,
+        attempt: int,
+        *,
+        wait: float = 0.0,
+        to: int | None = None,
+    ) -> None:
+        """Say that a call that failed on URL ``i`` (``why``) is sent again: to URL ``to``
+        at once, or to the same after ``wait`` seconds (a WARNING of logger sgvloc_client)."""
+        where = f"to {self.base_urls[to]}" if to is not None else f"in {wait:.1f} s"
+        log.warning(
+            "%s %s%s failed (%s); resending %s (try %d of %d)",
+            method,
+            self.base_urls[i],
+            path,
+            why,
+            where,
+            attempt + 2,
+            self.retries + 1,
+        )
 
     def _untried(self, i: int, tried: set[int]) -> int | None:
         """URL ``i`` failed: mark it down and name the next URL after it not ``tried``
@@ -417,16 +450,7 @@ class BaseClient:
         tries = attempt + 1
         if _may_resend(call, exc) and isinstance(exc, _RETRYABLE) and attempt < self.retries:
             wait = min(self.max_backoff, self.backoff * 2**attempt)
-            log.warning(
-                "%s %s%s failed (%s); resending in %.1f s (try %d of %d)",
-                call.method,
-                self.base_urls[i],
-                call.path,
-                type(exc).__name__,
-                wait,
-                tries + 1,
-                self.retries + 1,
-            )
+            self._log_resend(call.method, i, call.path, type(exc).__name__, attempt, wait=wait)
             return wait
         kind = type(exc).__name__
         detail = str(exc) or kind
@@ -458,6 +482,15 @@ class BaseClient:
             delay = min(self.max_backoff, self.backoff * 2**attempt)
         if not 0.0 <= delay <= self.max_retry_after:
             return -1.0
+        log.warning(
+            "%s %s answered %d; resending in %.1f s (try %d of %d)",
+            call.method,
+            call.path,
+            status,
+            delay,
+            attempt + 2,
+            self.retries + 1,
+        )
         return delay
 
     # ----------------------------------------------------------------------------------

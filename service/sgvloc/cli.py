@@ -237,7 +237,7 @@ def serve(
 
     from .server.run import StartupError
     from .server.run import serve as run_service
-    from .server.settings import Settings, describe_error, unknown_env
+    from .server.settings import Settings, env_name, unknown_env
 
     overrides = {
         "host": host,
@@ -254,9 +254,9 @@ def serve(
     given = {k: v for k, v in overrides.items() if v is not None}
     try:
         settings = Settings(**given)
-    except ValidationError as exc:
+    except ValidationError as exc:  # named as given: an option, else its variable
         options = {k: SERVE_OPTIONS[k] for k in given}
-        raise typer.BadParameter(describe_error(exc, options)) from None
+        raise typer.BadParameter(_why(exc, options, unnamed=env_name)) from None
     _configure_logging(settings.log_level, settings.log_format)
     for line in unknown_env(os.environ):
         logging.getLogger("sgvloc.cli").warning("%s", line)
@@ -302,6 +302,7 @@ def new_key_command(
         ROLES,
         KeysError,
         append_entry,
+        is_json,
         key_names,
         keys_entry,
         new_key,
@@ -344,7 +345,7 @@ def new_key_command(
         except (OSError, KeysError) as exc:
             why = exc.strerror if isinstance(exc, OSError) else str(exc)
             typer.echo(f"new-key: {keys_file}: {why}; the entry was not added", err=True)
-            typer.echo(toml_entry(entry))
+            typer.echo(json.dumps(entry) if is_json(keys_file) else toml_entry(entry))
             raise typer.Exit(1) from None
         typer.echo(f"added {name!r} ({role}) to {keys_file}", err=True)
     else:
@@ -573,6 +574,7 @@ def build_map_command(
             ctx=ctx,
             param_hint="'--dry-run'",
         )
+    _encoder_spec(encoder)  # a usage error now, naming the option
     _configure_logging("warning")
 
     report = None
@@ -701,11 +703,16 @@ def _localizer_config(ctx: typer.Context, text: str | None) -> Any:
         raise typer.BadParameter(f"{source}: {why}", ctx=ctx, param_hint="'--config'") from None
 
 
-def _why(exc: BaseException, names: dict[str, str] | None = None, json_option: bool = False) -> str:
+def _why(
+    exc: BaseException,
+    names: dict[str, str] | None = None,
+    json_option: bool = False,
+    unnamed: Callable[[str], str] = lambda field: "--" + field.replace("_", "-"),
+) -> str:
     """An error as one line for stderr. pydantic's ValidationError is said per error as
-    ``--option: message``, the option of the field that failed (``names``, or the field
-    as ``--field-name``), or for a JSON option's value (``json_option``) as
-    ``field.path: message``; not pydantic's multi-line dump with its links."""
+    ``OPTION: message (got VALUE)``, OPTION naming the field that failed as the user gave
+    it (``names``, else ``unnamed(field)``: ``--field-name``), or for a JSON option's value
+    (``json_option``) as ``field.path: message``; not pydantic's multi-line dump."""
     from pydantic import ValidationError
 
     if not isinstance(exc, ValidationError):
@@ -719,8 +726,10 @@ def _why(exc: BaseException, names: dict[str, str] | None = None, json_option: b
         elif json_option:
             parts.append(f"{'.'.join(loc)}: {msg}")
         else:
-            head = (names or {}).get(loc[0]) or "--" + loc[0].replace("_", "-")
-            parts.append(f"{head}{''.join(f'.{x}' for x in loc[1:])}: {msg}")
+            head = (names or {}).get(loc[0]) or unnamed(loc[0])
+            got = e.get("input")
+            value = f" (got {got!r})" if isinstance(got, str | int | float) else ""
+            parts.append(f"{head}{''.join(f'.{x}' for x in loc[1:])}: {msg}{value}")
     return "; ".join(parts)
 
 
@@ -930,6 +939,7 @@ def eval_command(
             param_hint="'--db-until' / '--min-gap' / '--db-range' / '--leave-out'",
         )
     localizer = _localizer_config(ctx, config)
+    _encoder_spec(encoder)  # a usage error now, naming the option
     _output_folder(out, "--out")
 
     _configure_logging("warning")
@@ -1281,7 +1291,7 @@ def calibrate_command(
         raise typer.BadParameter(
             f"expected icp and/or none, got {refine!r}", param_hint="'--refine'"
         )
-    if "none" not in modes and base is None:  # the fit needs a model without ICP
+    if "none" not in modes and base is None and not from_:  # no answers without ICP
         raise typer.BadParameter(
             "a calibration needs its answers without ICP too: add none (--refine icp,none), "
             "or keep that profile from --base (shipped or a file)",

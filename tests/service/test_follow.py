@@ -14,7 +14,7 @@ import pytest
 from svc_helpers import feature_keyframes
 
 from sgvloc.core.encoders import EncoderSpec
-from sgvloc.core.errors import NotFoundError
+from sgvloc.core.errors import ConflictError, NotFoundError
 from sgvloc.server.maps import MapManager, MapUnavailableError
 from sgvloc.server.store import StoreError, StoreUnavailableError, open_backend
 from sgvloc.server.store.postgres import redact
@@ -459,16 +459,25 @@ def test_a_map_no_replica_can_load_is_deleted_with_force(
     import json
 
     a, b = pair
-    a.create("bad", SPEC)
-    with psycopg.connect(url) as conn:
-        conn.execute(
-            "UPDATE sgvloc_maps SET meta = meta || %s::jsonb WHERE name = 'bad'",
-            (json.dumps({"localizer_config": "{not json"}),),
-        )
+    for name in ("bad", "again"):
+        a.create(name, SPEC)
+        with psycopg.connect(url) as conn:
+            conn.execute(
+                "UPDATE sgvloc_maps SET meta = meta || %s::jsonb WHERE name = %s",
+                (json.dumps({"localizer_config": "{not json"}), name),
+            )
     c = MapManager(tmp_path / "c", backend=open_backend(url))
     try:
         c.load_all()
-        assert "bad" in c.failed
+        assert {"bad", "again"} <= set(c.failed)
+        # deleted elsewhere and made again, healthy, before c followed: not c's to drop
+        a.delete("again")
+        a.create("again", SPEC)
+        with pytest.raises(ConflictError, match="made again"):
+            c.delete("again", force=True)
+        assert a.get("again").num_keyframes == 0
+        with psycopg.connect(url) as conn:
+            assert conn.execute("SELECT 1 FROM sgvloc_maps WHERE name = 'again'").fetchall()
         with pytest.raises(MapUnavailableError, match=r"\?force=true"):
             c.delete("bad")
         c.delete("bad", force=True)

@@ -49,3 +49,23 @@ def test_a_failed_load_is_failed_not_loading(tmp_path: Path) -> None:
     ready = asyncio.run(probe())
     assert ready.status_code == 503 and ready.json()["status"] == "failed"
     app.state.manager.close()
+
+
+def test_open_routes_name_the_development_caller(tmp_path: Path, caplog) -> None:
+    """The access line's key_name: 'development' on every route with --dev (the probes
+    said so, the status page said 'anonymous')."""
+    import logging
+
+    app = create_app(Settings(data_dir=tmp_path, dev=True))
+
+    async def probe() -> None:
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://test") as c:
+            assert (await c.get("/ui")).status_code == 200
+            assert (await c.get("/healthz")).status_code == 200
+
+    with caplog.at_level(logging.DEBUG, logger="sgvloc.access"):
+        asyncio.run(probe())
+    names = {r.route: r.key_name for r in caplog.records if r.name == "sgvloc.access"}
+    assert names == {"/ui": "development", "/healthz": "development"}, names
+    app.state.manager.close()

@@ -21,7 +21,6 @@ from __future__ import annotations
 import json
 import logging
 import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -31,6 +30,7 @@ import numpy as np
 from ._rwlock import RWLock
 from .config import RetrievalConfig
 from .errors import ConflictError, InputError, NotFoundError
+from .files import write_text_whole, write_whole
 
 log = logging.getLogger(__name__)
 
@@ -343,18 +343,16 @@ class FaissIndex:
             if self._tombstones:
                 self._compact()
             data = faiss.serialize_index(self._index)  # FAISS's own writer reports no errors
-            fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-            try:
-                with os.fdopen(fd, "wb") as f:
+
+            def write(part: Path) -> None:
+                with open(part, "xb") as f:
                     f.write(memoryview(data))
                     f.flush()
                     os.fsync(f.fileno())
-                os.replace(tmp, path)
-            finally:
-                if os.path.exists(tmp):
-                    os.unlink(tmp)
+
+            write_whole(path, write)
             meta = {"dim": self.dim, "config": self.config.model_dump()}
-            _atomic_write_text(path.with_suffix(path.suffix + ".json"), json.dumps(meta))
+            write_text_whole(path.with_suffix(path.suffix + ".json"), json.dumps(meta))
 
     @classmethod
     def load(cls, path: str | Path) -> FaissIndex:
@@ -412,9 +410,3 @@ def retrieve(
     if variants is not None and len(variants):
         return index.search_blocks(descriptor, k, (index.dim,), among=among, variants=variants)[0]
     return index.search(descriptor, k, among=among)[0]
-
-
-def _atomic_write_text(path: Path, text: str) -> None:
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)

@@ -1137,12 +1137,28 @@ class MapManager:
         try:
             if isinstance(self.backend, SharedBackend):
                 with contextlib.suppress(NotFoundError):  # gone already
-                    self.backend.drop(self.backend.open(name))
+                    store = self.backend.open(name)
+                    try:
+                        failed_as = self._failed_incarnation.get(name)
+                        if failed_as is not None and store.incarnation != failed_as:
+                            # deleted elsewhere and made again: not the map that failed
+                            raise ConflictError(
+                                f"map {name!r} was made again since it failed to load here; "
+                                "retry once this replica has followed"
+                            )
+                        self.backend.drop(store)
+                    finally:
+                        store.close()
             else:
                 folder = self.maps_dir / name
                 if folder.exists():
                     trash = self.maps_dir / f"{_TRASH_PREFIX}{name}-{uuid.uuid4().hex[:8]}"
-                    folder.rename(trash)
+                    try:
+                        folder.rename(trash)
+                    except OSError as exc:
+                        raise MapUnavailableError(
+                            f"map {name!r}: its folder could not be removed ({exc.strerror})"
+                        ) from None
                     shutil.rmtree(trash, ignore_errors=True)
             with self._lock:
                 self.failed.pop(name, None)

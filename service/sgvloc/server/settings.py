@@ -11,7 +11,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field, ValidationError, model_validator
+from pydantic import Field, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from .threads import usable_cpus
@@ -272,7 +272,7 @@ class Settings(BaseSettings):
 
 #: ``SGVLOC_`` variables that are not service settings: the CLI's client options
 #: (``--url``, ``--api-key``, ``--threads``) and the test suite's
-OTHER_ENV = frozenset({"SGVLOC_URL", "SGVLOC_API_KEY", "SGVLOC_THREADS"})
+OTHER_ENV = frozenset({"SGVLOC_URL", "SGVLOC_API_KEY", "SGVLOC_THREADS", "SGVLOC_ARTEFACTS"})
 OTHER_ENV_PREFIX = "SGVLOC_TEST_", "SGVLOC_REQUIRE_"
 
 
@@ -287,23 +287,11 @@ def unknown_env(environ: Mapping[str, str]) -> list[str]:
     known = {env_name(f) for f in Settings.model_fields}
     lines = []
     for var in sorted(environ):
-        if not var.startswith("SGVLOC_") or var in known or var in OTHER_ENV:
+        name = var.upper()  # the settings read variables whatever their case
+        if not name.startswith("SGVLOC_") or name in known or name in OTHER_ENV:
             continue
-        if var.startswith(OTHER_ENV_PREFIX):
+        if name.startswith(OTHER_ENV_PREFIX):
             continue
-        near = difflib.get_close_matches(var, sorted(known), n=1)
+        near = difflib.get_close_matches(name, sorted(known), n=1)
         lines.append(f"{var} is not a setting (ignored)" + (f"; {near[0]}?" if near else ""))
     return lines
-
-
-def describe_error(exc: ValidationError, options: Mapping[str, str]) -> str:
-    """A settings error, each field named as the user gave it: the ``sgvloc serve``
-    option (``options``: field -> option, for the fields given that way) or its
-    environment variable."""
-    parts = []
-    for err in exc.errors():
-        field = str(err["loc"][0]) if err.get("loc") else ""
-        where = options.get(field) or (env_name(field) if field else "settings")
-        value = f" (got {err['input']!r})" if field and not isinstance(err["input"], dict) else ""
-        parts.append(f"{where}: {err['msg']}{value}")
-    return "; ".join(parts)

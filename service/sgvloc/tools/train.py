@@ -54,7 +54,7 @@ from sgvloc.core.bevnet import (
     to_input,
 )
 from sgvloc.core.errors import InputError
-from sgvloc.core.files import write_whole
+from sgvloc.core.files import write_text_whole, write_whole
 
 log = logging.getLogger(__name__)
 
@@ -499,11 +499,12 @@ def train(
                 part,
             ),
         )
-        (out / "log.json").write_text(
+        write_text_whole(
+            out / "log.json",
             json.dumps(
                 {"config": asdict(cfg), "data": data, "history": history, "val": val_hist},
                 indent=1,
-            )
+            ),
         )
         _plot(history, val_hist, out / "curves.png")
 

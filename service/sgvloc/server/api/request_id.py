@@ -59,7 +59,8 @@ class RequestIdMiddleware:
             principal = state.get("principal")
             key_name = getattr(principal, "name", None)
             if key_name is None and route is not None and status < 400:
-                key_name = "anonymous"
+                settings = getattr(getattr(scope.get("app"), "state", None), "settings", None)
+                key_name = "development" if getattr(settings, "dev", False) else "anonymous"
             peer = scope.get("client")
             log_access(
                 scope["method"],

@@ -421,10 +421,19 @@ class PgBackend(SharedBackend):
         try:
             with psycopg.connect(self.url, autocommit=True, **self._connect_kwargs) as conn:
                 # a store written by a newer sgvloc: refused now, not after loading starts
-                if conn.execute("SELECT to_regclass('sgvloc_schema')").fetchone()[0]:
-                    row = conn.execute("SELECT max(version) FROM sgvloc_schema").fetchone()
-                    if row[0] is not None and int(row[0]) > SCHEMA_VERSION:
-                        raise StoreError(_newer_schema(int(row[0])))
+                try:
+                    row = None
+                    if conn.execute("SELECT to_regclass('sgvloc_schema')").fetchone()[0]:
+                        row = conn.execute("SELECT max(version) FROM sgvloc_schema").fetchone()
+                except psycopg.OperationalError:
+                    raise
+                except psycopg.Error as exc:  # no right to read it, say
+                    raise StoreError(
+                        f"the map store (PostgreSQL, {redact(self.url)}) cannot be read: "
+                        f"{str(exc).strip() or type(exc).__name__}"
+                    ) from None
+                if row is not None and row[0] is not None and int(row[0]) > SCHEMA_VERSION:
+                    raise StoreError(_newer_schema(int(row[0])))
         except psycopg.OperationalError as exc:
             text = str(exc).strip()
             state = getattr(exc, "sqlstate", None) or ""

@@ -22,7 +22,6 @@ import hashlib
 import json
 import logging
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +29,7 @@ import numpy as np
 from sgvloc.core.encoders import Encoder
 from sgvloc.core.errors import InputError
 from sgvloc.core.features import Features
+from sgvloc.core.files import write_whole
 
 log = logging.getLogger(__name__)
 
@@ -149,9 +149,9 @@ class FeatureCache:
                 if g is None
                 else g,
             }
-        fd, tmp = tempfile.mkstemp(dir=self.dir, suffix=".tmp")
-        try:
-            with os.fdopen(fd, "wb") as fh:
+
+        def write(part: Path) -> None:
+            with open(part, "xb") as fh:
                 np.savez(
                     fh,
                     global_descriptor=feats.global_descriptor,
@@ -160,7 +160,5 @@ class FeatureCache:
                     cloud=np.asarray(cloud, dtype=np.float32),
                     **extra,
                 )
-            os.replace(tmp, f)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+
+        write_whole(f, write)

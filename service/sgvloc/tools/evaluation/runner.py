@@ -296,6 +296,8 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
             unencodable[str(path)] = str(exc)
             return None
         except InputError as exc:  # a malformed or empty file: which one
+            if str(path) in str(exc):  # the scan readers name it already
+                raise
             raise InputError(f"{path}: {exc}") from None
 
     everything = {
