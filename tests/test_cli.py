@@ -280,6 +280,10 @@ def test_bad_arguments_are_one_line_usage_errors(tmp_path: Path) -> None:
     assert sorted(p.name for p in tmp_path.iterdir()) == []
 
 
+#: a calibrate run on a folder of the test (none of its output is written)
+CALIBRATE = ["calibrate", "--data", "{tmp}", "--db-until", "5", "--out", "{tmp}/c.json"]
+
+
 @pytest.mark.parametrize(
     ("args", "words"),
     [
@@ -308,34 +312,8 @@ def test_bad_arguments_are_one_line_usage_errors(tmp_path: Path) -> None:
         (["export-weights", "{tmp}/ck.pt", "{tmp}"], "is a folder; name a file"),
         (["export-weights", "{tmp}/ck.pt", "{tmp}/afile/w.pt"], "is a file, not a folder"),
         (["export-onnx", "{tmp}/w.pt", "--out", "{tmp}"], "is a folder; name a file"),
-        (
-            [
-                "calibrate",
-                "--data",
-                "{tmp}",
-                "--db-until",
-                "5",
-                "--refine",
-                "icp",
-                "--out",
-                "{tmp}/c.json",
-            ],
-            "icp,none",
-        ),  # fmt: skip
-        (
-            [
-                "calibrate",
-                "--data",
-                "{tmp}",
-                "--db-until",
-                "5",
-                "--refine",
-                "xyz",
-                "--out",
-                "{tmp}/c.json",
-            ],
-            "--refine",
-        ),  # fmt: skip
+        ([*CALIBRATE, "--refine", "icp"], "icp,none"),
+        ([*CALIBRATE, "--refine", "xyz"], "--refine"),
         (["calibrate", "--data", "{tmp}", "--out", "{tmp}/c.json"], "--min-gap"),
         (["eval", "--data", "{tmp}"], "exactly one split"),
         (["eval", "--data", "{tmp}", "--min-gap", "30", "--fov", "0"], "--fov"),
