@@ -133,14 +133,14 @@ class AsyncClient(BaseClient):
                     self._url(i, call.path),
                     content=call.content,
                     headers=call.request_headers,
-                    timeout=self._attempt_timeout(call, end),
+                    timeout=self._attempt_timeout(call, end, attempt),
                 )
             except httpx.TransportError as exc:
                 sent = not isinstance(exc, httpx.ConnectError)
                 j = self._failover(call, attempt, i, tried, sent=sent, exc=exc)
                 if j is None:
                     wait = self._retry_delay(call, attempt, exc, i)
-                    await asyncio.sleep(self._wait_within(call, end, wait))
+                    await asyncio.sleep(self._wait_within(call, end, wait, attempt + 1, exc))
                 else:
                     i = j
                     tried.add(j)
@@ -172,14 +172,14 @@ class AsyncClient(BaseClient):
         return await self._send(self._ready())
 
     async def wait_until_ready(self, timeout: float = 30.0, interval: float = 0.2) -> None:
-        """Poll :meth:`ready` until it is True; raise :class:`TransportError` after
-        ``timeout`` seconds (the service is unreachable or still loading)."""
+        """See :meth:`Client.wait_until_ready`."""
         deadline = time.monotonic() + timeout
         while True:
             try:
-                if await self._send(self._ready_poll(deadline)):
+                status = await self._send(self._ready_poll(deadline))
+                if status in ("ready", "degraded"):
                     return
-                last = "the service is still loading its maps"
+                last = f"the service's status is {status!r}"
             except TransportError as exc:
                 last = str(exc)
             if time.monotonic() >= deadline:

@@ -282,14 +282,15 @@ class BaseClient:
         """When a call starting now must be over (``time.monotonic()``), or None."""
         return None if self.total_timeout is None else time.monotonic() + self.total_timeout
 
-    def _attempt_timeout(self, call: Call[Any], end: float | None) -> Any:
+    def _attempt_timeout(self, call: Call[Any], end: float | None, sent: int = 0) -> Any:
         """The httpx ``timeout`` of one try of ``call``: its own or the client's, cut to
-        the time left before ``end``; :class:`TransportError` when none is left."""
+        the time left before ``end``; :class:`TransportError` when none is left (after
+        ``sent`` tries)."""
         if end is None:
             return call.http_timeout
         left = end - time.monotonic()
         if left <= 0:
-            raise self._out_of_time(call)
+            raise self._out_of_time(call, sent)
         base = httpx.Timeout(call.timeout) if call.own_timeout else self.timeout
 
         def cut(value: float | None) -> float:
@@ -302,17 +303,30 @@ class BaseClient:
             pool=cut(base.pool),
         )
 
-    def _wait_within(self, call: Call[Any], end: float | None, wait: float) -> float:
+    def _wait_within(
+        self,
+        call: Call[Any],
+        end: float | None,
+        wait: float,
+        attempts: int = 1,
+        cause: BaseException | None = None,
+    ) -> float:
         """``wait`` (seconds before the next try), or :class:`TransportError` when the
-        next try would start past ``end``."""
+        next try would start past ``end`` (``attempts`` sent so far, the last failing
+        with ``cause``)."""
         if end is not None and time.monotonic() + wait >= end:
-            raise self._out_of_time(call)
+            raise self._out_of_time(call, attempts, cause)
         return wait
 
-    def _out_of_time(self, call: Call[Any]) -> TransportError:
+    def _out_of_time(
+        self, call: Call[Any], attempts: int = 1, cause: BaseException | None = None
+    ) -> TransportError:
+        last = f"; the last try: {type(cause).__name__}" if cause is not None else ""
         return TransportError(
             f"{call.method} {call.path}: no answer within total_timeout="
-            f"{self.total_timeout:g} s (request id {call.request_id})",
+            f"{self.total_timeout:g} s after {attempts} attempt{'s' if attempts > 1 else ''}"
+            f"{last} (request id {call.request_id})",
+            attempts=attempts,
             request_id=call.request_id,
         )
 
@@ -350,11 +364,11 @@ class BaseClient:
         URL ``i`` (a connection error ``exc``, or a 503), or None: only with several URLs,
         only an untried one, within ``retries``, and only for calls safe to resend, unless
         the request was never ``sent`` (the connection was refused)."""
-        if len(self.base_urls) == 1 or attempt >= self.retries:
+        if len(self.base_urls) == 1:
             return None
-        if sent and not _may_resend(call, exc):
+        if sent and (attempt >= self.retries or not _may_resend(call, exc)):
             return None
-        j = self._untried(i, tried)
+        j = self._untried(i, tried)  # a refused connection moves on whatever retries says
         if j is not None:
             why = "503" if exc is None else type(exc).__name__
             self._log_resend(call.method, i, call.path, why, attempt, to=j)
@@ -427,11 +441,11 @@ class BaseClient:
         content, headers = (None, None) if body is None else self._encode(body)
         return Call(method, path, parse, content, headers, idempotent, passthrough)
 
-    def _ready_poll(self, deadline: float) -> Call[bool]:
+    def _ready_poll(self, deadline: float) -> Call[str]:
         """One ``/readyz`` poll of :meth:`wait_until_ready`: not resent, and given no
         more than the time left, so that the wait ends when it said it would."""
         left = max(0.05, deadline - time.monotonic())
-        return replace(self._ready(), idempotent=False, timeout=left, own_timeout=True)
+        return replace(self._ready_status(), idempotent=False, timeout=left, own_timeout=True)
 
     def _unanswered(self, method: str, url: str, exc: httpx.TransportError) -> TransportError:
         """A streamed call's connection error as the SDK's :class:`TransportError`."""
@@ -477,6 +491,10 @@ class BaseClient:
             and attempt < self.retries
         ):
             return -1.0
+        body = self._decode(response)
+        err = body.get("error") if isinstance(body, dict) else None
+        if isinstance(err, dict) and err.get("code") == "map_unavailable":
+            return -1.0  # waits on an operator, not on time
         delay = _retry_after_s(response.headers.get("retry-after"))
         if delay is None:  # none, or garbage: the backoff
             delay = min(self.max_backoff, self.backoff * 2**attempt)
@@ -503,7 +521,17 @@ class BaseClient:
         if status >= 400 and status not in call.passthrough:
             rid = response.headers.get(REQUEST_ID_HEADER) or call.request_id
             raise self._error(status, body, rid)
-        return call.parse(status, body)
+        try:
+            return call.parse(status, body)
+        except (KeyError, TypeError, ValueError, AttributeError, IndexError) as exc:
+            # not an sgvloc answer: a captive portal, a proxy's page, another service
+            ctype = response.headers.get("content-type", "?")
+            raise TransportError(
+                f"{call.method} {response.url}: the answer ({status}, {ctype}) is not the "
+                f"service's ({type(exc).__name__}: {exc}); is the URL an sgvloc service? "
+                f"(request id {call.request_id})",
+                request_id=call.request_id,
+            ) from exc
 
     @staticmethod
     def _decode(response: httpx.Response) -> Any:
@@ -549,6 +577,16 @@ class BaseClient:
         return self._call(
             "GET", "/readyz", lambda status, _b: status == 200, idempotent=True, passthrough=(503,)
         )
+
+    def _ready_status(self) -> Call[str]:
+        """``/readyz``'s status: ready, loading, degraded (up, some map failed to load) or
+        failed."""
+
+        def status_of(status: int, body: Any) -> str:
+            s = body.get("status") if isinstance(body, dict) else None
+            return str(s) if s else ("ready" if status == 200 else "loading")
+
+        return self._call("GET", "/readyz", status_of, idempotent=True, passthrough=(503,))
 
     def _create_map(
         self,
@@ -757,6 +795,8 @@ class BaseClient:
                 body[key] = value
         query = ""
         if min_map_version is not None:
+            if isinstance(min_map_version, bool) or int(min_map_version) != min_map_version:
+                raise ValueError(f"min_map_version must be an integer, got {min_map_version!r}")
             if int(min_map_version) < 0:
                 raise ValueError(f"min_map_version must be >= 0, got {min_map_version}")
             query = f"?min_map_version={int(min_map_version)}"

@@ -136,14 +136,14 @@ class Client(BaseClient):
                     self._url(i, call.path),
                     content=call.content,
                     headers=call.request_headers,
-                    timeout=self._attempt_timeout(call, end),
+                    timeout=self._attempt_timeout(call, end, attempt),
                 )
             except httpx.TransportError as exc:
                 sent = not isinstance(exc, httpx.ConnectError)
                 j = self._failover(call, attempt, i, tried, sent=sent, exc=exc)
                 if j is None:
                     wait = self._retry_delay(call, attempt, exc, i)
-                    time.sleep(self._wait_within(call, end, wait))
+                    time.sleep(self._wait_within(call, end, wait, attempt + 1, exc))
                 else:
                     i = j
                     tried.add(j)
@@ -175,14 +175,17 @@ class Client(BaseClient):
         return self._send(self._ready())
 
     def wait_until_ready(self, timeout: float = 30.0, interval: float = 0.2) -> None:
-        """Poll :meth:`ready` until it is True; raise :class:`TransportError` after
-        ``timeout`` seconds (the service is unreachable or still loading)."""
+        """Poll ``/readyz`` until the service serves its maps: ready, or degraded (a map
+        failed to load; the others are served, and a call to that map answers
+        :class:`MapUnavailable`). Raise :class:`TransportError` after ``timeout`` seconds
+        (the service is unreachable, still loading, or failed)."""
         deadline = time.monotonic() + timeout
         while True:
             try:
-                if self._send(self._ready_poll(deadline)):
+                status = self._send(self._ready_poll(deadline))
+                if status in ("ready", "degraded"):
                     return
-                last = "the service is still loading its maps"
+                last = f"the service's status is {status!r}"
             except TransportError as exc:
                 last = str(exc)
             if time.monotonic() >= deadline:

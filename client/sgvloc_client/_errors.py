@@ -108,6 +108,16 @@ class Overloaded(APIError):
     """429 / 503: the service is busy or not ready yet."""
 
 
+class MapUnavailable(Overloaded):
+    """503 ``map_unavailable``: the service could not load this map; an operator must fix
+    it (no Retry-After, not resent). Other maps of the service are served."""
+
+
+class EmptyScan(BadRequest):
+    """422 ``empty_scan``: the map's encoder found nothing to describe in the scan (too
+    sparse for it, or nothing but ground): a well-formed scan, not a client bug."""
+
+
 class ServerError(APIError):
     """5xx (other than 503): a fault in the service."""
 
@@ -130,6 +140,10 @@ def error_class(status: int, code: str) -> type[APIError]:
     """The exception class for an error status and machine code."""
     if status == 409 and code == "encoder_mismatch":
         return EncoderMismatch
+    if status == 503 and code == "map_unavailable":
+        return MapUnavailable
+    if status == 422 and code == "empty_scan":
+        return EmptyScan
     if status in _BY_STATUS:
         return _BY_STATUS[status]
     return ServerError if status >= 500 else APIError

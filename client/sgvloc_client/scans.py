@@ -4,8 +4,10 @@
 file has none), ready for :meth:`Client.localize` or :class:`KeyframeIn`. Formats, chosen
 by extension: KITTI ``.bin``, ``.npy`` / ``.npz``, ``.pcd`` (ascii, binary,
 binary_compressed) and ``.ply`` (ascii and binary). The parsers are the engine's own
-numpy parsers (:mod:`sgvloc.core.io`, part of the base install and free of heavy
-imports); their errors are re-raised as :class:`ScanFileError` naming the file.
+(:mod:`sgvloc.core.io`, part of the base install and free of heavy imports): ``.bin``,
+``.npy`` and ``.npz`` need numpy alone, ``.pcd`` the ``pypcd4`` package and ``.ply``
+``plyfile`` (both in the service extra, or ``pip install`` them beside the SDK). Their
+errors, a missing package's included, are :class:`ScanFileError` naming the file.
 """
 
 from __future__ import annotations
@@ -55,3 +57,9 @@ def read_scan(path: str | os.PathLike) -> np.ndarray:
         return io.read_scan(p).xyzi()  # [P, 4]
     except InputError as exc:
         raise ScanFileError(str(exc)) from None
+    except ModuleNotFoundError as exc:  # the client-only install
+        package = {".pcd": "pypcd4", ".ply": "plyfile"}.get(p.suffix.lower(), exc.name)
+        raise ScanFileError(
+            f"{p}: reading {p.suffix} files needs the {package} package (pip install "
+            f"{package}, or the service extra)"
+        ) from None

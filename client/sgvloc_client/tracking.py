@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ._errors import EmptyScan
 from ._models import Localization, Seed
 
 if TYPE_CHECKING:
@@ -241,6 +242,9 @@ class _TrackerBase:
         self.map = map
         self.model = MotionModel(**motion)
         self.options = dict(localize_options or {})
+        taken = {"seed", "points", "features"} & set(self.options)
+        if taken:  # the tracker sends these itself
+            raise ValueError(f"localize_options may not set {', '.join(sorted(taken))}")
         self.relocalizations = 0  # global searches after the first fix
 
     @property
@@ -276,9 +280,17 @@ class Tracker(_TrackerBase):
 
     def update(self, points: Any, stamp: float, odom_delta: Any = None) -> Localization:
         """Localize the scan ``points`` taken at ``stamp`` (seconds); ``odom_delta`` is
-        the vehicle's motion since its previous scan (``T_prev_curr``), if it has one."""
+        the vehicle's motion since its previous scan (``T_prev_curr``), if it has one.
+
+        A scan with nothing to describe (a blind or blocked sensor) is a miss: while
+        tracking, an answer with verdict ``tracking_failed``; in a global search,
+        :class:`~sgvloc_client.EmptyScan` (counted as a miss all the same)."""
         seed = self._seed(stamp, odom_delta)
-        result = self.client.localize(self.map, points=points, seed=seed, **self.options)
+        try:
+            result = self.client.localize(self.map, points=points, seed=seed, **self.options)
+        except EmptyScan:
+            self.model.misses += 1
+            raise
         self.model.observe(result, stamp)
         return result
 
@@ -291,6 +303,10 @@ class AsyncTracker(_TrackerBase):
     async def update(self, points: Any, stamp: float, odom_delta: Any = None) -> Localization:
         """See :meth:`Tracker.update`."""
         seed = self._seed(stamp, odom_delta)
-        result = await self.client.localize(self.map, points=points, seed=seed, **self.options)
+        try:
+            result = await self.client.localize(self.map, points=points, seed=seed, **self.options)
+        except EmptyScan:
+            self.model.misses += 1
+            raise
         self.model.observe(result, stamp)
         return result

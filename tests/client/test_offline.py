@@ -28,6 +28,7 @@ from sgvloc_client import (
     EncoderMismatch,
     Forbidden,
     KeyframeIn,
+    MapUnavailable,
     NotFound,
     Overloaded,
     PayloadTooLarge,
@@ -398,6 +399,22 @@ def test_client_imports_without_heavy_dependencies() -> None:
             assert out.stdout.startswith("ok")
 
 
+def test_a_scan_format_whose_package_is_missing_says_which(tmp_path, monkeypatch) -> None:
+    """The client-only install reads .bin/.npy/.npz; a .pcd without pypcd4 (or a .ply
+    without plyfile) is a ScanFileError naming the package, not a ModuleNotFoundError."""
+    from sgvloc.core.io import write_pcd, write_ply
+
+    pts = np.random.default_rng(0).normal(size=(20, 4)).astype(np.float32)
+    for name, package, write in (("s.pcd", "pypcd4", write_pcd), ("s.ply", "plyfile", write_ply)):
+        write(tmp_path / name, pts)
+        with monkeypatch.context() as m:
+            for mod in [k for k in sys.modules if k.split(".")[0] == package]:
+                m.delitem(sys.modules, mod)
+            m.setitem(sys.modules, package, None)  # as if not installed
+            with pytest.raises(ScanFileError, match=f"needs the {package} package"):
+                read_scan(tmp_path / name)
+
+
 def test_read_scan_formats_and_errors(tmp_path, balm_mini_dir) -> None:
     pts = read_kitti_bin(balm_mini_dir / "velodyne" / "000000.bin")
     assert pts.dtype == np.float32 and pts.shape == (9120, 4)
@@ -609,3 +626,89 @@ def test_a_scan_stamped_before_the_last_fix_gets_no_seed() -> None:
     m.pose, m.stamp = np.eye(4), 100.0
     assert m.seed(100.1) is not None
     assert m.seed(0.0) is None and m.seed(-5000.0) is None
+
+
+def test_a_refused_replica_is_left_whatever_retries_says(closed_url: str) -> None:
+    """With retries=0 a refused connection (nothing sent) still moves to the next
+    replica and marks the dead one down: every call succeeds, not every second one."""
+    body = {"name": "m", "version": 1, "keyframes": 0, "encoder": {}, "retrieval": {}}
+    live = httpx.MockTransport(lambda r: httpx.Response(200, json=body))
+
+    class Mixed(httpx.BaseTransport):
+        def handle_request(self, request: httpx.Request) -> httpx.Response:
+            if request.url.port == httpx.URL(closed_url).port:
+                raise httpx.ConnectError("refused", request=request)
+            return live.handle_request(request)
+
+    with Client([closed_url, "http://127.0.0.1:9"], retries=0, transport=Mixed()) as c:
+        assert [c.get_map("m").name for _ in range(4)] == ["m"] * 4
+
+
+def test_an_answer_that_is_not_the_services_is_a_transport_error() -> None:
+    """A captive portal's page or another service's JSON under 200 is an SgvlocError
+    (TransportError), not an AttributeError or KeyError out of the parser."""
+    for content, ctype in (
+        (b"<html>login</html>", "text/html"),
+        (b'{"map": "m"}', "application/json"),
+    ):
+        transport = httpx.MockTransport(
+            lambda r, c=content, t=ctype: httpx.Response(
+                200, content=c, headers={"Content-Type": t}
+            )
+        )
+        with Client(transport=transport) as c:
+            with pytest.raises(TransportError, match="is not the service's"):
+                c.localize("m", points=np.zeros((10, 3)))
+
+
+def test_total_timeout_counts_the_tries_it_sent(closed_url: str) -> None:
+    with Client(closed_url, retries=5, backoff=0.3, total_timeout=0.5) as c:
+        with pytest.raises(TransportError, match="total_timeout") as info:
+            c.get_map("m")
+    assert info.value.attempts >= 2 and "ConnectError" in str(info.value)
+
+
+def test_map_unavailable_is_its_own_error_and_not_resent() -> None:
+    seen = []
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        seen.append(request)
+        error = {"code": "map_unavailable", "message": "could not be loaded"}
+        return httpx.Response(503, json={"error": error})
+
+    with Client(transport=httpx.MockTransport(handler), retry_overloaded=True) as c:
+        with pytest.raises(MapUnavailable):
+            c.get_map("broken")
+    assert len(seen) == 1  # waits on an operator, not on time
+    assert issubclass(MapUnavailable, Overloaded)
+
+
+def test_wait_until_ready_takes_a_degraded_service() -> None:
+    """A service with one map that failed to load serves the others: ready to use."""
+    answers = iter(["loading", "degraded", "degraded"])
+    transport = httpx.MockTransport(
+        lambda r: httpx.Response(503, json={"status": next(answers), "maps": 1})
+    )
+    with Client(transport=transport) as c:
+        c.wait_until_ready(timeout=5, interval=0.01)
+        assert c.ready() is False  # the probe itself still says not all is well
+
+
+def test_sdk_argument_checks() -> None:
+    from sgvloc_client import Tracker
+
+    with Client("http://127.0.0.1:9") as c:
+        with pytest.raises(ValueError, match="may not set seed"):
+            Tracker(c, "m", localize_options={"seed": None})
+        with pytest.raises(ValueError, match="an integer"):
+            c.localize("m", points=np.zeros((10, 3)), min_map_version=0.9)
+
+
+def test_error_classes_by_code() -> None:
+    from sgvloc_client import EmptyScan
+    from sgvloc_client._errors import error_class
+
+    assert error_class(422, "empty_scan") is EmptyScan and issubclass(EmptyScan, BadRequest)
+    assert error_class(503, "map_unavailable") is MapUnavailable
+    assert error_class(503, "overloaded") is Overloaded
+    assert error_class(422, "invalid_input") is BadRequest
