@@ -161,10 +161,13 @@ def test_snapshot_after_n_changes_and_after_delay(tmp_path: Path) -> None:
     index_path = tmp_path / "maps" / "a" / "index.faiss"
     m.insert("a", _items(rng, 3))  # reaches snapshot_every: saved at once
     assert FaissIndex.load(index_path).ids().tolist() == [1, 2, 3]
+    for _ in range(7):  # one by one to 10: saved at 6 (3 changes, half the map); at 10,
+        m.insert("a", _items(rng, 1))  # 4 changes are fewer than half of 10
+    assert m.get("a").unsaved == 4 and len(FaissIndex.load(index_path).ids()) == 6
     m.start_snapshotter()
     m.insert("a", _items(rng, 1))  # saved by the background thread
     deadline = time.monotonic() + 30
-    while FaissIndex.load(index_path).ids().tolist() != [1, 2, 3, 4]:
+    while FaissIndex.load(index_path).ids().tolist() != list(range(1, 12)):
         assert time.monotonic() < deadline, "the snapshot thread never saved the change"
         time.sleep(0.05)
     m.close()
@@ -504,3 +507,37 @@ def test_a_damaged_row_names_its_keyframe_and_other_maps_load(tmp_path: Path) ->
         assert m.get("good").num_keyframes == 4
     finally:
         m.close()
+
+
+def test_the_open_file_limit_is_raised_and_running_out_is_said(tmp_path: Path) -> None:
+    """Each SQLite map keeps files open: serve raises the soft open-file limit to the
+    hard one, and a map database that cannot be opened for want of file descriptors is
+    a 503-class store error naming the limit, not a 500 "unable to open database file".
+    (In a child process: the limits are the process's.)"""
+    import subprocess
+    import sys
+    import textwrap
+
+    code = textwrap.dedent(
+        f"""
+        import resource
+        from pathlib import Path
+        from sgvloc.server.run import raise_open_files_limit
+        from sgvloc.server.store import StoreUnavailableError
+        from sgvloc.server.store.sqlite import SqliteMapStore
+
+        soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+        resource.setrlimit(resource.RLIMIT_NOFILE, (64, hard))
+        assert raise_open_files_limit() == resource.getrlimit(resource.RLIMIT_NOFILE)[0] > 64
+        resource.setrlimit(resource.RLIMIT_NOFILE, (64, hard))
+        kept = []
+        try:
+            for i in range(200):
+                kept.append(SqliteMapStore._connect(Path({str(tmp_path)!r}) / f"m{{i}}.sqlite"))
+        except StoreUnavailableError as exc:
+            assert "limit 64" in str(exc), exc
+            print("refused after", len(kept))
+        """
+    )
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0 and run.stdout.startswith("refused after"), run.stderr

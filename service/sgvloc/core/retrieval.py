@@ -339,20 +339,21 @@ class FaissIndex:
         exist), flushed to disk, then moved into place. A failed write (a full disk)
         raises OSError and leaves the previous snapshot as it was."""
         path = Path(path)
-        with self._lock.write():
-            if self._tombstones:
+        if self._tombstones:
+            with self._lock.write():
                 self._compact()
+        with self._lock.read():  # searches go on; the disk is written outside the lock
             data = faiss.serialize_index(self._index)  # FAISS's own writer reports no errors
 
-            def write(part: Path) -> None:
-                with open(part, "xb") as f:
-                    f.write(memoryview(data))
-                    f.flush()
-                    os.fsync(f.fileno())
+        def write(part: Path) -> None:
+            with open(part, "xb") as f:
+                f.write(memoryview(data))
+                f.flush()
+                os.fsync(f.fileno())
 
-            write_whole(path, write)
-            meta = {"dim": self.dim, "config": self.config.model_dump()}
-            write_text_whole(path.with_suffix(path.suffix + ".json"), json.dumps(meta))
+        write_whole(path, write)
+        meta = {"dim": self.dim, "config": self.config.model_dump()}
+        write_text_whole(path.with_suffix(path.suffix + ".json"), json.dumps(meta))
 
     @classmethod
     def load(cls, path: str | Path) -> FaissIndex:

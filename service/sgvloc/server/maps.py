@@ -1727,13 +1727,18 @@ class MapManager:
     # -- snapshots ----------------------------------------------------------------------
 
     def _mark_unsaved(self, handle: MapHandle, changes: int) -> None:
-        """Count changes (call under the write lock); save now past ``snapshot_every``."""
+        """Count changes (call under the write lock); save now past ``snapshot_every``
+        changes, or half the map's keyframes when that is more: a map being built is
+        saved a bounded number of times (each save writes the whole index), not once
+        per ``snapshot_every`` keyframes (the snapshot thread saves the rest within
+        ``snapshot_delay_s``)."""
         if handle.path is None:  # a shared store: no snapshot to keep
             return
         handle.unsaved += changes
         if handle.unsaved_since is None:
             handle.unsaved_since = time.monotonic()
-        if handle.unsaved >= self.snapshot_every and time.monotonic() >= handle.snapshot_retry_at:
+        due = max(self.snapshot_every, handle.num_keyframes // 2)
+        if handle.unsaved >= due and time.monotonic() >= handle.snapshot_retry_at:
             self._save_snapshot(handle)
 
     def snapshot(self, name: str) -> None:

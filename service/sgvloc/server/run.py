@@ -33,6 +33,7 @@ def serve(settings: Settings) -> None:
         settings.library_threads, force=settings.threads_per_worker is not None
     )
     log.info("library threads per worker: %s", threads)
+    log.info("open files: at most %d (each SQLite map holds about 3)", raise_open_files_limit())
 
     import uvicorn
 
@@ -210,6 +211,24 @@ def _graceful_server(config):  # uvicorn is imported late: after the thread caps
             super().handle_exit(sig, frame)
 
     return Server(config)
+
+
+def raise_open_files_limit() -> int:
+    """Raise this process's open-file limit to its hard limit (each SQLite map keeps its
+    database, WAL and index files open; a default soft limit of 1024 runs out at a few
+    hundred maps); returns the limit in force."""
+    import resource
+
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if hard == resource.RLIM_INFINITY:
+        hard = max(soft, 1 << 20)
+    if soft < hard:
+        try:
+            resource.setrlimit(resource.RLIMIT_NOFILE, (hard, hard))
+            soft = hard
+        except (ValueError, OSError) as exc:  # a container that forbids it
+            log.warning("cannot raise the open-file limit from %d: %s", soft, exc)
+    return soft
 
 
 def check_port(host: str, port: int) -> None:

@@ -135,7 +135,10 @@ class Settings(BaseSettings):
     )
     max_top_k: int = Field(100, ge=1, description="largest top_k a localize request may ask")
     snapshot_every: int = Field(
-        1000, ge=1, description="save a map's FAISS snapshot after this many keyframe changes"
+        1000,
+        ge=1,
+        description="save a map's FAISS snapshot after this many keyframe changes (or half "
+        "the map's keyframes, when that is more)",
     )
     snapshot_delay_s: float = Field(
         30.0, gt=0, description="save a changed map's snapshot at most this long after a write"

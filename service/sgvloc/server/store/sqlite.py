@@ -22,8 +22,11 @@ Schema versions: 1 (no position columns) is migrated to 2 when the map is opened
 
 from __future__ import annotations
 
+import errno
 import json
 import logging
+import os
+import resource
 import sqlite3
 import threading
 from collections.abc import Callable, Iterator
@@ -47,6 +50,7 @@ from .base import (
     StoreBackend,
     StoreClosedError,
     StoreError,
+    StoreUnavailableError,
     blob_to_array,
     keyframe_row,
     position,
@@ -58,6 +62,22 @@ from .base import (
 )
 
 log = logging.getLogger(__name__)
+
+
+def _no_file_left(exc: sqlite3.Error) -> None:
+    """Raise :class:`StoreUnavailableError` when ``exc`` came from the process's open-file
+    limit (each open map holds its database and WAL files): retryable once a map is
+    unloaded or the limit raised, not a fault of the request."""
+    try:
+        os.close(os.open(os.devnull, os.O_RDONLY))
+    except OSError as probe:
+        if probe.errno == errno.EMFILE:
+            limit = resource.getrlimit(resource.RLIMIT_NOFILE)[0]
+            raise StoreUnavailableError(
+                f"cannot open another map database: this process has every file it may "
+                f"open in use (limit {limit}, about 3 per map; raise it with ulimit -n)"
+            ) from exc
+
 
 DB_NAME = "map.sqlite"
 SCHEMA_VERSION = 2
@@ -157,10 +177,21 @@ class SqliteMapStore(MapStore):
 
     @staticmethod
     def _connect(path: Path) -> sqlite3.Connection:
-        conn = sqlite3.connect(path, isolation_level=None, check_same_thread=False, timeout=30.0)
-        conn.execute("PRAGMA journal_mode=WAL")
-        conn.execute("PRAGMA synchronous=FULL")
-        conn.execute("PRAGMA foreign_keys=ON")
+        conn = None
+        try:
+            conn = sqlite3.connect(
+                path, isolation_level=None, check_same_thread=False, timeout=30.0
+            )
+            conn.execute("PRAGMA journal_mode=WAL")
+            conn.execute("PRAGMA synchronous=FULL")
+            conn.execute("PRAGMA foreign_keys=ON")
+        except sqlite3.OperationalError as exc:
+            try:
+                _no_file_left(exc)  # asked before the connection gives its files back
+            finally:
+                if conn is not None:
+                    conn.close()
+            raise
         return conn
 
     @classmethod
