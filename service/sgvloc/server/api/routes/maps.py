@@ -6,6 +6,7 @@ import time
 from pathlib import Path
 from typing import Annotated
 
+import anyio.to_thread
 from fastapi import APIRouter, Depends, Query, Request, Response
 
 from sgvloc.core import leave_out
@@ -180,8 +181,12 @@ def confine_model_path(spec: EncoderSpec | None, models_dir: Path | None) -> Enc
 async def list_maps(request: Request, manager: ManagerDep) -> Response:
     """List the loaded maps (those the caller's key may use)."""
     caller = principal_of(request)
-    handles = [h for h in manager.list() if caller.may_use_map(h.name)]
-    return encode(request, MapList(maps=[map_info(h) for h in handles]))
+
+    def listing() -> Response:  # off the event loop: hundreds of maps take tens of ms
+        handles = [h for h in manager.list() if caller.may_use_map(h.name)]
+        return encode(request, MapList(maps=[map_info(h) for h in handles]))
+
+    return await anyio.to_thread.run_sync(listing)
 
 
 @router.get(
