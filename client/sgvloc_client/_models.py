@@ -326,8 +326,11 @@ class Prior:
     yaw_tolerance_deg: float | None = None
 
     def to_body(self) -> dict[str, Any]:
+        position = np.asarray(self.position, dtype=np.float64)
+        if position.ndim != 1:
+            raise TypeError(f"Prior.position must be [x, y] or [x, y, z], got {self.position!r}")
         body: dict[str, Any] = {
-            "position": [float(x) for x in np.asarray(self.position, dtype=np.float64)],
+            "position": [float(x) for x in position],
             "radius_m": float(self.radius_m),
         }
         if self.yaw_deg is not None:

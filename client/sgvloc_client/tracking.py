@@ -67,9 +67,15 @@ MAX_ODOMETRY_M = 1e4
 MIN_STEP_S = 0.02
 
 
+#: a stamp above this many seconds (year 5138) is taken for one in nanoseconds
+MAX_STAMP_S = 1e11
+
+
 def _check_stamp(stamp: float) -> None:
     if not math.isfinite(stamp):
         raise ValueError(f"stamp must be a finite number of seconds, got {stamp!r}")
+    if abs(stamp) > MAX_STAMP_S:  # ROS stamps in ns would make every gap look too long
+        raise ValueError(f"stamp must be in seconds, got {stamp!r} (nanoseconds? divide by 1e9)")
 
 
 def _odometry_step(odom_delta: Any) -> np.ndarray:

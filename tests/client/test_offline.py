@@ -712,3 +712,13 @@ def test_error_classes_by_code() -> None:
     assert error_class(503, "map_unavailable") is MapUnavailable
     assert error_class(503, "overloaded") is Overloaded
     assert error_class(422, "invalid_input") is BadRequest
+
+
+def test_tracker_and_prior_arguments_are_checked() -> None:
+    from sgvloc_client import Prior
+    from sgvloc_client.tracking import MotionModel
+
+    with pytest.raises(ValueError, match="nanoseconds"):
+        MotionModel().seed(1.7e18, None)  # a ROS stamp in ns
+    with pytest.raises(TypeError, match=r"\[x, y\]"):
+        Prior(3.0, 5).to_body()
