@@ -49,6 +49,14 @@ from ._models import (
 
 log = logging.getLogger("sgvloc_client")
 
+
+def _from_gateway(status: int, body: Any) -> bool:
+    """A 502 or 504 that is not the service's own error answer: a load balancer or proxy
+    found no replica to answer (no sgvloc answer came, as after a connection error)."""
+    err = body.get("error") if isinstance(body, dict) else None
+    return status in (502, 504) and not isinstance(err, dict)
+
+
 T = TypeVar("T")
 
 DEFAULT_BASE_URL = "http://127.0.0.1:8470"
@@ -359,6 +367,7 @@ class BaseClient:
         *,
         sent: bool,
         exc: httpx.TransportError | None = None,
+        status: int = 503,
     ) -> int | None:
         """The base URL to resend ``call`` to at once after try ``attempt`` failed on
         URL ``i`` (a connection error ``exc``, or a 503), or None: only with several URLs,
@@ -370,7 +379,7 @@ class BaseClient:
             return None
         j = self._untried(i, tried)  # a refused connection moves on whatever retries says
         if j is not None:
-            why = "503" if exc is None else type(exc).__name__
+            why = str(status) if exc is None else type(exc).__name__
             self._log_resend(call.method, i, call.path, why, attempt, to=j)
         return j
 
@@ -486,7 +495,7 @@ class BaseClient:
         if not (
             self.retry_overloaded
             and call.idempotent
-            and status in (429, 503)
+            and status in (429, 502, 503, 504)
             and status not in call.passthrough
             and attempt < self.retries
         ):
@@ -495,6 +504,8 @@ class BaseClient:
         err = body.get("error") if isinstance(body, dict) else None
         if isinstance(err, dict) and err.get("code") == "map_unavailable":
             return -1.0  # waits on an operator, not on time
+        if status in (502, 504) and not _from_gateway(status, body):
+            return -1.0
         delay = _retry_after_s(response.headers.get("retry-after"))
         if delay is None:  # none, or garbage: the backoff
             delay = min(self.max_backoff, self.backoff * 2**attempt)
@@ -518,6 +529,12 @@ class BaseClient:
         """Decode ``response`` and return the call's result, or raise its error."""
         status = response.status_code
         body = self._decode(response)
+        if _from_gateway(status, body) and status not in call.passthrough:
+            raise TransportError(
+                f"{call.method} {response.url}: the load balancer answered {status} (no "
+                f"replica answered it) (request id {call.request_id})",
+                request_id=call.request_id,
+            )
         if status >= 400 and status not in call.passthrough:
             rid = response.headers.get(REQUEST_ID_HEADER) or call.request_id
             raise self._error(status, body, rid)

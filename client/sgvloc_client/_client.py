@@ -149,8 +149,9 @@ class Client(BaseClient):
                     tried.add(j)
                 attempt += 1
                 continue
-            if response.status_code == 503 and 503 not in call.passthrough:
-                j = self._failover(call, attempt, i, tried, sent=True)
+            status = response.status_code
+            if status in (502, 503, 504) and status not in call.passthrough:
+                j = self._failover(call, attempt, i, tried, sent=True, status=status)
                 if j is not None:  # another replica may be ready, caught up or connected
                     i = j
                     tried.add(j)

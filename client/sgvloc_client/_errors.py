@@ -39,7 +39,9 @@ class SgvlocError(Exception):
 
 
 class TransportError(SgvlocError):
-    """The request did not get an HTTP answer (connection refused, reset, timeout)."""
+    """The request got no answer of the service: the connection was refused, reset or
+    timed out, a load balancer answered 502/504 (no replica answered), or what answered
+    was not an sgvloc service (a captive portal's page, say)."""
 
     def __init__(self, message: str, *, attempts: int = 1, request_id: str | None = None) -> None:
         super().__init__(message)

@@ -92,7 +92,7 @@ def test_error_body_in_msgpack_and_foreign_shapes() -> None:
             return _packed(404, {"error": err})
         if request.url.path.endswith("/b"):  # framework default body
             return httpx.Response(405, json={"detail": "Method Not Allowed"})
-        return httpx.Response(502, text="<html>bad gateway</html>")
+        return httpx.Response(500, text="<html>internal error</html>")  # a proxy's page
 
     with Client(transport=httpx.MockTransport(handler), retries=0) as c:
         with pytest.raises(NotFound, match="no map"):
@@ -103,7 +103,7 @@ def test_error_body_in_msgpack_and_foreign_shapes() -> None:
         assert "Method Not Allowed" in info.value.message
         with pytest.raises(ServerError) as info:
             c.get_map("c")
-        assert info.value.code == "http_502"
+        assert info.value.code == "http_500"
 
 
 def test_requests_are_msgpack_with_auth_header() -> None:
@@ -722,3 +722,21 @@ def test_tracker_and_prior_arguments_are_checked() -> None:
         MotionModel().seed(1.7e18, None)  # a ROS stamp in ns
     with pytest.raises(TypeError, match=r"\[x, y\]"):
         Prior(3.0, 5).to_body()
+
+
+def test_a_gateway_error_is_no_answer_and_moves_to_the_next_replica() -> None:
+    """A load balancer's 502/504 page means no replica answered: a TransportError, and
+    with several URLs the call moves on (a ServerError before, never resent)."""
+    body = {"name": "m", "version": 1, "keyframes": 0, "encoder": {}, "retrieval": {}}
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        if request.url.port == 1:
+            return httpx.Response(502, text="<html>502 Bad Gateway</html>")
+        return httpx.Response(200, json=body)
+
+    transport = httpx.MockTransport(handler)
+    with Client("http://127.0.0.1:1", transport=transport, retries=0) as c:
+        with pytest.raises(TransportError, match="load balancer answered 502"):
+            c.get_map("m")
+    with Client(["http://127.0.0.1:1", "http://127.0.0.1:2"], transport=transport) as c:
+        assert [c.get_map("m").name for _ in range(3)] == ["m"] * 3
