@@ -370,7 +370,8 @@ class BaseClient:
         status: int = 503,
     ) -> int | None:
         """The base URL to resend ``call`` to at once after try ``attempt`` failed on
-        URL ``i`` (a connection error ``exc``, or a 503), or None: only with several URLs,
+        URL ``i`` (a connection error ``exc``, or a 429/502/503/504 answer), or None: only
+        with several URLs,
         only an untried one, within ``retries``, and only for calls safe to resend, unless
         the request was never ``sent`` (the connection was refused)."""
         if len(self.base_urls) == 1:

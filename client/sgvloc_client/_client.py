@@ -49,7 +49,8 @@ class Client(BaseClient):
         base_url: where the service listens, or a list of replicas' base URLs (one
             store, see docs/SCALING.md): calls take turns over them, and a call safe to
             resend (see ``retries``) moves to the next replica at once after a
-            connection error or a 503 answer; any call moves when its connection was
+            connection error or a 429, 503 or gateway (502, 504) answer (that one is busy,
+            loading or unreachable; another may not be); any call moves when its connection was
             refused (nothing was sent). A replica that failed is skipped for 5 s.
         timeout: seconds (or an ``httpx.Timeout``) for connecting, sending and reading;
             None waits forever.
@@ -150,7 +151,7 @@ class Client(BaseClient):
                 attempt += 1
                 continue
             status = response.status_code
-            if status in (502, 503, 504) and status not in call.passthrough:
+            if status in (429, 502, 503, 504) and status not in call.passthrough:
                 j = self._failover(call, attempt, i, tried, sent=True, status=status)
                 if j is not None:  # another replica may be ready, caught up or connected
                     i = j

@@ -740,3 +740,22 @@ def test_a_gateway_error_is_no_answer_and_moves_to_the_next_replica() -> None:
             c.get_map("m")
     with Client(["http://127.0.0.1:1", "http://127.0.0.1:2"], transport=transport) as c:
         assert [c.get_map("m").name for _ in range(3)] == ["m"] * 3
+
+
+def test_a_busy_replica_hands_the_call_to_the_next() -> None:
+    """A 429 (that replica is full) moves a call safe to resend to another replica at
+    once, as a 503 does; with one URL it stays an Overloaded answer."""
+    body = {"name": "m", "version": 1, "keyframes": 0, "encoder": {}, "retrieval": {}}
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        if request.url.port == 1:
+            error = {"code": "overloaded", "message": "too many localizations"}
+            return httpx.Response(429, json={"error": error}, headers={"Retry-After": "1"})
+        return httpx.Response(200, json=body)
+
+    transport = httpx.MockTransport(handler)
+    with Client(["http://127.0.0.1:1", "http://127.0.0.1:2"], transport=transport) as c:
+        assert [c.get_map("m").name for _ in range(3)] == ["m"] * 3
+    with Client("http://127.0.0.1:1", transport=transport) as c:
+        with pytest.raises(Overloaded):
+            c.get_map("m")
