@@ -1079,7 +1079,7 @@ class MapManager:
         """Delete a map and its folder; raises :class:`NotFoundError`, or
         :class:`MapUnavailableError` for a map that failed to load, unless ``force``
         (then its folder or rows go, unread: :meth:`_discard_failed`)."""
-        shared = isinstance(self.backend, SharedBackend)
+        shared = self.shared
         if shared:  # a map another replica made since this one last caught up
             with contextlib.suppress(NotFoundError, MapUnavailableError):
                 self.get(name, load=True)
@@ -1117,7 +1117,7 @@ class MapManager:
                 handle.closed = True
                 handle.store.close()
                 if handle.path is not None:  # a map folder: one atomic rename, then clean-up
-                    trash = self.maps_dir / f"{_TRASH_PREFIX}{name}-{uuid.uuid4().hex[:8]}"
+                    trash = self._trash_path(name)
                     handle.path.rename(trash)
         finally:
             with self._lock:
@@ -1126,6 +1126,11 @@ class MapManager:
             shutil.rmtree(trash, ignore_errors=True)
         self._on_change(name, None)
         log.info("deleted map %r", name)
+
+    def _trash_path(self, name: str) -> Path:
+        """Where a deleted map's folder is renamed before it is removed (one atomic step;
+        a crash leaves it to :meth:`_remove_leftovers`)."""
+        return self.maps_dir / f"{_TRASH_PREFIX}{name}-{uuid.uuid4().hex[:8]}"
 
     def _discard_failed(self, name: str, why: str) -> None:
         """Delete a map that could not be loaded without reading it: its folder, or its
@@ -1152,7 +1157,7 @@ class MapManager:
             else:
                 folder = self.maps_dir / name
                 if folder.exists():
-                    trash = self.maps_dir / f"{_TRASH_PREFIX}{name}-{uuid.uuid4().hex[:8]}"
+                    trash = self._trash_path(name)
                     try:
                         folder.rename(trash)
                     except OSError as exc:
