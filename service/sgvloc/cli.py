@@ -728,7 +728,7 @@ def _why(
         else:
             head = (names or {}).get(loc[0]) or unnamed(loc[0])
             got = e.get("input")
-            secret = any(w in loc[0] for w in ("url", "password", "key"))  # never echoed
+            secret = loc[0].endswith("_url") or "password" in loc[0]  # never echoed
             value = f" (got {got!r})" if isinstance(got, str | int | float) and not secret else ""
             parts.append(f"{head}{''.join(f'.{x}' for x in loc[1:])}: {msg}{value}")
     return "; ".join(parts)
