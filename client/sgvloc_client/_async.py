@@ -57,10 +57,11 @@ class AsyncClient(BaseClient):
             None waits forever.
         retries: how many times a call is resent after a connection error or timeout,
             with exponential backoff (``backoff * 2**n`` seconds, at most
-            ``max_backoff``). Only calls that are safe to resend are: GET, PATCH,
-            localize, and inserts whose keyframes all carry a ``key`` (those not after a
-            read timeout: the service may still be doing the work); never
-            ``create_map``, a DELETE or a keyless insert. Error answers (4xx/5xx) are not retried,
+            ``max_backoff``; with ``jitter``, a random half to all of it). Only calls
+            that are safe to resend are: GET, PATCH, localize, and inserts whose
+            keyframes all carry a ``key`` (those not after a read timeout: the service
+            may still be doing the work); never ``create_map``, a DELETE or a keyless
+            insert. Error answers (4xx/5xx) are not retried,
             except as ``retry_overloaded`` says.
         api_key: sent as ``Authorization: Bearer <key>``.
         transport: an ``httpx.AsyncBaseTransport`` to send through (tests, custom TLS).
@@ -73,6 +74,7 @@ class AsyncClient(BaseClient):
             the :class:`Overloaded` error is raised at once.
         total_timeout: the longest (seconds) a call may take with all its tries and
             waits (see :class:`Client`).
+        jitter: wait a random half to all of each backoff (see :class:`Client`).
 
     Use as an async context manager (or await :meth:`aclose`). Errors are the exceptions of
     :mod:`sgvloc_client._errors` (see :class:`~sgvloc_client.SgvlocError`).
@@ -92,6 +94,7 @@ class AsyncClient(BaseClient):
         retry_overloaded: bool = False,
         max_retry_after: float = 30.0,
         total_timeout: float | None = None,
+        jitter: bool = True,
     ) -> None:
         super().__init__(
             base_url,
@@ -104,6 +107,7 @@ class AsyncClient(BaseClient):
             retry_overloaded=retry_overloaded,
             max_retry_after=max_retry_after,
             total_timeout=total_timeout,
+            jitter=jitter,
         )
         self._http = httpx.AsyncClient(transport=transport, **self._http_options())
 

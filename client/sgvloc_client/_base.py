@@ -16,6 +16,7 @@ import itertools
 import json
 import logging
 import os
+import random
 import threading
 import time
 import uuid
@@ -229,6 +230,7 @@ class BaseClient:
         retry_overloaded: bool = False,
         max_retry_after: float = 30.0,
         total_timeout: float | None = None,
+        jitter: bool = True,
     ) -> None:
         if total_timeout is not None and not total_timeout > 0:
             raise ValueError(f"total_timeout must be > 0 seconds or None, got {total_timeout}")
@@ -253,6 +255,10 @@ class BaseClient:
         self.retries = retries
         self.backoff = backoff
         self.max_backoff = max_backoff
+        #: wait a random share of each backoff (half to all of it), so that clients that
+        #: failed together do not resend together
+        self.jitter = jitter
+        self._random = random.Random()  # seeded from the OS: clients differ
         self.wire_format: WireFormat = wire_format
         self.retry_overloaded = retry_overloaded
         self.max_retry_after = max_retry_after
@@ -338,6 +344,13 @@ class BaseClient:
             request_id=call.request_id,
         )
 
+    def _backoff(self, attempt: int) -> float:
+        """Seconds to wait before resending after failed try number ``attempt`` (0-based):
+        ``backoff * 2**attempt``, at most ``max_backoff``; with ``jitter``, a uniform draw
+        from half of that to all of it."""
+        wait = min(self.max_backoff, self.backoff * 2**attempt)
+        return self._random.uniform(wait / 2, wait) if self.jitter else wait
+
     def _after_refusal(
         self, i: int, tried: set[int], attempt: int, method: str, exc: httpx.TransportError
     ) -> tuple[int, float]:
@@ -354,7 +367,7 @@ class BaseClient:
                 tried.add(j)
                 self._log_resend(method, i, "", why, attempt, to=j)
                 return j, 0.0
-        wait = min(self.max_backoff, self.backoff * 2**attempt)
+        wait = self._backoff(attempt)
         self._log_resend(method, i, "", why, attempt, wait=wait)
         return i, wait
 
@@ -473,7 +486,7 @@ class BaseClient:
         not be resent."""
         tries = attempt + 1
         if _may_resend(call, exc) and isinstance(exc, _RETRYABLE) and attempt < self.retries:
-            wait = min(self.max_backoff, self.backoff * 2**attempt)
+            wait = self._backoff(attempt)
             self._log_resend(call.method, i, call.path, type(exc).__name__, attempt, wait=wait)
             return wait
         kind = type(exc).__name__
@@ -509,7 +522,7 @@ class BaseClient:
             return -1.0
         delay = _retry_after_s(response.headers.get("retry-after"))
         if delay is None:  # none, or garbage: the backoff
-            delay = min(self.max_backoff, self.backoff * 2**attempt)
+            delay = self._backoff(attempt)
         if not 0.0 <= delay <= self.max_retry_after:
             return -1.0
         log.warning(

@@ -56,10 +56,11 @@ class Client(BaseClient):
             None waits forever.
         retries: how many times a call is resent after a connection error or timeout,
             with exponential backoff (``backoff * 2**n`` seconds, at most
-            ``max_backoff``). Only calls that are safe to resend are: GET, PATCH,
-            localize, and inserts whose keyframes all carry a ``key`` (those not after a
-            read timeout: the service may still be doing the work); never
-            ``create_map``, a DELETE or a keyless insert. Error answers (4xx/5xx) are not retried,
+            ``max_backoff``; with ``jitter``, a random half to all of it). Only calls
+            that are safe to resend are: GET, PATCH, localize, and inserts whose
+            keyframes all carry a ``key`` (those not after a read timeout: the service
+            may still be doing the work); never ``create_map``, a DELETE or a keyless
+            insert. Error answers (4xx/5xx) are not retried,
             except as ``retry_overloaded`` says.
         api_key: sent as ``Authorization: Bearer <key>``.
         transport: an ``httpx.BaseTransport`` to send through (tests, custom TLS).
@@ -76,6 +77,9 @@ class Client(BaseClient):
             try; None (the default): no bound over the tries. An answer still arriving is
             not cut (a server sending a byte at a time keeps each read within its
             timeout), and map exports and imports keep their own ``timeout``.
+        jitter: wait a random half to all of each backoff (the default), so that
+            vehicles that lost a replica together do not all resend at the same moment;
+            False waits the backoff exactly. A ``Retry-After`` is waited as given.
 
     Use as a context manager (or call :meth:`close`). Errors are the exceptions of
     :mod:`sgvloc_client._errors` (see :class:`~sgvloc_client.SgvlocError`).
@@ -95,6 +99,7 @@ class Client(BaseClient):
         retry_overloaded: bool = False,
         max_retry_after: float = 30.0,
         total_timeout: float | None = None,
+        jitter: bool = True,
     ) -> None:
         super().__init__(
             base_url,
@@ -107,6 +112,7 @@ class Client(BaseClient):
             retry_overloaded=retry_overloaded,
             max_retry_after=max_retry_after,
             total_timeout=total_timeout,
+            jitter=jitter,
         )
         self._http = httpx.Client(transport=transport, **self._http_options())
 

@@ -526,6 +526,40 @@ def test_overload_retry_waits_retry_after_and_skips_unsafe_calls(monkeypatch) ->
     assert len(seen) == 1
 
 
+def test_backoff_jitter_spreads_waits_within_the_backoff(monkeypatch) -> None:
+    """By default each wait is a random draw from half the backoff to all of it, and two
+    clients that fail together wait differently; a connection error's resend waits the
+    same way."""
+    import sgvloc_client._client as sync_client
+
+    waits: list[float] = []
+    monkeypatch.setattr(sync_client.time, "sleep", waits.append)
+    for _ in range(2):
+        handler, seen = _overloaded_then_ok([503] * 6, retry_after=None)
+        with Client(
+            transport=httpx.MockTransport(handler),
+            retry_overloaded=True,
+            retries=6,
+            backoff=0.2,
+            max_backoff=1.0,
+        ) as c:
+            c.get_map("campus")
+        assert len(seen) == 7
+    caps = [0.2, 0.4, 0.8, 1.0, 1.0, 1.0] * 2
+    assert all(cap / 2 <= w <= cap for w, cap in zip(waits, caps, strict=True)), waits
+    assert waits[:6] != waits[6:]  # two clients, two draws
+    waits.clear()
+
+    def refuse(request: httpx.Request) -> httpx.Response:
+        raise httpx.ConnectError("refused", request=request)
+
+    with Client(transport=httpx.MockTransport(refuse), retries=3, backoff=0.4) as c:
+        with pytest.raises(TransportError):
+            c.get_map("campus")
+    assert len(waits) == 3
+    assert all(cap / 2 <= w <= cap for w, cap in zip(waits, [0.4, 0.8, 1.6], strict=True))
+
+
 def test_overload_waits_are_bounded_and_read_http_dates(monkeypatch) -> None:
     """Without Retry-After the wait is the backoff, within max_backoff; a Retry-After
     date is read as the time until it (a date past max_retry_after is not waited for)."""
@@ -542,6 +576,7 @@ def test_overload_waits_are_bounded_and_read_http_dates(monkeypatch) -> None:
         retries=6,
         backoff=0.2,
         max_backoff=1.0,
+        jitter=False,
     ) as c:
         c.get_map("campus")
     assert waits == pytest.approx([0.2, 0.4, 0.8, 1.0, 1.0, 1.0]) and len(seen) == 7
