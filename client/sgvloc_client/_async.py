@@ -34,6 +34,7 @@ from ._models import (
     KeyframeSummary,
     Localization,
     MapInfo,
+    MapPage,
     MapStats,
     Prior,
     RecentLocalization,
@@ -224,9 +225,22 @@ class AsyncClient(BaseClient):
             )
         )
 
-    async def list_maps(self) -> list[MapInfo]:
-        """All maps."""
-        return await self._send(self._list_maps())
+    async def list_maps(self, *, prefix: str | None = None) -> list[MapInfo]:
+        """See :meth:`Client.list_maps`."""
+        out: list[MapInfo] = []
+        cursor = None
+        while True:
+            page = await self.list_maps_page(limit=1000, cursor=cursor, prefix=prefix)
+            out.extend(page.maps)
+            cursor = self._next_maps_cursor(page, cursor)
+            if cursor is None:
+                return out
+
+    async def list_maps_page(
+        self, *, limit: int = 100, cursor: str | None = None, prefix: str | None = None
+    ) -> MapPage:
+        """See :meth:`Client.list_maps_page`."""
+        return await self._send(self._list_maps(limit, cursor, prefix))
 
     async def get_map(self, name: str) -> MapInfo:
         """One map; raises :class:`NotFound` if there is none of that name."""

@@ -40,6 +40,7 @@ from ._models import (
     KeyframesDeleted,
     Localization,
     MapInfo,
+    MapPage,
     MapStats,
     Prior,
     RecentLocalization,
@@ -643,13 +644,26 @@ class BaseClient:
         # Not idempotent: a resent create that had succeeded would answer 409.
         return self._call("POST", "/v1/maps", _body_only(MapInfo.from_body), body, idempotent=False)
 
-    def _list_maps(self) -> Call[list[MapInfo]]:
+    def _list_maps(self, limit: int, cursor: str | None, prefix: str | None) -> Call[MapPage]:
+        if not 1 <= int(limit) <= 1000:
+            raise ValueError(f"limit must be within 1..1000, got {limit}")
+        params: dict[str, Any] = {"limit": int(limit)}
+        if cursor is not None:
+            params["cursor"] = cursor
+        if prefix:
+            params["prefix"] = prefix
         return self._call(
-            "GET",
-            "/v1/maps",
-            _body_only(lambda b: [MapInfo.from_body(m) for m in b["maps"]]),
-            idempotent=True,
+            "GET", f"/v1/maps?{urlencode(params)}", _body_only(MapPage.from_body), idempotent=True
         )
+
+    @staticmethod
+    def _next_maps_cursor(page: MapPage, cursor: str | None) -> str | None:
+        """The cursor of the page after ``page`` (None: it was the last); a service that
+        hands back a cursor that does not move on would loop for ever: an error."""
+        nxt = page.next_cursor
+        if nxt is not None and (not page.maps or (cursor is not None and nxt <= cursor)):
+            raise SgvlocError(f"the map listing did not move on past {cursor!r}")
+        return nxt
 
     def _get_map(self, name: str) -> Call[MapInfo]:
         return self._call("GET", _map_path(name), _body_only(MapInfo.from_body), idempotent=True)

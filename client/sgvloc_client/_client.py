@@ -33,6 +33,7 @@ from ._models import (
     KeyframeSummary,
     Localization,
     MapInfo,
+    MapPage,
     MapStats,
     Prior,
     RecentLocalization,
@@ -232,9 +233,24 @@ class Client(BaseClient):
             )
         )
 
-    def list_maps(self) -> list[MapInfo]:
-        """All maps."""
-        return self._send(self._list_maps())
+    def list_maps(self, *, prefix: str | None = None) -> list[MapInfo]:
+        """Every map the key may use (whose name starts with ``prefix``, if given), by
+        name, read page by page."""
+        out: list[MapInfo] = []
+        cursor = None
+        while True:
+            page = self.list_maps_page(limit=1000, cursor=cursor, prefix=prefix)
+            out.extend(page.maps)
+            cursor = self._next_maps_cursor(page, cursor)
+            if cursor is None:
+                return out
+
+    def list_maps_page(
+        self, *, limit: int = 100, cursor: str | None = None, prefix: str | None = None
+    ) -> MapPage:
+        """One page of maps by name (``limit`` 1..1000); pass the page's ``next_cursor``
+        for the next one."""
+        return self._send(self._list_maps(limit, cursor, prefix))
 
     def get_map(self, name: str) -> MapInfo:
         """One map; raises :class:`NotFound` if there is none of that name."""

@@ -510,6 +510,19 @@ class KeyframePage:
 
 
 @dataclass(frozen=True)
+class MapPage:
+    """One page of the map listing, by name; pass ``next_cursor`` for the next (None:
+    last)."""
+
+    maps: list[MapInfo]
+    next_cursor: str | None
+
+    @classmethod
+    def from_body(cls, d: Mapping[str, Any]) -> MapPage:
+        return cls(maps=[MapInfo.from_body(m) for m in d["maps"]], next_cursor=d.get("next_cursor"))
+
+
+@dataclass(frozen=True)
 class KeyframesDeleted:
     """Result of a bulk delete: how many keyframes went, and the map's version after."""
 

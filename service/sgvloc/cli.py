@@ -1804,11 +1804,16 @@ def _sdk(url: str, api_key: str | None, timeout: float) -> Any:
 
 @map_app.command("list")
 def map_list_command(
-    url: UrlOpt = DEFAULT_URL, api_key: KeyOpt = None, timeout: TimeoutOpt = 30.0
+    url: UrlOpt = DEFAULT_URL,
+    api_key: KeyOpt = None,
+    timeout: TimeoutOpt = 30.0,
+    prefix: Annotated[
+        str | None, typer.Option(help="only the maps whose name starts with this")
+    ] = None,
 ) -> None:
-    """The maps with keyframes, version and encoder, one per line."""
+    """The maps with keyframes, version and encoder, one per line, by name."""
     with _sdk(url, api_key, timeout) as c:
-        maps = _sdk_call("list", c.list_maps)
+        maps = _sdk_call("list", lambda: c.list_maps(prefix=prefix))
     for m in maps:
         typer.echo(f"{m.name}\t{m.keyframes} keyframes\tversion {m.version}\t{m.encoder.kind}")
 

@@ -77,6 +77,14 @@ def test_map_lifecycle(service_url: str) -> None:
 
         assert "lifecycle" in [m.name for m in c.list_maps()]
         assert c.get_map("lifecycle") == info
+        c.create_map("lifecycle-2", retrieval="flat")
+        first = c.list_maps_page(limit=1, prefix="lifecycle")
+        assert [m.name for m in first.maps] == ["lifecycle"]
+        assert first.next_cursor == "lifecycle"
+        last = c.list_maps_page(limit=1, prefix="lifecycle", cursor=first.next_cursor)
+        assert [m.name for m in last.maps] == ["lifecycle-2"] and last.next_cursor is None
+        assert [m.name for m in c.list_maps(prefix="lifecycle")] == ["lifecycle", "lifecycle-2"]
+        c.delete_map("lifecycle-2")
 
         with pytest.raises(Conflict) as dup:
             c.create_map("lifecycle")

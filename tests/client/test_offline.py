@@ -484,6 +484,45 @@ def _overloaded_then_ok(statuses: list[int], retry_after: str | None = "0"):
     return handler, seen
 
 
+def test_list_maps_follows_pages_and_refuses_a_stuck_cursor() -> None:
+    """list_maps reads every page; a service without paging (no next_cursor) is one
+    page; a cursor that does not move on is an error rather than a loop."""
+
+    def info(name: str) -> dict:
+        return {"name": name, "version": 0, "keyframes": 0, "encoder": {}, "retrieval": {}}
+
+    names = ["a", "b", "c", "d", "e"]
+    seen: list[httpx.URL] = []
+
+    def paged(request: httpx.Request) -> httpx.Response:
+        seen.append(request.url)
+        cursor = request.url.params.get("cursor")
+        rest = [n for n in names if cursor is None or n > cursor]
+        page = rest[:2]  # a service whose pages are smaller than asked
+        nxt = page[-1] if len(rest) > 2 else None
+        return httpx.Response(200, json={"maps": [info(n) for n in page], "next_cursor": nxt})
+
+    with Client(transport=httpx.MockTransport(paged)) as c:
+        assert [m.name for m in c.list_maps(prefix="x")] == names
+    assert [u.params.get("cursor") for u in seen] == [None, "b", "d"]
+    assert all(u.params["prefix"] == "x" and u.params["limit"] == "1000" for u in seen)
+
+    def unpaged(request: httpx.Request) -> httpx.Response:
+        return httpx.Response(200, json={"maps": [info(n) for n in names]})
+
+    with Client(transport=httpx.MockTransport(unpaged)) as c:
+        assert [m.name for m in c.list_maps()] == names
+
+    def stuck(request: httpx.Request) -> httpx.Response:
+        return httpx.Response(200, json={"maps": [info("a")], "next_cursor": "a"})
+
+    with Client(transport=httpx.MockTransport(stuck)) as c:
+        with pytest.raises(SgvlocError, match="did not move on"):
+            c.list_maps()
+        with pytest.raises(ValueError, match="limit"):
+            c.list_maps_page(limit=0)
+
+
 def test_overloaded_answers_are_retried_only_when_asked() -> None:
     handler, seen = _overloaded_then_ok([429, 503])
     transport = httpx.MockTransport(handler)

@@ -181,6 +181,8 @@ def test_cli_lists_filters_and_deletes(server, client: httpx.Client) -> None:
     assert run.returncode == 0 and any(
         ln.startswith("arc-cli\t6 keyframes") for ln in run.stdout.splitlines()
     )
+    run = _sgvloc("map", "list", "--prefix", "arc-c", url=server.url)
+    assert [ln.split("\t")[0] for ln in run.stdout.splitlines()] == ["arc-cli"], run.stderr
     run = _sgvloc("map", "stats", "arc-cli", url=server.url)
     assert run.returncode == 0, run.stderr
     assert json.loads(run.stdout)["extent"] == {"min": [0.0, 0.0, 0.0], "max": [5.0, 10.0, 0.0]}

@@ -247,6 +247,9 @@ def test_key_restricted_to_maps(auth_server: Server, admin: httpx.Client, maps: 
         assert post_msgpack(c, "/v1/maps/nowhere/localize", body).status_code == 403
     with httpx.Client(base_url=auth_server.url, timeout=60, headers=_h("mapper-a")) as c:
         assert [m["name"] for m in c.get("/v1/maps").json()["maps"]] == ["auth-a"]
+        # paging counts only the maps the key may use: no cursor past a hidden map
+        one = c.get("/v1/maps", params={"limit": 1, "prefix": "auth-"}).json()
+        assert [m["name"] for m in one["maps"]] == ["auth-a"] and one["next_cursor"] is None
         assert c.get("/v1/maps/auth-b").status_code == 403
         kf = {"keyframes": [{"T_map_sensor": EYE, "features": feats}]}
         assert post_msgpack(c, "/v1/maps/auth-a/keyframes", kf).status_code == 201

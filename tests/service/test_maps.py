@@ -31,6 +31,45 @@ def test_create_describe_list(client: httpx.Client) -> None:
     assert "m-create" in names and names == sorted(names)
 
 
+def test_list_maps_pages_by_name(client: httpx.Client) -> None:
+    """GET /v1/maps: ``limit`` maps per page by name, ``next_cursor`` to the next page
+    (null on the last), ``prefix`` to filter; bad paging parameters are 422s naming them."""
+    for name in ("pg-c", "pg-a", "pg-e", "pg-b", "pg-d"):
+        assert (
+            client.post("/v1/maps", json={"name": name, "encoder": PRECOMPUTED}).status_code == 201
+        )
+    pages, cursor = [], None
+    while True:
+        params = {"prefix": "pg-", "limit": 2} | ({"cursor": cursor} if cursor else {})
+        body = client.get("/v1/maps", params=params).json()
+        pages.append([m["name"] for m in body["maps"]])
+        cursor = body["next_cursor"]
+        if cursor is None:
+            break
+        assert cursor == pages[-1][-1]
+    assert pages == [["pg-a", "pg-b"], ["pg-c", "pg-d"], ["pg-e"]]
+    # a cursor is a name: any name resumes after it, whether or not such a map exists
+    after = client.get("/v1/maps", params={"prefix": "pg-", "cursor": "pg-bb"}).json()
+    assert [m["name"] for m in after["maps"]] == ["pg-c", "pg-d", "pg-e"]
+    assert after["next_cursor"] is None
+    assert client.get("/v1/maps", params={"prefix": "pg-z"}).json() == {
+        "maps": [],
+        "next_cursor": None,
+    }
+    everything = client.get("/v1/maps").json()  # the default page holds up to 1000 maps
+    assert {"pg-a", "pg-e"} <= {m["name"] for m in everything["maps"]}
+    assert everything["next_cursor"] is None
+    for params, field in (
+        ({"limit": 0}, "limit"),
+        ({"limit": 1001}, "limit"),
+        ({"limit": "ten"}, "limit"),
+        ({"cursor": "x" * 65}, "cursor"),
+        ({"prefix": "x" * 65}, "prefix"),
+    ):
+        r = client.get("/v1/maps", params=params)
+        assert r.status_code == 422 and error_of(r)["field"] == field, (params, r.text)
+
+
 def test_retrieval_given_twice_is_refused(client: httpx.Client) -> None:
     body = {"name": "m-twice", "retrieval": {"index": "flat"}, "localizer": {"retrieval": {}}}
     r = client.post("/v1/maps", json=body)

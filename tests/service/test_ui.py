@@ -262,3 +262,80 @@ def test_screenshot_of_the_status_page(
     # the keyframes are drawn: pixels near their blue (#3b5b92, blended on white)
     blue = sum(n for n, (r, g, b) in colours if b > r + 40 and b > g + 20 and r < 170)
     assert blue >= 500, f"{png}: no keyframes drawn?"
+
+
+# -- many maps: one page of the table at a time -------------------------------------------
+
+MANY = 120  # maps; the table shows 20 at a time
+
+
+@pytest.fixture(scope="module")
+def many_maps(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
+    """A service with :data:`MANY` empty maps ``m-000`` ... and three keyframes in the last."""
+    root = tmp_path_factory.mktemp("ui-many")
+    keys = root / "keys.json"
+    keys.write_text(
+        json.dumps({"keys": [{"name": r, "role": r, "key": KEYS[r]} for r in ("viewer", "admin")]})
+    )
+    srv = Server(
+        data_dir=root / "data", log_path=root / "server.log", env={"SGVLOC_KEYS_FILE": str(keys)}
+    )
+    srv.start()
+    try:
+        admin = {"Authorization": f"Bearer {KEYS['admin']}"}
+        with httpx.Client(base_url=srv.url, timeout=120, headers=admin) as c:
+            for i in range(MANY):
+                r = c.post("/v1/maps", json={"name": f"m-{i:03d}", "encoder": PRECOMPUTED})
+                assert r.status_code == 201, r.text
+            rng = np.random.default_rng(5)
+            kfs = [{"T_map_sensor": T, "features": random_features(rng)} for T in loop_poses(3)]
+            r = post_msgpack(c, f"/v1/maps/m-{MANY - 1:03d}/keyframes", {"keyframes": kfs})
+            assert r.status_code == 201, r.text
+        yield srv
+    finally:
+        srv.stop()
+
+
+def _rows(dom: str) -> list[str]:
+    return re.findall(r'class="map-row[^"]*" data-map="([^"]+)"', dom)
+
+
+def test_many_maps_show_one_page_with_stats_for_its_rows_only(many_maps: Server) -> None:
+    before = _stats_asked(many_maps)
+    dom = render(f"{many_maps.url}/ui#key={KEYS['viewer']}")
+    assert _rows(dom) == [f"m-{i:03d}" for i in range(20)], dom[:3000]
+    assert re.search(r'<span id="maps-pager">', dom), "the pager is hidden"
+    assert re.search(r'id="maps-range"[^>]*>1–20<', dom)
+    assert re.search(r'<button type="button" id="maps-prev" disabled', dom)
+    assert not re.search(r'<button type="button" id="maps-next" disabled', dom)
+    assert re.search(r'id="map-title">m-000<', dom)
+    # the page asks the statistics of the rows it shows, not of all 120 maps (once per
+    # refresh of the table: at the start and maybe once more within the 20 s it ran)
+    asked = _stats_asked(many_maps) - before
+    assert asked in (20, 40), asked
+
+
+def _stats_asked(srv: Server) -> int:
+    """GET /v1/maps/{map}/stats requests the service answered so far (its metrics)."""
+    text = httpx.get(
+        f"{srv.url}/metrics", headers={"Authorization": f"Bearer {KEYS['admin']}"}
+    ).text
+    pattern = r'sgvloc_http_requests_total\{[^}]*route="/v1/maps/\{map\}/stats"[^}]*\} (\S+)'
+    return int(sum(float(v) for v in re.findall(pattern, text)))
+
+
+def test_many_maps_page_filter_and_selection_come_from_the_address(many_maps: Server) -> None:
+    key = KEYS["viewer"]
+    dom = render(f"{many_maps.url}/ui#key={key}&after=m-049")
+    assert _rows(dom) == [f"m-{i:03d}" for i in range(50, 70)], dom[:3000]
+    assert re.search(r'id="maps-range"[^>]*>20 after m-049<', dom)
+    assert not re.search(r'<button type="button" id="maps-prev" disabled', dom)
+    dom = render(f"{many_maps.url}/ui#key={key}&filter=m-11")
+    assert _rows(dom) == [f"m-{i:03d}" for i in range(110, 120)], dom[:3000]
+    assert re.search(r'<span id="maps-pager" hidden', dom)
+    assert re.search(r'<input id="maps-filter"[^>]*>', dom)
+    # a map off the page shown is still shown when the address names it
+    dom = render(f"{many_maps.url}/ui#key={key}&map=m-119")
+    assert _rows(dom)[:2] == ["m-000", "m-001"]
+    assert re.search(r'id="map-title">m-119<', dom), dom[:3000]
+    assert _count(dom, r'<circle class="kf"') == 3

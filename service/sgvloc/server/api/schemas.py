@@ -366,9 +366,12 @@ class SelfTestReport(BaseModel):
 
 
 class MapList(BaseModel):
-    """``GET /v1/maps``."""
+    """``GET /v1/maps``: one page of maps, by name."""
 
     maps: list[MapInfo]
+    next_cursor: str | None = Field(
+        None, description="pass as cursor for the next page; null on the last page"
+    )
 
 
 # -- keyframes ----------------------------------------------------------------------------

@@ -3,7 +3,8 @@
 // The page holds no data of its own: it asks for an API key, keeps it in
 // sessionStorage (this tab only; never localStorage or a cookie) and reads the JSON API
 // with "Authorization: Bearer <key>":
-//   GET v1/maps, v1/maps/{map}/stats, v1/maps/{map}/keyframes (paged),
+//   GET v1/maps (paged), v1/maps/{map}, v1/maps/{map}/stats (the rows shown),
+//   v1/maps/{map}/keyframes (paged),
 //   v1/maps/{map}/localizations, v1/config (version) and metrics (Prometheus text).
 // A key given in the address fragment (/ui#key=...) is moved into sessionStorage and
 // removed from the address at once. Every URL is relative, so the page also works
@@ -14,6 +15,7 @@
   const KEY_ITEM = "sgvloc.apiKey";
   const MAX_KEYFRAMES = 50000; // drawn at most
   const PAGE = 1000; // keyframes per listing request
+  const MAPS_PAGE = 20; // map rows per page of the maps table
   const RECENT = 200; // localizations drawn
   const EVERY_MS = { localizations: 3000, metrics: 5000, maps: 15000, loading: 2000 };
   const SVG_NS = "http://www.w3.org/2000/svg";
@@ -21,9 +23,14 @@
   const LOC_RADIUS_PX = 7;
 
   const state = {
-    maps: [],
+    maps: [], // the page of maps shown
     stats: {},
+    mapsAfter: null, // cursor of the page shown (null: the first page)
+    mapsBefore: [], // cursors of the pages before it, for "Previous" (null: not known)
+    mapsSeq: 0, // bumped by every listing: an older listing's late answer is dropped
+    mapsNext: null, // next_cursor of the page shown
     selected: null,
+    selectedInfo: null, // MapInfo of the selected map, on the page shown or not
     keyframes: [], // {id, key, x, y}
     keyframeById: new Map(),
     keyframesVersion: null, // map version the keyframes were read at
@@ -143,7 +150,9 @@
   function clearData() {
     state.maps = [];
     state.stats = {};
+    state.mapsNext = null;
     state.selected = null;
+    state.selectedInfo = null;
     state.keyframes = [];
     state.keyframeById = new Map();
     state.keyframesVersion = null;
@@ -312,6 +321,41 @@
       });
     }
     $("maps-empty").hidden = state.maps.length > 0;
+    const paged = state.mapsAfter !== null || state.mapsNext !== null;
+    $("maps-pager").hidden = !paged;
+    $("maps-prev").disabled = state.mapsAfter === null;
+    $("maps-next").disabled = state.mapsNext === null;
+    const n = state.maps.length;
+    if (!n) {
+      $("maps-range").textContent = "";
+    } else if (state.mapsBefore === null) {
+      // opened at a page of the address: its place in the list is not known
+      $("maps-range").textContent = `${n} after ${state.mapsAfter}`;
+    } else {
+      const first = state.mapsBefore.length * MAPS_PAGE + 1;
+      $("maps-range").textContent = `${first}–${first + n - 1}`;
+    }
+  }
+
+  function hashParams() {
+    return new URLSearchParams(location.hash.slice(1));
+  }
+
+  function setHashParam(name, value) {
+    const params = hashParams();
+    if (value) params.set(name, value);
+    else params.delete(name);
+    const rest = params.toString();
+    history.replaceState(null, "", `${location.pathname}${location.search}${rest ? `#${rest}` : ""}`);
+  }
+
+  // the maps table shows one page; its cursor and the filter live in the address
+  // (#after=NAME, #filter=PREFIX), so a reload shows the same rows
+  function turnMapsPage(after, before) {
+    state.mapsAfter = after;
+    state.mapsBefore = before;
+    setHashParam("after", after);
+    refreshMaps().catch((exc) => handle(exc, "maps"));
   }
 
   async function refreshStats(generation) {
@@ -328,39 +372,82 @@
     );
   }
 
+  function mapsQuery() {
+    const params = new URLSearchParams({ limit: String(MAPS_PAGE) });
+    const prefix = $("maps-filter").value;
+    if (prefix) params.set("prefix", prefix);
+    if (state.mapsAfter !== null) params.set("cursor", state.mapsAfter);
+    return `v1/maps?${params}`;
+  }
+
   async function refreshMaps() {
     const generation = state.generation;
-    const body = await api("v1/maps");
-    if (generation !== state.generation) return;
+    const seq = ++state.mapsSeq;
+    const current = () => generation === state.generation && seq === state.mapsSeq;
+    let body = await api(mapsQuery());
+    if (!current()) return;
+    if (!body.maps.length && state.mapsAfter !== null) {
+      // the maps of this page are gone: back to the first page
+      state.mapsAfter = null;
+      state.mapsBefore = [];
+      setHashParam("after", null);
+      body = await api(mapsQuery());
+      if (!current()) return;
+    }
     state.maps = body.maps;
+    state.mapsNext = body.next_cursor || null;
     $("auth").hidden = true;
     $("content").hidden = false;
     $("forget").hidden = false;
     await refreshStats(generation);
-    if (generation !== state.generation) return;
+    if (!current()) return;
     renderMaps();
     const names = state.maps.map((m) => m.name);
-    if (state.selected && !names.includes(state.selected)) {
-      state.selected = null;
-      $("map-section").hidden = true;
+    if (state.selected) {
+      // the selected map may be on another page: read it on its own
+      const info = await mapInfo(state.selected);
+      if (generation !== state.generation) return;
+      if (!info) {
+        state.selected = null;
+        state.selectedInfo = null;
+        $("map-section").hidden = true;
+      } else {
+        state.selectedInfo = info;
+        if (info.version !== state.keyframesVersion) await loadKeyframes(generation);
+        return;
+      }
     }
-    if (!state.selected && names.length) {
-      const wanted = new URLSearchParams(location.hash.slice(1)).get("map");
-      await select(names.includes(wanted) ? wanted : names[0]);
-    } else if (state.selected) {
-      const m = state.maps.find((x) => x.name === state.selected);
-      if (m && m.version !== state.keyframesVersion) await loadKeyframes(generation);
+    const wanted = hashParams().get("map");
+    if (wanted && !names.includes(wanted)) {
+      const info = await mapInfo(wanted);
+      if (generation !== state.generation) return;
+      if (info) {
+        await select(wanted, info);
+        return;
+      }
+    }
+    if (names.length) await select(names.includes(wanted) ? wanted : names[0]);
+  }
+
+  // a map's MapInfo, or null when there is no such map (any more)
+  async function mapInfo(name) {
+    const listed = state.maps.find((m) => m.name === name);
+    if (listed) return listed;
+    try {
+      return await api(mapPath(name));
+    } catch (exc) {
+      if (exc instanceof HttpError && exc.status === 404) return null;
+      throw exc;
     }
   }
 
   // -- the selected map -----------------------------------------------------------------
 
-  async function select(name) {
+  async function select(name, info = null) {
     state.selected = name;
+    state.selectedInfo = info || state.maps.find((m) => m.name === name) || null;
     state.view = null;
-    const params = new URLSearchParams(location.hash.slice(1));
-    params.set("map", name);
-    history.replaceState(null, "", `${location.pathname}${location.search}#${params}`);
+    setHashParam("map", name);
     for (const row of $("maps").tBodies[0].rows) {
       row.classList.toggle("selected", row.dataset.map === name);
       row.setAttribute("aria-selected", String(row.dataset.map === name));
@@ -388,7 +475,7 @@
 
   async function loadKeyframes(generation) {
     const name = state.selected;
-    const info = state.maps.find((m) => m.name === name);
+    const info = state.selectedInfo;
     const version = info ? info.version : null;
     const out = [];
     let cursor = null;
@@ -409,7 +496,7 @@
         }
       } while (cursor);
     } catch (exc) {
-      if (exc instanceof HttpError && exc.status === 404 && state.maps.some((m) => m.name === name)) {
+      if (exc instanceof HttpError && exc.status === 404 && state.selectedInfo) {
         $("map-note").textContent = "(this service does not list keyframes)";
         return;
       }
@@ -666,6 +753,27 @@
   document.addEventListener("DOMContentLoaded", () => {
     keyFromFragment();
     installPanZoom();
+    const opened = hashParams();
+    $("maps-filter").value = opened.get("filter") || "";
+    state.mapsAfter = opened.get("after") || null;
+    if (state.mapsAfter !== null) state.mapsBefore = null;
+    let typing = null;
+    $("maps-filter").addEventListener("input", () => {
+      clearTimeout(typing);
+      typing = setTimeout(() => {
+        setHashParam("filter", $("maps-filter").value);
+        turnMapsPage(null, []);
+      }, 300);
+    });
+    $("maps-next").addEventListener("click", () => {
+      if (state.mapsNext === null) return;
+      const before = state.mapsBefore === null ? null : [...state.mapsBefore, state.mapsAfter];
+      turnMapsPage(state.mapsNext, before);
+    });
+    $("maps-prev").addEventListener("click", () => {
+      const before = state.mapsBefore || []; // not known: back to the first page
+      turnMapsPage(before.length ? before.at(-1) : null, before.slice(0, -1));
+    });
     $("key-form").addEventListener("submit", (ev) => {
       ev.preventDefault();
       const key = $("key-input").value.trim();

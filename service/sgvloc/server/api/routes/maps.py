@@ -177,14 +177,37 @@ def confine_model_path(spec: EncoderSpec | None, models_dir: Path | None) -> Enc
     return spec.model_copy(update={"model_path": str(path)})
 
 
-@router.get("", response_model=MapList, operation_id="list_maps", responses=error_responses())
-async def list_maps(request: Request, manager: ManagerDep) -> Response:
-    """List the loaded maps (those the caller's key may use)."""
+@router.get("", response_model=MapList, operation_id="list_maps", responses=error_responses(422))
+async def list_maps(
+    request: Request,
+    manager: ManagerDep,
+    limit: Annotated[int, Query(ge=1, le=1000, description="maps per page")] = 1000,
+    cursor: Annotated[
+        str | None, Query(max_length=64, description="next_cursor of the previous page")
+    ] = None,
+    prefix: Annotated[
+        str | None, Query(max_length=64, description="only maps whose name starts with this")
+    ] = None,
+) -> Response:
+    """List the loaded maps that the caller's key may use, by name, one page at a time
+    (``limit`` per page; pass ``next_cursor`` as ``cursor`` for the next), optionally only
+    those whose name starts with ``prefix``."""
     caller = principal_of(request)
 
     def listing() -> Response:  # off the event loop: hundreds of maps take tens of ms
-        handles = [h for h in manager.list() if caller.may_use_map(h.name)]
-        return encode(request, MapList(maps=[map_info(h) for h in handles]))
+        handles = [
+            h
+            for h in manager.list()
+            if (cursor is None or h.name > cursor)
+            and (not prefix or h.name.startswith(prefix))
+            and caller.may_use_map(h.name)
+        ]
+        page = handles[:limit]
+        more = len(handles) > limit
+        return encode(
+            request,
+            MapList(maps=[map_info(h) for h in page], next_cursor=page[-1].name if more else None),
+        )
 
     return await anyio.to_thread.run_sync(listing)
 
