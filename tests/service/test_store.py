@@ -541,3 +541,57 @@ def test_the_open_file_limit_is_raised_and_running_out_is_said(tmp_path: Path) -
     )
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert run.returncode == 0 and run.stdout.startswith("refused after"), run.stderr
+
+
+def test_deletes_give_space_back_to_the_file_system(tmp_path: Path, monkeypatch) -> None:
+    """A map's database gives the space of deleted keyframes back once enough is free
+    (incremental auto-vacuum), keeping every other keyframe; a database made without it
+    (an older release) keeps its size and deletes as before."""
+    import sgvloc.server.store.sqlite as sqlite_store
+
+    monkeypatch.setattr(sqlite_store, "GIVE_BACK_MIN_BYTES", 256 << 10)
+    monkeypatch.setattr(sqlite_store, "_VACUUM_STEP_PAGES", 64)  # several steps
+    rng = np.random.default_rng(11)
+    m = _manager(tmp_path)
+    m.create("a", SPEC)
+    m.insert("a", _items(rng, 1500, key_prefix="k"))
+    db = tmp_path / "maps" / "a" / "map.sqlite"
+
+    def pages() -> int:
+        with sqlite3.connect(db) as c:
+            return int(c.execute("PRAGMA page_count").fetchone()[0])
+
+    full = pages()
+    # a small delete leaves its space for the next inserts
+    m.delete_keyframes("a", KeyframeFilter(key_prefix="k1499"))
+    assert pages() == full
+    deleted, _ = m.delete_keyframes("a", KeyframeFilter(key_prefix="k1"))  # k1, k10.., k1xxx
+    assert deleted == 610
+    assert pages() < 0.7 * full, (pages(), full)
+    with sqlite3.connect(db) as c:
+        assert c.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
+        assert c.execute("PRAGMA freelist_count").fetchone()[0] == 0
+    kept = sorted(r.key for r in m.list_keyframes("a", KeyframeFilter(), after_id=0, limit=2000))
+    assert len(kept) == 889 and "k2" in kept and "k1" not in kept
+    m.close()
+    m = _manager(tmp_path)  # and it opens again with the same keyframes
+    assert m.get("a").localizer.keyframe_ids() == sorted(
+        r.id for r in m.list_keyframes("a", KeyframeFilter(), after_id=0, limit=2000)
+    )
+    assert len(m.get("a").localizer.keyframe_ids()) == 889
+
+    m.create("old", SPEC)
+    m.insert("old", _items(rng, 1000, key_prefix="k"))
+    m.close()
+    old = tmp_path / "maps" / "old" / "map.sqlite"
+    with sqlite3.connect(old) as c:  # as a map made before auto-vacuum came
+        c.execute("PRAGMA auto_vacuum=NONE")
+        c.execute("VACUUM")
+        size = int(c.execute("PRAGMA page_count").fetchone()[0])
+    m = _manager(tmp_path)
+    deleted, _ = m.delete_keyframes("old", KeyframeFilter(key_prefix="k1"))
+    assert deleted == 111
+    with sqlite3.connect(old) as c:
+        assert int(c.execute("PRAGMA page_count").fetchone()[0]) == size
+        assert int(c.execute("PRAGMA freelist_count").fetchone()[0]) > 0
+    m.close()

@@ -81,6 +81,14 @@ def _no_file_left(exc: sqlite3.Error) -> None:
 
 DB_NAME = "map.sqlite"
 SCHEMA_VERSION = 2
+#: a delete that leaves at least this much free space in the file gives it back to the
+#: file system (maps made with incremental auto-vacuum: every map made since it came)
+GIVE_BACK_MIN_BYTES = 8 << 20
+#: pages moved per step of giving space back; the connection is free between steps
+_VACUUM_STEP_PAGES = 2048
+#: the write-ahead log is cut back to this size after a checkpoint (it may grow while a
+#: large batch is written)
+_WAL_LIMIT_BYTES = 64 << 20
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (
@@ -176,13 +184,16 @@ class SqliteMapStore(MapStore):
     # -- opening ------------------------------------------------------------------------
 
     @staticmethod
-    def _connect(path: Path) -> sqlite3.Connection:
+    def _connect(path: Path, new: bool = False) -> sqlite3.Connection:
         conn = None
         try:
             conn = sqlite3.connect(
                 path, isolation_level=None, check_same_thread=False, timeout=30.0
             )
+            if new:  # before anything is written: the mode is fixed once the file exists
+                conn.execute("PRAGMA auto_vacuum=INCREMENTAL")
             conn.execute("PRAGMA journal_mode=WAL")
+            conn.execute(f"PRAGMA journal_size_limit={_WAL_LIMIT_BYTES}")
             conn.execute("PRAGMA synchronous=FULL")
             conn.execute("PRAGMA foreign_keys=ON")
         except sqlite3.OperationalError as exc:
@@ -199,7 +210,7 @@ class SqliteMapStore(MapStore):
         """Create a new database at ``path`` holding ``record`` and no keyframes."""
         if path.exists():
             raise StoreError(f"{path} exists already")
-        conn = cls._connect(path)
+        conn = cls._connect(path, new=True)
         meta = {"schema_version": str(SCHEMA_VERSION), "version": "0", **record_to_meta(record)}
         conn.executescript(_SCHEMA)
         conn.execute("BEGIN IMMEDIATE")
@@ -474,7 +485,32 @@ class SqliteMapStore(MapStore):
                     conn.execute("ROLLBACK")
                 raise_if_full(exc)
                 raise
+        self._give_back_space()
         return version
+
+    def _give_back_space(self) -> None:
+        """Once deletes leave :data:`GIVE_BACK_MIN_BYTES` or more free in the file, hand
+        all of it back to the file system (incremental auto-vacuum; a map made before it
+        came reuses its free space for new keyframes instead). A step of
+        :data:`_VACUUM_STEP_PAGES` pages at a time, so that readers of the connection get
+        it in between; a failure only leaves the space free (the delete stands)."""
+        before = None  # free pages before the last step
+        try:
+            while True:
+                with self._locked() as conn:
+                    if conn.execute("PRAGMA auto_vacuum").fetchone()[0] != 2:
+                        return
+                    free = int(conn.execute("PRAGMA freelist_count").fetchone()[0])
+                    page = int(conn.execute("PRAGMA page_size").fetchone()[0])
+                    if before is None and free * page < GIVE_BACK_MIN_BYTES:
+                        return
+                    if free == 0 or (before is not None and free >= before):
+                        return  # all given back (or no step moves on: never loop)
+                    before = free
+                    # executescript runs the pragma to the end (execute would free one page)
+                    conn.executescript(f"PRAGMA incremental_vacuum({_VACUUM_STEP_PAGES});")
+        except (sqlite3.Error, StoreClosedError) as exc:
+            log.warning("%s: free space not given back after a delete: %s", self.path, exc)
 
     _INSERT_COLUMNS = (
         "id, key, T_map_sensor, global_descriptor, keypoints, local_features, cloud, metadata, "
