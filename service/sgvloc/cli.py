@@ -517,7 +517,8 @@ def build_map_command(
         str | None,
         typer.Option(
             help="first part of each keyframe's key, PREFIX/SCAN (default: the folder's "
-            "name); give the earlier name to resume a build from a renamed or moved folder"
+            "name); give the earlier name to resume a build from a renamed or moved folder "
+            "(without one, a build that would add the same scans again is refused)"
         ),
     ] = None,
     progress: Annotated[bool, typer.Option(help="show a progress bar")] = True,

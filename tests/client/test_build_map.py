@@ -433,9 +433,12 @@ def test_another_sequence_in_a_folder_of_the_same_name_is_refused(
     assert (rest.created, rest.existing) == (1, 2)
 
 
-def test_a_renamed_folder_resumes_under_its_key_prefix(tmp_path: Path, balm_mini_dir: Path) -> None:
+def test_a_renamed_folder_resumes_under_its_key_prefix(
+    tmp_path: Path, balm_mini_dir: Path, service_url: str
+) -> None:
     """Keys default to FOLDER/SCAN: after a rename the build would store every scan again
-    under the new name; --key-prefix with the earlier name resumes it instead."""
+    under the new name, so it is refused, naming the earlier prefix; --key-prefix with
+    that name resumes it instead (into a data directory and through the service)."""
     import shutil
 
     data_dir = tmp_path / "data"
@@ -448,8 +451,22 @@ def test_a_renamed_folder_resumes_under_its_key_prefix(tmp_path: Path, balm_mini
     out = runner.invoke(app, [*args, "--key-prefix", balm_mini_dir.name])
     assert out.exit_code == 0, out.output
     assert "1 new keyframes, 2 already present; 3 keyframes" in out.output, out.output
-    fresh = build_map(moved, data_dir, "m", limit=3, progress=False)  # the new name
-    assert (fresh.created, fresh.existing, fresh.keyframes) == (3, 0, 6)
+    out = runner.invoke(app, args)  # the new name as prefix: the same scans again
+    assert out.exit_code == 1, out.output
+    assert f"--key-prefix {balm_mini_dir.name} to resume" in out.output, out.output
+    with pytest.raises(ConflictError, match="was the folder renamed or moved"):
+        build_map(moved, data_dir, "m", limit=3, progress=False)
+    other = build_map(moved, data_dir, "m2", limit=3, progress=False)  # another map: fine
+    assert other.created == 3
+    again = build_map(moved, data_dir, "m", limit=1, progress=False, key_prefix="twice")
+    assert again.created == 1  # a prefix given on purpose: no check
+    build_map(balm_mini_dir, service_url, "renamed", limit=2, progress=False)
+    with pytest.raises(ConflictError, match=f"under the key prefix '{balm_mini_dir.name}'"):
+        build_map(moved, service_url, "renamed", limit=3, progress=False)
+    resumed = build_map(
+        moved, service_url, "renamed", limit=3, progress=False, key_prefix=balm_mini_dir.name
+    )
+    assert (resumed.created, resumed.existing) == (1, 2)
 
     for bad in ("/", "  ", "a\tb"):
         out = runner.invoke(app, [*args, "--key-prefix", bad])
@@ -479,8 +496,8 @@ def test_a_build_that_inserts_nothing_leaves_no_map(
             build_map(broken, client, "broken-build", limit=2, progress=False)
         assert "broken-build" not in [m.name for m in client.list_maps()]
     build_map(balm_mini_dir, data_dir, "other", limit=1, progress=False)
-    with pytest.raises(InputError):
-        build_map(broken, data_dir, "other", limit=2, progress=False)
+    with pytest.raises(InputError):  # a prefix given: the same poses may go in again
+        build_map(broken, data_dir, "other", limit=2, progress=False, key_prefix="broken")
     from sgvloc.server.maps import MapManager
 
     m = MapManager(data_dir / "maps")

@@ -5,7 +5,9 @@ The sequence's poses (``poses.txt``, ``T_world_sensor``) become the keyframes'
 ``<prefix>/<scan stem>`` (e.g. ``00/000042``), the prefix being the folder's name unless
 given (``key_prefix``, ``--key-prefix``), so re-running the same build resumes where it
 stopped: scans already in the map are answered ``created: false`` and not stored twice. A
-build resumed from a renamed or moved folder keeps its keys with the old name as prefix.
+build resumed from a renamed or moved folder keeps its keys with the old name as prefix
+(``--key-prefix``); without one, the build is refused when the map holds its scans at the
+same poses under another prefix, which it would otherwise store a second time.
 
 Two targets, one loop (:func:`build_map`), each behind a small :class:`KeyframeSink`:
 
@@ -105,8 +107,11 @@ class KeyframeSink(Protocol):
         """``(keyframes, version)`` of the map now."""
         ...
 
-    def positions(self, name: str, key_prefix: str) -> dict[str, np.ndarray]:
-        """Key -> position ``[3]`` of the map's keyframes whose key starts so."""
+    def positions(
+        self, name: str, key_prefix: str | None, bbox: tuple[float, ...] | None = None
+    ) -> dict[str, np.ndarray]:
+        """Key -> position ``[3]`` of the map's keyed keyframes whose key starts so (any,
+        for None) and that lie in ``bbox`` = (x_min, y_min, x_max, y_max), if given."""
         ...
 
     def close(self) -> None:
@@ -270,10 +275,12 @@ class ClientSink:
             )
         return info.keyframes, info.version
 
-    def positions(self, name: str, key_prefix: str) -> dict[str, np.ndarray]:
+    def positions(
+        self, name: str, key_prefix: str | None, bbox: tuple[float, ...] | None = None
+    ) -> dict[str, np.ndarray]:
         return {
             k.key: np.asarray(k.position, np.float64)
-            for k in self.client.iter_keyframes(name, key_prefix=key_prefix)
+            for k in self.client.iter_keyframes(name, key_prefix=key_prefix, bbox=bbox)
             if k.key is not None
         }
 
@@ -364,14 +371,15 @@ class DataDirSink:
         handle = self.manager.get(name)
         return handle.num_keyframes, handle.version
 
-    def positions(self, name: str, key_prefix: str) -> dict[str, np.ndarray]:
+    def positions(
+        self, name: str, key_prefix: str | None, bbox: tuple[float, ...] | None = None
+    ) -> dict[str, np.ndarray]:
         from sgvloc.server.store import KeyframeFilter
 
         out: dict[str, np.ndarray] = {}
         after = 0
-        while page := self.manager.list_keyframes(
-            name, KeyframeFilter(key_prefix=key_prefix), after_id=after
-        ):
+        where = KeyframeFilter(key_prefix=key_prefix, bbox=bbox)
+        while page := self.manager.list_keyframes(name, where, after_id=after):
             out.update((k.key, k.T_map_sensor[:3, 3]) for k in page if k.key is not None)
             after = page[-1].id
         return out
@@ -399,14 +407,23 @@ RESUME_TOLERANCE_M = 0.01
 
 
 def _check_resumed_poses(
-    sink: KeyframeSink, name: str, prefix: str, seq: KittiSequence, frames: list[int]
+    sink: KeyframeSink,
+    name: str,
+    prefix: str,
+    seq: KittiSequence,
+    frames: list[int],
+    renamed: bool = True,
 ) -> None:
     """Refuse to resume into keyframes of another sequence: keys name the sequence by
     its prefix (by default its folder's name), so a different drive under the same
     prefix would be skipped scan by scan as "already present". Each scan whose key the
-    map holds must sit where the map has it."""
+    map holds must sit where the map has it. With ``renamed`` (the prefix is the folder's
+    name, not one given), a map holding none under this prefix is checked for the same
+    scans under another (:func:`_check_not_renamed`)."""
     held = sink.positions(name, f"{prefix}/")
     if not held:
+        if renamed:
+            _check_not_renamed(sink, name, prefix, seq, frames)
         return
     for i in frames:
         key = f"{prefix}/{seq.paths[i].stem}"
@@ -418,6 +435,33 @@ def _check_resumed_poses(
                     f"pose of that scan: is this another sequence under the same key prefix "
                     f"{prefix!r} (by default the folder's name)? Build it into another map, "
                     "or give it another --key-prefix"
+                )
+
+
+def _check_not_renamed(
+    sink: KeyframeSink, name: str, prefix: str, seq: KittiSequence, frames: list[int]
+) -> None:
+    """Refuse to add a sequence again under a new prefix: a build resumed from a renamed
+    or moved folder would store every scan a second time. A few scans (the first, middle
+    and last of the selection) are looked up by position; a keyframe of the same scan
+    name at the same pose (within :data:`RESUME_TOLERANCE_M`) under another prefix means
+    the map holds this sequence already."""
+    if not frames:
+        return
+    tol = RESUME_TOLERANCE_M
+    for i in sorted({frames[0], frames[len(frames) // 2], frames[-1]}):
+        x, y, z = seq.poses[i][:3, 3]
+        near = sink.positions(name, None, (x - tol, y - tol, x + tol, y + tol))
+        stem = seq.paths[i].stem
+        for key, pos in near.items():
+            old, _, tail = key.rpartition("/")
+            if tail == stem and old and abs(float(pos[2]) - z) <= tol:
+                raise ConflictError(
+                    f"map {name!r} holds this sequence's scan {stem} already, as {key!r} "
+                    f"(the same pose), under the key prefix {old!r}, not {prefix!r} (by "
+                    f"default the folder's name): was the folder renamed or moved? Give "
+                    f"--key-prefix {old} to resume that build; building it again under a "
+                    "new prefix would store every scan twice"
                 )
 
 
@@ -515,7 +559,7 @@ def build_map(
     made = False
     try:
         made = sink.ensure_map(map_name, create, spec, self_test)
-        _check_resumed_poses(sink, map_name, prefix, seq, frames)
+        _check_resumed_poses(sink, map_name, prefix, seq, frames, renamed=key_prefix is None)
         with tqdm(
             total=len(frames), desc=f"build-map {map_name}", unit="scan", disable=not progress
         ) as bar:
