@@ -266,3 +266,36 @@ def test_variants_of_a_one_block_descriptor_and_a_prior_selection():
     among = np.arange(0, 200, 5)
     hits = retrieve(index, q, 10, (32,), "concat", among=among, variants=variants)
     assert [h.id for h in hits] == among[np.argsort(-best[among], kind="stable")[:10]].tolist()
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_a_selection_is_searched_exactly_in_bounded_chunks(kind, monkeypatch):
+    """Among selected ids: the exact top-k of the selection (ties to the lower id), also
+    when IVF and HNSW compare it a few vectors at a time; unsorted ids with repeats and
+    removed or unknown ids are taken as the set they name; a selection of every live id
+    answers as the whole map."""
+    import sgvloc.core.retrieval as retrieval
+
+    monkeypatch.setattr(retrieval, "AMONG_CHUNK", 7)
+    x = _vectors(300, seed=3)
+    ids = np.arange(300) * 3 + 5
+    index = _index(kind)
+    index.add(ids, x)
+    index.remove(ids[10])
+    q = _vectors(1, seed=4)
+    sims = x @ q[0]
+    chosen = ids[(np.arange(300) % 4 == 1) | (np.arange(300) < 20)]
+    messy = np.concatenate([chosen[::-1], chosen[:30], [ids[10], 10_000]])
+    expect = [int(i) for i in chosen[np.argsort(-sims[(chosen - 5) // 3], kind="stable")]]
+    expect = [i for i in expect if i != ids[10]][:12]
+    hits = index.search(q, 12, among=messy)[0]
+    assert [h.id for h in hits] == expect
+    assert [h.similarity for h in hits] == pytest.approx(
+        [float(sims[(i - 5) // 3]) for i in expect], abs=1e-5
+    )
+    live = np.array([i for i in ids if i != ids[10]])
+    assert index.search(q, 12, among=live) == index.search(q, 12)
+    # a keyframe added after the selection was made is not in it
+    index.add(np.array([2000]), q)
+    assert 2000 not in {h.id for h in index.search(q, 12, among=live)[0]}
+    assert index.search(q, 1)[0][0].id == 2000

@@ -34,6 +34,19 @@ from .files import write_text_whole, write_whole
 
 log = logging.getLogger(__name__)
 
+#: IVF and HNSW searches among selected ids compare this many stored vectors at a time
+#: (about 14 MB at 876 dimensions), whatever the size of the selection
+AMONG_CHUNK = 4096
+#: a selection of every keyframe is searched as the whole map for this many more hits,
+#: so that keyframes added meanwhile (not selected) can be dropped
+AMONG_SLACK = 16
+
+
+def _holds(sorted_ids: np.ndarray, id_: int) -> bool:
+    """Whether ``id_`` is in the sorted array ``sorted_ids``."""
+    i = int(np.searchsorted(sorted_ids, id_))
+    return i < len(sorted_ids) and int(sorted_ids[i]) == id_
+
 
 @dataclass(frozen=True)
 class SearchHit:
@@ -224,13 +237,25 @@ class FaissIndex:
         ``among``: search only these ids (a prior region's keyframes), exactly: the flat
         index filters with a FAISS ID selector; IVF and HNSW, whose approximate search
         can miss members of a small selection, compare the query with the selected
-        vectors directly.
+        vectors directly, :data:`AMONG_CHUNK` of them at a time (bounded memory). A
+        selection that holds every keyframe is the plain search.
         """
         if k <= 0:
             raise InputError(f"k must be positive, got {k}")
         q = self._prepare(queries)
         if among is not None:
-            return self._search_among(q, k, np.unique(np.asarray(among, dtype=np.int64)))
+            among = np.asarray(among, dtype=np.int64).ravel()
+            if len(among) > 1 and not (among[1:] > among[:-1]).all():
+                among = np.unique(among)  # sorted, once each (a prior's ids already are)
+            hits = self._search_among(q, k, among)
+            if hits is not None:
+                return hits
+            # every keyframe is selected; one added since is not, so it is filtered out
+            picked = self._search_all(q, k + AMONG_SLACK)
+            return [[h for h in row if _holds(among, h.id)][:k] for row in picked]
+        return self._search_all(q, k)
+
+    def _search_all(self, q: np.ndarray, k: int) -> list[list[SearchHit]]:
         with self._lock.read():
             if self._index.ntotal == 0:
                 return [[] for _ in range(len(q))]
@@ -312,25 +337,49 @@ class FaissIndex:
                     continue
         return [[SearchHit(h.id, sims[h.id]) for h in hits if h.id in sims] for hits in lists]
 
-    def _search_among(self, q: np.ndarray, k: int, among: np.ndarray) -> list[list[SearchHit]]:
+    def _search_among(
+        self, q: np.ndarray, k: int, among: np.ndarray
+    ) -> list[list[SearchHit]] | None:
+        """The search among sorted unique ids ``among``; None when they hold every live
+        keyframe (the caller searches them all instead)."""
         with self._lock.read():
-            among = among[np.isin(among, self._live_ids())]  # unknown ids select nothing
+            live = self._live_ids()
+            among = among[np.isin(among, live)]  # unknown ids select nothing
             if len(among) == 0 or self._index.ntotal == 0:
                 return [[] for _ in range(len(q))]
+            if len(among) == len(live):
+                return None
             if self.kind == "flat":
                 sel = faiss.IDSelectorBatch(among)
                 sims, ids = self._index.search(
                     q, min(k, len(among)), params=faiss.SearchParameters(sel=sel)
                 )
             else:
-                vecs = self._index.reconstruct_batch(among)  # [M, dim]
-                s = q @ vecs.T  # [Q, M]
-                order = np.argsort(-s, axis=1, kind="stable")[:, :k]
-                sims, ids = np.take_along_axis(s, order, axis=1), among[order]
+                sims, ids = self._exact_among(q, k, among)
         return [
             [SearchHit(int(i), float(v)) for v, i in zip(rs, ri, strict=True) if i >= 0]
             for rs, ri in zip(sims, ids, strict=True)
         ]
+
+    def _exact_among(
+        self, q: np.ndarray, k: int, among: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Top-k of ``q`` ``[Q, dim]`` among ``among`` by comparing with their stored
+        vectors, :data:`AMONG_CHUNK` at a time: ``(sims, ids)`` ``[Q, <=k]``. Call under
+        the read lock."""
+        sims = np.full((len(q), 0), -np.inf, dtype=np.float32)
+        ids = np.zeros((len(q), 0), dtype=np.int64)
+        for start in range(0, len(among), AMONG_CHUNK):
+            part = among[start : start + AMONG_CHUNK]
+            s = q @ self._index.reconstruct_batch(part).T  # [Q, chunk]
+            sims = np.concatenate([sims, s], axis=1)
+            ids = np.concatenate([ids, np.broadcast_to(part, s.shape)], axis=1)
+            order = np.argsort(-sims, axis=1, kind="stable")[:, :k]  # earlier ids first
+            sims, ids = (
+                np.take_along_axis(sims, order, axis=1),
+                np.take_along_axis(ids, order, axis=1),
+            )
+        return sims, ids
 
     # -- persistence --------------------------------------------------------------------
 
