@@ -7,6 +7,7 @@ from __future__ import annotations
 import re
 import shutil
 import socket
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -514,3 +515,87 @@ def test_a_client_that_goes_away_mid_body_is_not_a_server_error(strict_server: S
     with httpx.Client(base_url=strict_server.url) as c:
         metrics = c.get("/metrics").text
     assert 'route="/v1/maps/{map}/localize",status="500"' not in metrics
+
+
+@pytest.fixture(scope="module")
+def patient_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
+    """One worker, a generous compute deadline (120 s) and map ``heavy`` (80 keyframes of
+    2000 keypoints: RANSAC-RIR over all of them takes seconds)."""
+    root = tmp_path_factory.mktemp("patient")
+    env = {"SGVLOC_REQUEST_TIMEOUT_S": "120", "SGVLOC_MAX_TOP_K": "100"}
+    srv = Server(root / "data", root / "server.log", env=env, workers=1)
+    srv.start()
+    with httpx.Client(base_url=srv.url, timeout=120) as c:
+        make_map(c, "heavy", 80, 2000, np.random.default_rng(8))
+    try:
+        yield srv
+    finally:
+        srv.stop()
+
+
+def _localize_counts(srv: Server) -> tuple[float, float, dict[str, float]]:
+    """(localizations answered in map heavy, caller_gone errors, localize requests by
+    status) from the service's metrics."""
+    text = httpx.get(f"{srv.url}/metrics").text
+
+    def total(pattern: str) -> float:
+        return sum(float(v) for v in re.findall(pattern, text))
+
+    done = total(r'sgvloc_localize_total\{map="heavy",verdict="[a-z_]+"\} (\S+)')
+    gone = total(r'sgvloc_errors_total\{code="caller_gone",route="[^"]*localize"\} (\S+)')
+    by_status = {
+        s: float(v)
+        for s, v in re.findall(
+            r'sgvloc_http_requests_total\{method="POST",route="/v1/maps/\{map\}/localize",'
+            r'status="(\d+)"\} (\S+)',
+            text,
+        )
+    }
+    return done, gone, by_status
+
+
+def _wait_for_answers(srv: Server, status_total: float) -> dict[str, float]:
+    """Poll until the service has answered ``status_total`` localize requests in all."""
+    end = time.monotonic() + 120
+    while time.monotonic() < end:
+        by_status = _localize_counts(srv)[2]
+        if sum(by_status.values()) >= status_total:
+            return by_status
+        time.sleep(0.2)
+    raise AssertionError(f"the service answered {by_status}, not {status_total} requests")
+
+
+def test_a_client_that_goes_away_stops_its_localization(patient_server: Server) -> None:
+    """A client that gives up (its read timeout) stops the localization it sent at the
+    next step, whether it was running or waiting for the one worker: the service records
+    a 499 caller_gone and no localization for it, and serves the others as usual."""
+    rng = np.random.default_rng(9)
+    heavy = {"features": random_features(rng, 2000), "top_k": 80, "rerank": "ransac-rir"}
+    done0, gone0, by0 = _localize_counts(patient_server)
+    answered0 = sum(by0.values())
+    # running: the only request, given up after 0.5 s
+    with httpx.Client(base_url=patient_server.url, timeout=0.5) as c:
+        with pytest.raises(httpx.ReadTimeout):
+            post_msgpack(c, "/v1/maps/heavy/localize", heavy)
+    by_status = _wait_for_answers(patient_server, answered0 + 1)
+    done, gone, _ = _localize_counts(patient_server)
+    assert (done, gone) == (done0, gone0 + 1), by_status
+    assert by_status.get("499", 0) == by0.get("499", 0) + 1, by_status
+    # waiting: a second request queued behind one that holds the worker, given up
+    first: list[httpx.Response] = []
+
+    def send_first() -> None:
+        with httpx.Client(base_url=patient_server.url, timeout=300) as c:
+            first.append(post_msgpack(c, "/v1/maps/heavy/localize", heavy))
+
+    runner = threading.Thread(target=send_first)
+    runner.start()
+    time.sleep(0.3)  # the first holds the worker (or soon will)
+    with httpx.Client(base_url=patient_server.url, timeout=0.5) as c:
+        with pytest.raises(httpx.ReadTimeout):
+            post_msgpack(c, "/v1/maps/heavy/localize", heavy)
+    runner.join(timeout=300)
+    assert first and first[0].status_code == 200, first
+    _wait_for_answers(patient_server, answered0 + 3)
+    done, gone, by_status = _localize_counts(patient_server)
+    assert (done, gone) == (done0 + 1, gone0 + 2), by_status

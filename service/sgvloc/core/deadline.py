@@ -17,7 +17,7 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 
-from .errors import DeadlineExceeded
+from .errors import CallerGone, DeadlineExceeded
 
 _local = threading.local()
 #: set when the process shuts down: every call with a deadline stops at its next step
@@ -25,20 +25,24 @@ _abort = threading.Event()
 
 
 @contextmanager
-def deadline(at: float | None) -> Iterator[None]:
+def deadline(at: float | None, gone: threading.Event | None = None) -> Iterator[None]:
     """Run the block with a deadline at ``at`` (``time.monotonic()`` seconds; None: no
-    limit), for this thread."""
-    previous = getattr(_local, "at", None)
-    _local.at = at
+    limit), for this thread; ``gone``, once set, stops it too (its caller went away)."""
+    previous = getattr(_local, "at", None), getattr(_local, "gone", None)
+    _local.at, _local.gone = at, gone
     try:
         yield
     finally:
-        _local.at = previous
+        _local.at, _local.gone = previous
 
 
 def check(step: str) -> None:
     """Raise :class:`DeadlineExceeded` if this thread's deadline has passed, or if
-    :func:`abort_all` was called while it has one."""
+    :func:`abort_all` was called while it has one; :class:`CallerGone` once its ``gone``
+    event is set."""
+    gone = getattr(_local, "gone", None)
+    if gone is not None and gone.is_set():
+        raise CallerGone(f"the caller went away; stopped at {step}")
     at = getattr(_local, "at", None)
     if at is None:
         return

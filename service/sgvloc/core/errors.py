@@ -49,5 +49,10 @@ class DeadlineExceeded(SgvlocError):
     """The call ran past its time limit (:mod:`sgvloc.core.deadline`) and stopped."""
 
 
+class CallerGone(DeadlineExceeded):
+    """The caller went away (the service's client closed its connection), so the call
+    stopped at its next step: nobody would read its answer."""
+
+
 class StorageFullError(SgvlocError):
     """A write found no space left; it was rolled back and nothing was stored."""

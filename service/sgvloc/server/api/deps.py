@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import threading
 import time
 from collections.abc import AsyncIterator, Callable
 from typing import Annotated, Any, TypeVar
@@ -14,7 +15,7 @@ from pydantic import BeforeValidator
 
 from sgvloc.core import cores
 from sgvloc.core.deadline import deadline
-from sgvloc.core.errors import NotFoundError
+from sgvloc.core.errors import CallerGone, NotFoundError
 
 from ..maps import MapHandle, MapManager
 from ..metrics import Metrics
@@ -23,6 +24,9 @@ from .body import BodyHold, RawBody, read_body
 from .errors import ApiError
 
 T = TypeVar("T")
+
+#: how often a running localization checks whether its client is still connected (s)
+DISCONNECT_POLL_S = 0.1
 
 
 async def get_settings(request: Request) -> Settings:
@@ -81,10 +85,52 @@ class Worker:
         self._metrics = metrics
         self._gate = gate
 
-    async def run(self, fn: Callable[[], T], *, deadline_at: float | None = None) -> T:
+    async def run(
+        self,
+        fn: Callable[[], T],
+        *,
+        deadline_at: float | None = None,
+        request: Request | None = None,
+    ) -> T:
         """Run ``fn`` on a worker thread. With ``deadline_at`` (``time.monotonic()``
         seconds) the wait for a worker ends there too, and the engine stops the work at
-        its next step once it has passed (503 ``deadline_exceeded``)."""
+        its next step once it has passed (503 ``deadline_exceeded``). With ``request``
+        (whose body has been read; work that changes nothing), a client that closes its
+        connection stops the wait at once and the work at its next step
+        (:class:`~sgvloc.core.errors.CallerGone`, logged as 499 ``caller_gone``): a
+        client that gave up, say after its read timeout and before resending, holds no
+        worker for an answer nobody reads."""
+        if request is None:
+            return await self._run(fn, deadline_at, None, anyio.CancelScope())
+        gone = threading.Event()
+        waiting = anyio.CancelScope()
+
+        async def watch() -> None:
+            while not await request.is_disconnected():
+                await anyio.sleep(DISCONNECT_POLL_S)
+            gone.set()
+            waiting.cancel()
+
+        outcome: dict[str, Any] = {}
+        async with anyio.create_task_group() as tg:
+            tg.start_soon(watch)
+            try:
+                outcome["value"] = await self._run(fn, deadline_at, gone, waiting)
+            except Exception as exc:  # raised below, not as a task group's ExceptionGroup
+                outcome["error"] = exc
+            finally:
+                tg.cancel_scope.cancel()
+        if "error" in outcome:
+            raise outcome["error"]
+        return outcome["value"]
+
+    async def _run(
+        self,
+        fn: Callable[[], T],
+        deadline_at: float | None,
+        gone: threading.Event | None,
+        waiting: anyio.CancelScope,
+    ) -> T:
         timeout = self._settings.request_timeout_s
         if deadline_at is not None:
             timeout = max(0.0, min(timeout, deadline_at - time.monotonic()))
@@ -92,7 +138,7 @@ class Worker:
         waited_from = time.monotonic()
         self._metrics.queue_waiting.inc()
         try:
-            with anyio.move_on_after(timeout):
+            with waiting, anyio.move_on_after(timeout):
                 if self._gate is not None:
                     await self._gate.acquire()
                     gated = True
@@ -103,6 +149,8 @@ class Worker:
             self._metrics.queue_wait.observe(time.monotonic() - waited_from)
             if gated and not acquired:
                 self._gate.release()  # type: ignore[union-attr]
+        if not acquired and gone is not None and gone.is_set():
+            raise CallerGone("the caller went away while waiting for a worker")
         if not acquired:
             which = "worker" if gated or self._gate is None else "worker for map changes"
             limit = "" if which == "worker" else f" (write_workers={self._settings.write_limit})"
@@ -117,7 +165,7 @@ class Worker:
             # the token taken above is the bound; ``threads`` (as many) only keeps the
             # work off anyio's default pool of 40
             def limited() -> T:
-                with cores.busy(), deadline(deadline_at):
+                with cores.busy(), deadline(deadline_at, gone):
                     return fn()
 
             return await anyio.to_thread.run_sync(limited, limiter=self._threads)

@@ -20,6 +20,7 @@ from pydantic import BaseModel, ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from sgvloc.core.errors import (
+    CallerGone,
     ConflictError,
     DeadlineExceeded,
     EmptyScanError,
@@ -126,6 +127,7 @@ def validated(model: type[M], data: Any, context: dict[str, Any] | None = None) 
 
 #: engine error -> status, code, and whether the answer carries Retry-After
 _ENGINE_CODES: list[tuple[type[SgvlocError], int, str, bool]] = [
+    (CallerGone, 499, "caller_gone", False),  # nobody reads it: for the log and metrics
     (DeadlineExceeded, 503, "deadline_exceeded", True),
     (StoreUnavailableError, 503, "store_unavailable", True),
     (StaleError, 503, "stale", True),

@@ -178,7 +178,8 @@ async def localize(
         return localize_out(map_name, result)
 
     async with localize_slot(request):
-        return encode(request, await worker.run(work, deadline_at=deadline_at))
+        out = await worker.run(work, deadline_at=deadline_at, request=request)
+        return encode(request, out)
 
 
 async def _caught_up(manager: MapManager, name: str, version: int, wait_s: float) -> None:
