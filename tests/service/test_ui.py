@@ -179,7 +179,7 @@ def test_page_lists_the_map_and_draws_its_keyframes_and_localizations(
     assert _count(dom, r'class="map-row') == 1
     # the rows are reached with Tab and say which map is shown
     row = re.search(r'<tr class="map-row[^>]*>', dom).group(0)
-    assert 'tabindex="0"' in row and 'aria-selected="true"' in row, row
+    assert 'tabindex="0"' in row and 'aria-current="true"' in row, row
     # every keyframe drawn (two pages of the listing), and the recent answers on top
     assert _count(dom, r'<circle class="kf"') == ui_map.keyframes, dom[:3000]
     locs = _count(dom, r'<circle class="loc ')
@@ -267,6 +267,7 @@ def test_screenshot_of_the_status_page(
 # -- many maps: one page of the table at a time -------------------------------------------
 
 MANY = 120  # maps; the table shows 20 at a time
+FEW_KEY = "ui-few-maps-key-0123456789abcdef"  # a viewer key for two of them
 
 
 @pytest.fixture(scope="module")
@@ -275,7 +276,12 @@ def many_maps(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
     root = tmp_path_factory.mktemp("ui-many")
     keys = root / "keys.json"
     keys.write_text(
-        json.dumps({"keys": [{"name": r, "role": r, "key": KEYS[r]} for r in ("viewer", "admin")]})
+        json.dumps(
+            {
+                "keys": [{"name": r, "role": r, "key": KEYS[r]} for r in ("viewer", "admin")]
+                + [{"name": "few", "role": "viewer", "key": FEW_KEY, "maps": ["m-003", "m-004"]}]
+            }
+        )
     )
     srv = Server(
         data_dir=root / "data", log_path=root / "server.log", env={"SGVLOC_KEYS_FILE": str(keys)}
@@ -328,7 +334,7 @@ def test_many_maps_page_filter_and_selection_come_from_the_address(many_maps: Se
     key = KEYS["viewer"]
     dom = render(f"{many_maps.url}/ui#key={key}&after=m-049")
     assert _rows(dom) == [f"m-{i:03d}" for i in range(50, 70)], dom[:3000]
-    assert re.search(r'id="maps-range"[^>]*>20 after m-049<', dom)
+    assert re.search(r'id="maps-range"[^>]*>maps after m-049<', dom)
     assert not re.search(r'<button type="button" id="maps-prev" disabled', dom)
     dom = render(f"{many_maps.url}/ui#key={key}&filter=m-11")
     assert _rows(dom) == [f"m-{i:03d}" for i in range(110, 120)], dom[:3000]
@@ -339,3 +345,16 @@ def test_many_maps_page_filter_and_selection_come_from_the_address(many_maps: Se
     assert _rows(dom)[:2] == ["m-000", "m-001"]
     assert re.search(r'id="map-title">m-119<', dom), dom[:3000]
     assert _count(dom, r'<circle class="kf"') == 3
+
+
+def test_an_address_the_key_cannot_follow_falls_back_to_what_it_can_see(
+    many_maps: Server,
+) -> None:
+    """A bookmark made with another key (a map this key may not use) or an edited address
+    (a filter longer than any name) shows the first rows this key may see, not a refusal."""
+    dom = render(f"{many_maps.url}/ui#key={FEW_KEY}&map=m-119")
+    assert _rows(dom) == ["m-003", "m-004"], dom[:3000]
+    assert re.search(r'id="map-title">m-003<', dom)
+    assert re.search(r'<section id="auth" hidden', dom)
+    dom = render(f"{many_maps.url}/ui#key={KEYS['viewer']}&filter={'m' * 65}")
+    assert _rows(dom) == [f"m-{i:03d}" for i in range(20)], dom[:3000]

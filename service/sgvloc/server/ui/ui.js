@@ -17,7 +17,7 @@
   const PAGE = 1000; // keyframes per listing request
   const MAPS_PAGE = 20; // map rows per page of the maps table
   const RECENT = 200; // localizations drawn
-  const EVERY_MS = { localizations: 3000, metrics: 5000, maps: 15000, loading: 2000 };
+  const EVERY_MS = { localizations: 3000, metrics: 5000, maps: 15000, loading: 2000, retry: 5000 };
   const SVG_NS = "http://www.w3.org/2000/svg";
   const KF_RADIUS_PX = 2.5;
   const LOC_RADIUS_PX = 7;
@@ -83,7 +83,9 @@
 
   // -- the API --------------------------------------------------------------------------
 
-  async function api(path, { text = false } = {}) {
+  // ``one``: a request about one map, whose 403 only says this key may not use that map
+  // (an HttpError, not a refusal of the key)
+  async function api(path, { text = false, one = false } = {}) {
     const key = storedKey();
     if (!key) throw new Refused("Enter an API key to see the service's status.");
     let response;
@@ -100,6 +102,7 @@
     if (response.status === 401) {
       throw new Refused(`The service refused this key (401): ${await errorMessage(response)}`);
     }
+    if (response.status === 403 && one) throw new HttpError(403, await errorMessage(response));
     if (response.status === 403) {
       throw new Refused(
         `This key may not read the status (403): ${await errorMessage(response)}. ` +
@@ -142,6 +145,7 @@
     state.timers.forEach(clearInterval);
     state.timers = [];
     state.generation += 1;
+    state.metricsRefused = false;
     state.failing.clear();
     state.updated = null;
     $("content").classList.remove("stale");
@@ -233,14 +237,17 @@
   const count = (v) => (v === undefined || v === null ? "–" : Math.round(v).toLocaleString("en"));
 
   async function refreshMetrics() {
+    if (state.metricsRefused) return;
     const generation = state.generation;
     let text;
     try {
       text = await api("metrics", { text: true });
     } catch (exc) {
       if (exc instanceof Refused && generation === state.generation) {
-        // a key that reads the maps but not the metrics (e.g. a mapper): no counters
+        // a key that reads the maps but not the metrics (e.g. a mapper): no counters, and
+        // no more asking (a new key starts polling again)
         $("counters").title = "The counters need a viewer or admin key (this key may not read /metrics).";
+        state.metricsRefused = true;
         return;
       }
       throw exc;
@@ -294,6 +301,7 @@
 
   function renderMaps() {
     const body = $("maps").tBodies[0];
+    const focused = document.activeElement && document.activeElement.dataset ? document.activeElement.dataset.map : undefined;
     body.replaceChildren();
     for (const m of state.maps) {
       const stats = state.stats[m.name];
@@ -304,7 +312,7 @@
       row.classList.toggle("selected", m.name === state.selected);
       row.title = `show map ${m.name}`;
       row.tabIndex = 0; // reachable with Tab; Enter or Space shows the map
-      row.setAttribute("aria-selected", String(m.name === state.selected));
+      if (m.name === state.selected) row.setAttribute("aria-current", "true");
       cell(row, m.name);
       cell(row, count(m.keyframes), "num");
       cell(row, String(m.version), "num");
@@ -320,17 +328,27 @@
         }
       });
     }
+    const prefix = $("maps-filter").value;
+    $("maps-empty").textContent = prefix ? `No map names start with "${prefix}".` : "No maps.";
     $("maps-empty").hidden = state.maps.length > 0;
     const paged = state.mapsAfter !== null || state.mapsNext !== null;
     $("maps-pager").hidden = !paged;
+    const keyboard = document.activeElement;
     $("maps-prev").disabled = state.mapsAfter === null;
     $("maps-next").disabled = state.mapsNext === null;
+    // a button that became disabled under the keyboard hands the focus to the other one
+    if (keyboard === $("maps-next") && $("maps-next").disabled) $("maps-prev").focus();
+    if (keyboard === $("maps-prev") && $("maps-prev").disabled) $("maps-next").focus();
+    if (focused !== undefined) {
+      const again = body.querySelector(`tr[data-map="${CSS.escape(focused)}"]`);
+      if (again) again.focus(); // the row rebuilt under the keyboard keeps it
+    }
     const n = state.maps.length;
     if (!n) {
       $("maps-range").textContent = "";
     } else if (state.mapsBefore === null) {
       // opened at a page of the address: its place in the list is not known
-      $("maps-range").textContent = `${n} after ${state.mapsAfter}`;
+      $("maps-range").textContent = `maps after ${state.mapsAfter}`;
     } else {
       const first = state.mapsBefore.length * MAPS_PAGE + 1;
       $("maps-range").textContent = `${first}–${first + n - 1}`;
@@ -354,6 +372,9 @@
   function turnMapsPage(after, before) {
     state.mapsAfter = after;
     state.mapsBefore = before;
+    state.mapsNext = null;
+    $("maps-prev").disabled = true; // one turn at a time: a second click waits for this one
+    $("maps-next").disabled = true;
     setHashParam("after", after);
     refreshMaps().catch((exc) => handle(exc, "maps"));
   }
@@ -384,7 +405,19 @@
     const generation = state.generation;
     const seq = ++state.mapsSeq;
     const current = () => generation === state.generation && seq === state.mapsSeq;
-    let body = await api(mapsQuery());
+    let body;
+    try {
+      body = await api(mapsQuery());
+    } catch (exc) {
+      if (!(exc instanceof HttpError && exc.status === 422)) throw exc;
+      // a page or filter the service refuses (an edited address): the first page of all
+      $("maps-filter").value = "";
+      state.mapsAfter = null;
+      state.mapsBefore = [];
+      setHashParam("filter", null);
+      setHashParam("after", null);
+      body = await api(mapsQuery());
+    }
     if (!current()) return;
     if (!body.maps.length && state.mapsAfter !== null) {
       // the maps of this page are gone: back to the first page
@@ -396,6 +429,9 @@
     }
     state.maps = body.maps;
     state.mapsNext = body.next_cursor || null;
+    state.updated = new Date().toISOString().slice(11, 19);
+    state.failing.delete("maps");
+    showProgress();
     $("auth").hidden = true;
     $("content").hidden = false;
     $("forget").hidden = false;
@@ -429,14 +465,15 @@
     if (names.length) await select(names.includes(wanted) ? wanted : names[0]);
   }
 
-  // a map's MapInfo, or null when there is no such map (any more)
+  // a map's MapInfo, or null when there is no such map (any more) or this key may not
+  // use it (a bookmark made with another key)
   async function mapInfo(name) {
     const listed = state.maps.find((m) => m.name === name);
     if (listed) return listed;
     try {
-      return await api(mapPath(name));
+      return await api(mapPath(name), { one: true });
     } catch (exc) {
-      if (exc instanceof HttpError && exc.status === 404) return null;
+      if (exc instanceof HttpError && (exc.status === 404 || exc.status === 403)) return null;
       throw exc;
     }
   }
@@ -450,7 +487,8 @@
     setHashParam("map", name);
     for (const row of $("maps").tBodies[0].rows) {
       row.classList.toggle("selected", row.dataset.map === name);
-      row.setAttribute("aria-selected", String(row.dataset.map === name));
+      if (row.dataset.map === name) row.setAttribute("aria-current", "true");
+      else row.removeAttribute("aria-current");
     }
     $("map-title").textContent = name;
     $("map-section").hidden = false;
@@ -710,6 +748,22 @@
 
   // -- start ----------------------------------------------------------------------------
 
+  // the maps table's page and filter from the address (#after=NAME&filter=PREFIX; a value
+  // longer than a map name is dropped); true if either changed
+  function readAddress() {
+    const params = hashParams();
+    const clip = (v) => (v && v.length <= 64 ? v : "");
+    const filter = clip(params.get("filter"));
+    const after = clip(params.get("after")) || null;
+    const changed = filter !== $("maps-filter").value || after !== state.mapsAfter;
+    $("maps-filter").value = filter;
+    if (changed) {
+      state.mapsAfter = after;
+      state.mapsBefore = after === null ? [] : null;
+    }
+    return changed;
+  }
+
   function every(ms, fn, what) {
     const generation = state.generation;
     state.timers.push(
@@ -735,7 +789,11 @@
     } catch (exc) {
       if (generation !== state.generation) return;
       handle(exc, "maps");
-      if (exc instanceof Loading) setTimeout(() => generation === state.generation && start(), EVERY_MS.loading);
+      if (!(exc instanceof Refused)) {
+        // not ready, unreachable, an error: try again (a refused key waits for another)
+        const wait = exc instanceof Loading ? EVERY_MS.loading : EVERY_MS.retry;
+        setTimeout(() => generation === state.generation && start(), wait);
+      }
       return;
     }
     if (generation !== state.generation) return;
@@ -753,10 +811,7 @@
   document.addEventListener("DOMContentLoaded", () => {
     keyFromFragment();
     installPanZoom();
-    const opened = hashParams();
-    $("maps-filter").value = opened.get("filter") || "";
-    state.mapsAfter = opened.get("after") || null;
-    if (state.mapsAfter !== null) state.mapsBefore = null;
+    readAddress();
     let typing = null;
     $("maps-filter").addEventListener("input", () => {
       clearTimeout(typing);
@@ -787,10 +842,20 @@
       showKeyForm("The key was forgotten. Enter an API key to see the service's status.", false);
     });
     window.addEventListener("hashchange", () => {
-      if (new URLSearchParams(location.hash.slice(1)).has("key")) {
+      if (hashParams().has("key")) {
         keyFromFragment();
+        readAddress();
         start();
+        return;
       }
+      // an edited or pasted address: show what it names
+      const wanted = hashParams().get("map");
+      if (!readAddress() && (!wanted || wanted === state.selected)) return;
+      if (wanted && wanted !== state.selected) {
+        state.selected = null; // refreshMaps selects the map the address names
+        state.selectedInfo = null;
+      }
+      refreshMaps().catch((exc) => handle(exc, "maps"));
     });
     start();
   });
