@@ -476,6 +476,28 @@ def test_a_renamed_folder_resumes_under_its_key_prefix(
         build_map(moved, data_dir, "m", key_prefix="", progress=False)
 
 
+def test_two_drives_that_both_start_at_the_origin_go_into_one_map(
+    tmp_path: Path, balm_mini_dir: Path
+) -> None:
+    """KITTI poses start every sequence at the identity, as scan 000000: that scan is no
+    sign of a renamed folder, so a second drive is added under its own name."""
+    import shutil
+
+    drives = []
+    for name, shift in (("drive-a", 0.0), ("drive-b", 100.0)):
+        folder = tmp_path / name
+        shutil.copytree(balm_mini_dir, folder)
+        poses = np.loadtxt(folder / "poses.txt").reshape(-1, 3, 4)
+        poses[:, :, 3] += [shift, 0.0, 0.0]
+        poses[0] = np.eye(4)[:3]
+        np.savetxt(folder / "poses.txt", poses.reshape(-1, 12))
+        drives.append(folder)
+    data_dir = tmp_path / "data"
+    assert build_map(drives[0], data_dir, "city", limit=3, progress=False).created == 3
+    both = build_map(drives[1], data_dir, "city", limit=3, progress=False)
+    assert (both.created, both.keyframes) == (3, 6)
+
+
 def test_a_build_that_inserts_nothing_leaves_no_map(
     tmp_path: Path, balm_mini_dir: Path, service_url: str
 ) -> None:

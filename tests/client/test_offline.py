@@ -491,7 +491,7 @@ def test_list_maps_follows_pages_and_refuses_a_stuck_cursor() -> None:
     def info(name: str) -> dict:
         return {"name": name, "version": 0, "keyframes": 0, "encoder": {}, "retrieval": {}}
 
-    names = ["a", "b", "c", "d", "e"]
+    names = ["m-a", "m-b", "m-c", "m-d", "m-e"]
     seen: list[httpx.URL] = []
 
     def paged(request: httpx.Request) -> httpx.Response:
@@ -503,18 +503,19 @@ def test_list_maps_follows_pages_and_refuses_a_stuck_cursor() -> None:
         return httpx.Response(200, json={"maps": [info(n) for n in page], "next_cursor": nxt})
 
     with Client(transport=httpx.MockTransport(paged)) as c:
-        assert [m.name for m in c.list_maps(prefix="x")] == names
-    assert [u.params.get("cursor") for u in seen] == [None, "b", "d"]
-    assert all(u.params["prefix"] == "x" and u.params["limit"] == "1000" for u in seen)
+        assert [m.name for m in c.list_maps(prefix="m-")] == names
+    assert [u.params.get("cursor") for u in seen] == [None, "m-b", "m-d"]
+    assert all(u.params["prefix"] == "m-" and u.params["limit"] == "1000" for u in seen)
 
     def unpaged(request: httpx.Request) -> httpx.Response:
         return httpx.Response(200, json={"maps": [info(n) for n in names]})
 
     with Client(transport=httpx.MockTransport(unpaged)) as c:
         assert [m.name for m in c.list_maps()] == names
+        assert [m.name for m in c.list_maps(prefix="m-c")] == ["m-c"]  # it ignores prefix
 
     def stuck(request: httpx.Request) -> httpx.Response:
-        return httpx.Response(200, json={"maps": [info("a")], "next_cursor": "a"})
+        return httpx.Response(200, json={"maps": [info("m-a")], "next_cursor": "m-a"})
 
     with Client(transport=httpx.MockTransport(stuck)) as c:
         with pytest.raises(SgvlocError, match="did not move on"):

@@ -438,24 +438,32 @@ def _check_resumed_poses(
                 )
 
 
+#: scans of a sequence looked up by :func:`_check_not_renamed`
+RENAMED_SAMPLES = 8
+
+
 def _check_not_renamed(
     sink: KeyframeSink, name: str, prefix: str, seq: KittiSequence, frames: list[int]
 ) -> None:
     """Refuse to add a sequence again under a new prefix: a build resumed from a renamed
-    or moved folder would store every scan a second time. A few scans (the first, middle
-    and last of the selection) are looked up by position; a keyframe of the same scan
-    name at the same pose (within :data:`RESUME_TOLERANCE_M`) under another prefix means
-    the map holds this sequence already."""
-    if not frames:
-        return
+    or moved folder would store every scan a second time. A few scans (the first two and
+    others spread over the selection: an interrupted build holds the first ones) are
+    looked up by position; one in the map as the same scan name at the same pose (within
+    :data:`RESUME_TOLERANCE_M`) under another prefix means the map holds this sequence
+    already. A scan at the origin is no evidence: every KITTI sequence starts there, as
+    scan 000000."""
     tol = RESUME_TOLERANCE_M
-    for i in sorted({frames[0], frames[len(frames) // 2], frames[-1]}):
+    spread = np.linspace(0, len(frames) - 1, RENAMED_SAMPLES).round().astype(int)
+    samples = sorted({frames[j] for j in [*range(min(2, len(frames))), *spread.tolist()]})
+    for i in samples if frames else []:
         x, y, z = seq.poses[i][:3, 3]
+        if max(abs(x), abs(y), abs(z)) <= tol:
+            continue
         near = sink.positions(name, None, (x - tol, y - tol, x + tol, y + tol))
         stem = seq.paths[i].stem
-        for key, pos in near.items():
+        for key, pos in sorted(near.items()):
             old, _, tail = key.rpartition("/")
-            if tail == stem and old and abs(float(pos[2]) - z) <= tol:
+            if tail == stem and old and old != prefix and abs(float(pos[2]) - z) <= tol:
                 raise ConflictError(
                     f"map {name!r} holds this sequence's scan {stem} already, as {key!r} "
                     f"(the same pose), under the key prefix {old!r}, not {prefix!r} (by "

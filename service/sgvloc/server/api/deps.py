@@ -25,7 +25,8 @@ from .errors import ApiError
 
 T = TypeVar("T")
 
-#: how often a running localization checks whether its client is still connected (s)
+#: the pause between two reads of a request's messages while waiting for its client to
+#: disconnect, should one arrive that is not the disconnect (s)
 DISCONNECT_POLL_S = 0.1
 
 
@@ -106,8 +107,11 @@ class Worker:
         waiting = anyio.CancelScope()
 
         async def watch() -> None:
-            while not await request.is_disconnected():
-                await anyio.sleep(DISCONNECT_POLL_S)
+            # one receive that waits for the disconnect (the body is read already):
+            # polling would resume reading the socket each time and buffer whatever a
+            # client pipelines behind this request
+            while (await request.receive()).get("type") != "http.disconnect":
+                await anyio.sleep(DISCONNECT_POLL_S)  # not expected: never spin
             gone.set()
             waiting.cancel()
 

@@ -181,7 +181,10 @@ def confine_model_path(spec: EncoderSpec | None, models_dir: Path | None) -> Enc
 async def list_maps(
     request: Request,
     manager: ManagerDep,
-    limit: Annotated[int, Query(ge=1, le=1000, description="maps per page")] = 1000,
+    limit: Annotated[
+        int | None,
+        Query(ge=1, le=1000, description="maps per page (unset: every map, as before paging)"),
+    ] = None,
     cursor: Annotated[
         str | None, Query(max_length=64, description="next_cursor of the previous page")
     ] = None,
@@ -190,8 +193,9 @@ async def list_maps(
     ] = None,
 ) -> Response:
     """List the loaded maps that the caller's key may use, by name, one page at a time
-    (``limit`` per page; pass ``next_cursor`` as ``cursor`` for the next), optionally only
-    those whose name starts with ``prefix``."""
+    (``limit`` per page; pass ``next_cursor`` as ``cursor`` for the next; without
+    ``limit``, every map after ``cursor``, as clients from before paging expect),
+    optionally only those whose name starts with ``prefix``."""
     caller = principal_of(request)
 
     def listing() -> Response:  # off the event loop: hundreds of maps take tens of ms
@@ -202,8 +206,8 @@ async def list_maps(
             and (not prefix or h.name.startswith(prefix))
             and caller.may_use_map(h.name)
         ]
-        page = handles[:limit]
-        more = len(handles) > limit
+        page = handles if limit is None else handles[:limit]
+        more = len(handles) > len(page)
         return encode(
             request,
             MapList(maps=[map_info(h) for h in page], next_cursor=page[-1].name if more else None),
