@@ -655,8 +655,9 @@ class BaseClient:
 
         def page(body: Any) -> MapPage:
             got = MapPage.from_body(body)
-            if prefix:  # a service from before paging lists every map
-                got = replace(got, maps=[m for m in got.maps if m.name.startswith(prefix)])
+            if prefix and got.total is None:  # a service from before paging lists them all
+                kept = [m for m in got.maps if m.name.startswith(prefix)]
+                got = replace(got, maps=kept, total=len(kept))
             return got
 
         return self._call("GET", f"/v1/maps?{urlencode(params)}", _body_only(page), idempotent=True)

@@ -516,10 +516,16 @@ class MapPage:
 
     maps: list[MapInfo]
     next_cursor: str | None
+    #: maps matching the listing on all its pages (None from a service before paging)
+    total: int | None = None
 
     @classmethod
     def from_body(cls, d: Mapping[str, Any]) -> MapPage:
-        return cls(maps=[MapInfo.from_body(m) for m in d["maps"]], next_cursor=d.get("next_cursor"))
+        return cls(
+            maps=[MapInfo.from_body(m) for m in d["maps"]],
+            next_cursor=d.get("next_cursor"),
+            total=d.get("total"),
+        )
 
 
 @dataclass(frozen=True)

@@ -80,7 +80,7 @@ def test_map_lifecycle(service_url: str) -> None:
         c.create_map("lifecycle-2", retrieval="flat")
         first = c.list_maps_page(limit=1, prefix="lifecycle")
         assert [m.name for m in first.maps] == ["lifecycle"]
-        assert first.next_cursor == "lifecycle"
+        assert first.next_cursor == "lifecycle" and first.total == 2
         last = c.list_maps_page(limit=1, prefix="lifecycle", cursor=first.next_cursor)
         assert [m.name for m in last.maps] == ["lifecycle-2"] and last.next_cursor is None
         assert [m.name for m in c.list_maps(prefix="lifecycle")] == ["lifecycle", "lifecycle-2"]

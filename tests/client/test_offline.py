@@ -513,6 +513,8 @@ def test_list_maps_follows_pages_and_refuses_a_stuck_cursor() -> None:
     with Client(transport=httpx.MockTransport(unpaged)) as c:
         assert [m.name for m in c.list_maps()] == names
         assert [m.name for m in c.list_maps(prefix="m-c")] == ["m-c"]  # it ignores prefix
+        assert c.list_maps_page(prefix="m-c").total == 1
+        assert c.list_maps_page().total is None  # it does not count
 
     def stuck(request: httpx.Request) -> httpx.Response:
         return httpx.Response(200, json={"maps": [info("m-a")], "next_cursor": "m-a"})

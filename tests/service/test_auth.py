@@ -250,6 +250,7 @@ def test_key_restricted_to_maps(auth_server: Server, admin: httpx.Client, maps: 
         # paging counts only the maps the key may use: no cursor past a hidden map
         one = c.get("/v1/maps", params={"limit": 1, "prefix": "auth-"}).json()
         assert [m["name"] for m in one["maps"]] == ["auth-a"] and one["next_cursor"] is None
+        assert one["total"] == 1
         assert c.get("/v1/maps/auth-b").status_code == 403
         kf = {"keyframes": [{"T_map_sensor": EYE, "features": feats}]}
         assert post_msgpack(c, "/v1/maps/auth-a/keyframes", kf).status_code == 201

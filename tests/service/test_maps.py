@@ -43,6 +43,7 @@ def test_list_maps_pages_by_name(client: httpx.Client) -> None:
         params = {"prefix": "pg-", "limit": 2} | ({"cursor": cursor} if cursor else {})
         body = client.get("/v1/maps", params=params).json()
         pages.append([m["name"] for m in body["maps"]])
+        assert body["total"] == 5  # on every page
         cursor = body["next_cursor"]
         if cursor is None:
             break
@@ -55,6 +56,7 @@ def test_list_maps_pages_by_name(client: httpx.Client) -> None:
     assert client.get("/v1/maps", params={"prefix": "pg-z"}).json() == {
         "maps": [],
         "next_cursor": None,
+        "total": 0,
     }
     everything = client.get("/v1/maps").json()  # no limit: every map, as before paging
     assert {"pg-a", "pg-e"} <= {m["name"] for m in everything["maps"]}

@@ -311,7 +311,7 @@ def test_many_maps_show_one_page_with_stats_for_its_rows_only(many_maps: Server)
     dom = render(f"{many_maps.url}/ui#key={KEYS['viewer']}")
     assert _rows(dom) == [f"m-{i:03d}" for i in range(20)], dom[:3000]
     assert re.search(r'<span id="maps-pager">', dom), "the pager is hidden"
-    assert re.search(r'id="maps-range"[^>]*>1–20<', dom)
+    assert re.search(r'id="maps-range"[^>]*>1–20 of 120<', dom)
     assert re.search(r'<button type="button" id="maps-prev" disabled', dom)
     assert not re.search(r'<button type="button" id="maps-next" disabled', dom)
     assert re.search(r'id="map-title">m-000<', dom)
@@ -334,7 +334,7 @@ def test_many_maps_page_filter_and_selection_come_from_the_address(many_maps: Se
     key = KEYS["viewer"]
     dom = render(f"{many_maps.url}/ui#key={key}&after=m-049")
     assert _rows(dom) == [f"m-{i:03d}" for i in range(50, 70)], dom[:3000]
-    assert re.search(r'id="maps-range"[^>]*>maps after m-049<', dom)
+    assert re.search(r'id="maps-range"[^>]*>maps after m-049 of 120<', dom)
     assert not re.search(r'<button type="button" id="maps-prev" disabled', dom)
     dom = render(f"{many_maps.url}/ui#key={key}&filter=m-11")
     assert _rows(dom) == [f"m-{i:03d}" for i in range(110, 120)], dom[:3000]

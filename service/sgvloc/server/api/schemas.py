@@ -372,6 +372,9 @@ class MapList(BaseModel):
     next_cursor: str | None = Field(
         None, description="pass as cursor for the next page; null on the last page"
     )
+    total: int = Field(
+        0, description="maps the key may use whose name starts with prefix, on every page"
+    )
 
 
 # -- keyframes ----------------------------------------------------------------------------

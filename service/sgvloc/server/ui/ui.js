@@ -29,6 +29,7 @@
     mapsBefore: [], // cursors of the pages before it, for "Previous" (null: not known)
     mapsSeq: 0, // bumped by every listing: an older listing's late answer is dropped
     mapsNext: null, // next_cursor of the page shown
+    mapsTotal: null, // maps matching the filter on every page
     selected: null,
     selectedInfo: null, // MapInfo of the selected map, on the page shown or not
     keyframes: [], // {id, key, x, y}
@@ -348,12 +349,14 @@
       $("maps-range").textContent = "";
     } else if (state.mapsBefore === null) {
       // opened at a page of the address: its place in the list is not known
-      $("maps-range").textContent = `maps after ${state.mapsAfter}`;
+      $("maps-range").textContent = `maps after ${state.mapsAfter}${ofTotal()}`;
     } else {
       const first = state.mapsBefore.length * MAPS_PAGE + 1;
-      $("maps-range").textContent = `${first}–${first + n - 1}`;
+      $("maps-range").textContent = `${first}–${first + n - 1}${ofTotal()}`;
     }
   }
+
+  const ofTotal = () => (state.mapsTotal === null ? "" : ` of ${count(state.mapsTotal)}`);
 
   function hashParams() {
     return new URLSearchParams(location.hash.slice(1));
@@ -429,6 +432,7 @@
     }
     state.maps = body.maps;
     state.mapsNext = body.next_cursor || null;
+    state.mapsTotal = Number.isInteger(body.total) ? body.total : null;
     state.updated = new Date().toISOString().slice(11, 19);
     state.failing.delete("maps");
     showProgress();

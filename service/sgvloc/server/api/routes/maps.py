@@ -199,18 +199,21 @@ async def list_maps(
     caller = principal_of(request)
 
     def listing() -> Response:  # off the event loop: hundreds of maps take tens of ms
-        handles = [
+        matching = [
             h
             for h in manager.list()
-            if (cursor is None or h.name > cursor)
-            and (not prefix or h.name.startswith(prefix))
-            and caller.may_use_map(h.name)
+            if (not prefix or h.name.startswith(prefix)) and caller.may_use_map(h.name)
         ]
-        page = handles if limit is None else handles[:limit]
-        more = len(handles) > len(page)
+        after = [h for h in matching if cursor is None or h.name > cursor]
+        page = after if limit is None else after[:limit]
+        more = len(after) > len(page)
         return encode(
             request,
-            MapList(maps=[map_info(h) for h in page], next_cursor=page[-1].name if more else None),
+            MapList(
+                maps=[map_info(h) for h in page],
+                next_cursor=page[-1].name if more else None,
+                total=len(matching),
+            ),
         )
 
     return await anyio.to_thread.run_sync(listing)
