@@ -568,6 +568,22 @@ def test_overload_retry_waits_retry_after_and_skips_unsafe_calls(monkeypatch) ->
     assert len(seen) == 1
 
 
+def _six_overloads_then_ok(**options) -> int:
+    """get_map against six 503s without Retry-After and then the map, resending after
+    each (backoff 0.2 s, at most 1 s); returns how many requests were sent."""
+    handler, seen = _overloaded_then_ok([503] * 6, retry_after=None)
+    with Client(
+        transport=httpx.MockTransport(handler),
+        retry_overloaded=True,
+        retries=6,
+        backoff=0.2,
+        max_backoff=1.0,
+        **options,
+    ) as c:
+        c.get_map("campus")
+    return len(seen)
+
+
 def test_backoff_jitter_spreads_waits_within_the_backoff(monkeypatch) -> None:
     """By default each wait is a random draw from half the backoff to all of it, and two
     clients that fail together wait differently; a connection error's resend waits the
@@ -577,16 +593,7 @@ def test_backoff_jitter_spreads_waits_within_the_backoff(monkeypatch) -> None:
     waits: list[float] = []
     monkeypatch.setattr(sync_client.time, "sleep", waits.append)
     for _ in range(2):
-        handler, seen = _overloaded_then_ok([503] * 6, retry_after=None)
-        with Client(
-            transport=httpx.MockTransport(handler),
-            retry_overloaded=True,
-            retries=6,
-            backoff=0.2,
-            max_backoff=1.0,
-        ) as c:
-            c.get_map("campus")
-        assert len(seen) == 7
+        assert _six_overloads_then_ok() == 7
     caps = [0.2, 0.4, 0.8, 1.0, 1.0, 1.0] * 2
     assert all(cap / 2 <= w <= cap for w, cap in zip(waits, caps, strict=True)), waits
     assert waits[:6] != waits[6:]  # two clients, two draws
@@ -611,17 +618,8 @@ def test_overload_waits_are_bounded_and_read_http_dates(monkeypatch) -> None:
 
     waits: list[float] = []
     monkeypatch.setattr(sync_client.time, "sleep", waits.append)
-    handler, seen = _overloaded_then_ok([503] * 6, retry_after=None)
-    with Client(
-        transport=httpx.MockTransport(handler),
-        retry_overloaded=True,
-        retries=6,
-        backoff=0.2,
-        max_backoff=1.0,
-        jitter=False,
-    ) as c:
-        c.get_map("campus")
-    assert waits == pytest.approx([0.2, 0.4, 0.8, 1.0, 1.0, 1.0]) and len(seen) == 7
+    assert _six_overloads_then_ok(jitter=False) == 7
+    assert waits == pytest.approx([0.2, 0.4, 0.8, 1.0, 1.0, 1.0])
     waits.clear()
     soon = email.utils.formatdate(time.time() + 10, usegmt=True)
     handler, seen = _overloaded_then_ok([503], retry_after=soon)
