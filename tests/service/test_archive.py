@@ -165,6 +165,35 @@ def test_damaged_truncated_and_foreign_archives_are_refused(
     m.close()
 
 
+def test_extended_tar_headers_are_bounded(source: MapManager, tmp_path: Path) -> None:
+    """An extended tar header (pax, GNU long name) over 8 KiB is refused before tarfile
+    reads it whole (an attacker's declared size) or parses it (quadratic on some
+    Pythons); a re-packed archive with short pax records imports as before."""
+    data = _export(source, "src")
+    m = _manager(tmp_path / "x")
+    members = _members(data)
+
+    def with_extended(kind: bytes, payload: bytes) -> bytes:
+        buf = io.BytesIO()
+        with tarfile.open(fileobj=buf, mode="w", format=tarfile.USTAR_FORMAT) as tar:
+            info = tarfile.TarInfo("header")
+            info.type, info.size = kind, len(payload)
+            tar.addfile(info, io.BytesIO(payload))
+        return buf.getvalue()
+
+    _refused(m, with_extended(tarfile.XHDTYPE, b"1" * 100_000), "extended tar header of 100000 B")
+    _refused(m, with_extended(tarfile.GNUTYPE_LONGNAME, b"a" * 9000), "extended tar header")
+    buf = io.BytesIO()
+    with tarfile.open(fileobj=buf, mode="w", format=tarfile.PAX_FORMAT) as tar:
+        for name, payload in members:
+            info = tarfile.TarInfo(name)
+            info.size = len(payload)
+            info.pax_headers = {"comment": "re-packed by another tool"}
+            tar.addfile(info, io.BytesIO(payload))
+    assert m.import_archive(io.BytesIO(buf.getvalue()), "repacked").num_keyframes == 302
+    m.close()
+
+
 def test_an_archive_of_another_encoder_is_refused(source: MapManager, tmp_path: Path) -> None:
     h = source.get("src")
     with h.store.snapshot() as (version, count, rows):

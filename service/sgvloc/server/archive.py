@@ -51,6 +51,17 @@ MANIFEST = "manifest.json"
 SUMS = "SHA256SUMS"
 MAX_MEMBER_BYTES = 1 << 30  # no honest chunk comes near this; a bigger one is refused
 MAX_SELF_TEST_BYTES = 1 << 18  # a self-test's settings or summary, as JSON
+#: the largest extended tar header (pax, GNU long name) an archive may carry. This
+#: sgvloc writes none (short ASCII names, members far under 8 GiB), a re-packing tool
+#: may add a few short ones; ``tarfile`` reads one whole into memory before any member
+#: check, and before Python 3.11.10 / 3.12.6 parses it in quadratic time (CVE-2024-6232)
+MAX_EXTENDED_HEADER_BYTES = 8192
+_EXTENDED_TYPES = (
+    tarfile.XHDTYPE,
+    tarfile.XGLTYPE,
+    tarfile.GNUTYPE_LONGNAME,
+    tarfile.GNUTYPE_LONGLINK,
+)
 
 
 class ArchiveError(InputError):
@@ -317,14 +328,48 @@ def _unpack_chunk(data: bytes, name: str) -> list[KeyframeRow]:
         raise ArchiveError(f"archive member {name} is damaged: {exc}") from None
 
 
+def _header_size(field: bytes) -> int | None:
+    """The size field of a tar header block: octal digits, or base-256 when its first
+    byte has the high bit set; None when it is neither (``tarfile`` names the damage)."""
+    if field[:1] and field[0] & 0x80:
+        return int.from_bytes(field[1:], "big")
+    digits = field.replace(b"\0", b" ").strip()
+    try:
+        return int(digits, 8) if digits else 0
+    except ValueError:
+        return None
+
+
+def _check_extended_headers(fileobj: IO[bytes]) -> None:
+    """Walk the tar header blocks of a seekable ``fileobj`` (and back to where it was)
+    and refuse an extended header over :data:`MAX_EXTENDED_HEADER_BYTES`, before
+    ``tarfile`` would read it whole; everything else is left to ``tarfile``."""
+    start = fileobj.tell()
+    try:
+        while len(block := fileobj.read(512)) == 512 and block.count(0) < 512:
+            size = _header_size(block[124:136])
+            if size is None:
+                return
+            if block[156:157] in _EXTENDED_TYPES and size > MAX_EXTENDED_HEADER_BYTES:
+                raise ArchiveError(
+                    f"not an sgvloc map archive (an extended tar header of {size} B; at most "
+                    f"{MAX_EXTENDED_HEADER_BYTES} B are read)"
+                )
+            fileobj.seek((size + 511) // 512 * 512, io.SEEK_CUR)
+    finally:
+        fileobj.seek(start)
+
+
 def read_archive(fileobj: IO[bytes]) -> tuple[ArchiveHeader, Iterator[list[KeyframeRow]]]:
     """The header of an archive and an iterator over its keyframes, a chunk at a time.
 
     The iterator checks every member's SHA-256 against ``SHA256SUMS`` (the last member)
     and raises :class:`ArchiveError` at the end if any differs, if a member is missing
     or extra, or if the keyframe count disagrees with the manifest: a caller must only
-    keep what it built once the iterator is exhausted without error.
+    keep what it built once the iterator is exhausted without error. ``fileobj`` must
+    be seekable (a spooled upload, a file): its tar headers are checked first.
     """
+    _check_extended_headers(fileobj)
     try:
         tar = tarfile.open(fileobj=fileobj, mode="r|")  # type: ignore[call-overload]
     except tarfile.TarError as exc:
