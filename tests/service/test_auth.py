@@ -263,8 +263,14 @@ def test_key_restricted_to_maps(auth_server: Server, admin: httpx.Client, maps: 
         assert c.get("/v1/maps/auth-a").status_code == 200
         r = c.get("/metrics")
         assert r.status_code == 403 and "limited to some maps" in error_of(r)["message"]
+        # the configuration's limits, not how many keys there are or where the store is
+        cfg = c.get("/v1/config").json()
+        assert cfg["limits"]["max_top_k"] > 0
+        assert cfg["auth"]["keys"] is None and cfg["store"]["location"] is None
     with httpx.Client(base_url=auth_server.url, timeout=60, headers=_h("viewer")) as c:
         assert c.get("/metrics").status_code == 200
+        cfg = c.get("/v1/config").json()
+        assert cfg["auth"]["keys"] == len(KEYS) and cfg["store"]["location"]
 
 
 def test_sdk_sends_the_key(auth_server: Server, maps: dict) -> None:

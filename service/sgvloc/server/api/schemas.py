@@ -856,7 +856,7 @@ class AuthOut(BaseModel):
     """How callers are authenticated (never the keys)."""
 
     enabled: bool = Field(description="false only in development mode")
-    keys: int = Field(description="configured keys")
+    keys: int | None = Field(description="configured keys (null to a key limited to some maps)")
     metrics: Literal["open", "viewer"]
     readyz: Literal["open", "viewer"]
 
@@ -876,7 +876,10 @@ class StoreOut(BaseModel):
         description="sqlite: one database per map on this replica's disk; postgresql: "
         "one store shared by every replica"
     )
-    location: str = Field(description="the data directory, or the store URL without password")
+    location: str | None = Field(
+        description="the data directory, or the store URL without password (null to a key "
+        "limited to some maps)"
+    )
     local_features: Literal["memory", "store"]
     feature_cache: int
     follow_poll_s: float

@@ -10,7 +10,7 @@ from sgvloc.core import cores
 from ...maps import MapManager
 from ...settings import Settings
 from ...store import SharedBackend
-from ..auth import KeyRing, KeysError, authorize, reload_keys
+from ..auth import KeyRing, KeysError, authorize, principal_of, reload_keys
 from ..body import encode
 from ..deps import SettingsDep
 from ..errors import ApiError
@@ -28,9 +28,12 @@ router = APIRouter(prefix="/v1", tags=["service"], dependencies=[Depends(authori
 )
 async def get_config(request: Request, settings: SettingsDep) -> Response:
     """Limits (body size, points, batch, top_k, localize admission, queue timeout) and
-    access settings in force. Viewer or admin keys."""
+    access settings in force. Viewer or admin keys; to a key limited to some maps, the
+    number of keys and the store's location are not shown (as /metrics, which names
+    every map, is refused to it)."""
     ring: KeyRing = request.app.state.keyring
     s = settings
+    whole = principal_of(request).maps is None
     return encode(
         request,
         ConfigOut(
@@ -57,12 +60,12 @@ async def get_config(request: Request, settings: SettingsDep) -> Response:
             ),
             auth=AuthOut(
                 enabled=ring.enabled,
-                keys=len(ring.keys),
+                keys=len(ring.keys) if whole else None,
                 metrics=s.metrics_auth,
                 readyz=s.readyz_auth,
             ),
             batching=_batching(),
-            store=_store(request, s),
+            store=_store(request, s, whole),
             snapshot_every=s.snapshot_every,
             snapshot_delay_s=s.snapshot_delay_s,
             shutdown_timeout_s=s.shutdown_timeout_s,
@@ -70,12 +73,13 @@ async def get_config(request: Request, settings: SettingsDep) -> Response:
     )
 
 
-def _store(request: Request, s: Settings) -> StoreOut:
+def _store(request: Request, s: Settings, whole: bool) -> StoreOut:
     manager: MapManager = request.app.state.manager
     shared = isinstance(manager.backend, SharedBackend)
+    location = manager.backend.describe() if shared else "<data_dir>/maps"  # type: ignore[union-attr]
     return StoreOut(
         kind="postgresql" if shared else "sqlite",
-        location=manager.backend.describe() if shared else "<data_dir>/maps",  # type: ignore[union-attr]
+        location=location if whole else None,
         local_features=s.local_features,
         feature_cache=s.feature_cache,
         follow_poll_s=s.follow_poll_s,
