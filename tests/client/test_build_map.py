@@ -460,6 +460,8 @@ def test_a_renamed_folder_resumes_under_its_key_prefix(
     assert other.created == 3
     again = build_map(moved, data_dir, "m", limit=1, progress=False, key_prefix="twice")
     assert again.created == 1  # a prefix given on purpose: no check
+    none = build_map(moved, data_dir, "m", limit=0, progress=False)  # no scan selected
+    assert (none.created, none.existing) == (0, 0)
     build_map(balm_mini_dir, service_url, "renamed", limit=2, progress=False)
     with pytest.raises(ConflictError, match=f"under the key prefix '{balm_mini_dir.name}'"):
         build_map(moved, service_url, "renamed", limit=3, progress=False)

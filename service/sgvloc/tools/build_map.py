@@ -452,10 +452,12 @@ def _check_not_renamed(
     :data:`RESUME_TOLERANCE_M`) under another prefix means the map holds this sequence
     already. A scan at the origin is no evidence: every KITTI sequence starts there, as
     scan 000000."""
+    if not frames:  # nothing selected (--limit 0): nothing to store twice
+        return
     tol = RESUME_TOLERANCE_M
     spread = np.linspace(0, len(frames) - 1, RENAMED_SAMPLES).round().astype(int)
     samples = sorted({frames[j] for j in [*range(min(2, len(frames))), *spread.tolist()]})
-    for i in samples if frames else []:
+    for i in samples:
         x, y, z = seq.poses[i][:3, 3]
         if max(abs(x), abs(y), abs(z)) <= tol:
             continue
