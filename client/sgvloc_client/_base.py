@@ -52,6 +52,13 @@ from ._models import (
 log = logging.getLogger("sgvloc_client")
 
 
+def _page_limit(limit: int) -> int:
+    """A listing's ``limit`` (maps or keyframes per page), checked: 1..1000."""
+    if not 1 <= int(limit) <= 1000:
+        raise ValueError(f"limit must be within 1..1000, got {limit}")
+    return int(limit)
+
+
 def _from_gateway(status: int, body: Any) -> bool:
     """A 502 or 504 that is not the service's own error answer: a load balancer or proxy
     found no replica to answer (no sgvloc answer came, as after a connection error)."""
@@ -645,9 +652,7 @@ class BaseClient:
         return self._call("POST", "/v1/maps", _body_only(MapInfo.from_body), body, idempotent=False)
 
     def _list_maps(self, limit: int, cursor: str | None, prefix: str | None) -> Call[MapPage]:
-        if not 1 <= int(limit) <= 1000:
-            raise ValueError(f"limit must be within 1..1000, got {limit}")
-        params: dict[str, Any] = {"limit": int(limit)}
+        params: dict[str, Any] = {"limit": _page_limit(limit)}
         if cursor is not None:
             params["cursor"] = cursor
         if prefix:
@@ -761,9 +766,7 @@ class BaseClient:
     def _list_keyframes(
         self, map: str, limit: int, cursor: str | None, filters: dict[str, Any]
     ) -> Call[KeyframePage]:
-        if not 1 <= int(limit) <= 1000:
-            raise ValueError(f"limit must be within 1..1000, got {limit}")
-        params = {"limit": int(limit), **_filter_params(filters)}
+        params = {"limit": _page_limit(limit), **_filter_params(filters)}
         if cursor is not None:
             params["cursor"] = cursor
         return self._call(
