@@ -589,7 +589,7 @@ def build_map_command(
             write_text_whole(self_test_out, json.dumps(report, indent=1))
         if dry_run:
             return
-        encoder = report["chosen"]
+        encoder = json.dumps(report["encoders"][report["chosen"]]["encoder"])
     options = dict(create=create, encoder=encoder, batch_size=batch_size, every=every)
     options.update(limit=limit, until=until, progress=progress, self_test=report)
     options.update(key_prefix=key_prefix)

@@ -248,7 +248,10 @@ def test_choose_encoder_runs_the_self_test_and_records_it(
     out = runner.invoke(app, [*base, "--dry-run"])
     assert out.exit_code == 0, out.output
     report = json.loads((tmp_path / "st.json").read_text())
-    assert set(report["encoders"]) == {"learned", "handcrafted", "bev"}
+    assert set(report["encoders"]) == {"learned", "handcrafted", "bev", "learned-fpfh"}
+    fpfh = report["encoders"]["learned-fpfh"]
+    assert fpfh["encoder"] == {"kind": "learned", "learned": {"local_features": "fpfh"}}
+    assert fpfh["encoder_fingerprint"] != report["encoders"]["learned"]["encoder_fingerprint"]
     assert f"| {report['chosen']} (chosen) |" in out.output
     for f in report["encoders"].values():
         assert f["queries"] == 4 and 0 <= f["pose_success_pct"] <= 100 and f["false_accepts"] >= 0
@@ -266,7 +269,9 @@ def test_choose_encoder_runs_the_self_test_and_records_it(
         }
     with Client(service_url) as c:
         info = c.get_map("chosen")
-        assert info.encoder.kind == again["chosen"]
+        spec = again["encoders"][again["chosen"]]["encoder"]
+        assert info.encoder.kind == spec["kind"]
+        assert info.encoder.fingerprint == again["encoders"][again["chosen"]]["encoder_fingerprint"]
         assert info.self_test["chosen"] == again["chosen"]
         assert info.self_test["encoders"] == again["encoders"]
         c.delete_map("chosen")

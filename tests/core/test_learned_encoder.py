@@ -20,7 +20,7 @@ from sgvloc.core.bev import (
 from sgvloc.core.encoders import EncoderSpec, LearnedEncoder, make_encoder
 from sgvloc.core.encoders.learned import shipped_weights_path
 from sgvloc.core.encoders.torchscript import file_sha256
-from sgvloc.core.errors import InputError
+from sgvloc.core.errors import EncoderMismatchError, InputError
 from sgvloc.core.preprocess import voxel_downsample
 from sgvloc.core.sequence import KittiSequence
 
@@ -373,3 +373,40 @@ def test_a_query_is_also_described_about_displaced_centres(scans: list[np.ndarra
         sims = v[:, :620] @ there / np.linalg.norm(v[:, :620], axis=1) / np.linalg.norm(there)
         here = plain.global_descriptor[:620] @ there / np.linalg.norm(plain.global_descriptor[:620])
         assert int(np.argmax(sims)) == k and sims[k] > here + 0.02 and sims[k] > 0.95
+
+
+def test_fpfh_local_features_keep_the_networks_place_and_take_the_handcrafted_pose_part(
+    scans: list[np.ndarray],
+) -> None:
+    """``local_features="fpfh"``: the global descriptor is the network's on the 0.3 m
+    voxel cloud's box-cropped 0.4 m voxels; keypoints and features are exactly the
+    handcrafted encoder's; maps made before the option keep their identity; BEV images
+    are refused by name; a narrow crop yields fewer FPFH keypoints, none repeated."""
+    from sgvloc.core.bev import prepare_points
+    from sgvloc.core.encoders import HandcraftedEncoder
+    from sgvloc.core.preprocess import crop_azimuth, crop_range
+
+    plain = make_encoder(EncoderSpec(kind="learned"))
+    fpfh = make_encoder(EncoderSpec(kind="learned", learned={"local_features": "fpfh"}))
+    hand = HandcraftedEncoder()
+    # the default's identity does not name the option (the fingerprint of existing maps)
+    assert "local_features" not in plain.identity.params["encoder"]
+    assert fpfh.identity != plain.identity and fpfh.identity.params["fpfh"] == hand.identity.params
+    assert (fpfh.local_dim, fpfh.global_dim) == (hand.local_dim, plain.global_dim)
+    cloud = fpfh.prepare(scans[2])
+    np.testing.assert_array_equal(cloud, hand.prepare(scans[2]))  # what ICP is given
+    f, h = fpfh.encode(scans[2]), hand.encode(scans[2])
+    np.testing.assert_array_equal(f.keypoints, h.keypoints)
+    np.testing.assert_array_equal(f.local_features, h.local_features)
+    net = plain.encode_cloud(prepare_points(cloud, KITTI_BEV))
+    np.testing.assert_array_equal(f.global_descriptor, net.global_descriptor)
+    assert f.encoder == fpfh.identity
+    fpfh.check(f)
+    with pytest.raises(EncoderMismatchError):  # never mixed in one map
+        plain.check(f)
+    with pytest.raises(InputError, match="BEV image has no points"):
+        fpfh.encode_image(np.zeros((KITTI_BEV.size, KITTI_BEV.size), np.uint8))
+    sparse = crop_range(crop_azimuth(scans[2], 30.0), 0.0, 6.0)
+    narrow = fpfh.encode(sparse)
+    assert 0 < narrow.num_keypoints == len(fpfh.prepare(sparse)) < f.num_keypoints
+    assert len(np.unique(narrow.keypoints, axis=0)) == narrow.num_keypoints

@@ -53,6 +53,23 @@ def test_revisit_queries_localize_within_tolerance(campus):
     assert plain.evidence.icp_fitness is None and plain.evidence.free_space is None
 
 
+def test_the_learned_encoder_with_fpfh_keypoints_localizes(campus):
+    """local_features "fpfh" end to end: the network's descriptor retrieves, RANSAC runs
+    on FPFH and ICP on the 0.3 m clouds; every revisit is localized within tolerance."""
+    _, db, queries, scans = campus
+    spec = EncoderSpec(kind="learned", learned={"local_features": "fpfh"})
+    loc = Localizer(make_encoder(spec), LocalizerConfig(top_k=10))
+    for f in db:
+        loc.add_keyframe(f.T_world_sensor, scan=f.scan().points)
+    assert loc.keyframe(loc.keyframe_ids()[0]).features.local_features.shape[1] == 33
+    for q in queries:
+        res = loc.localize(scans[q.index])
+        assert res.localized, (q.index, res.reason)
+        t_err, r_err = pose_errors(res.T_map_sensor, q.T_world_sensor)
+        assert t_err < 2.0 and r_err < 5.0, (q.index, t_err, r_err)
+        assert res.evidence.icp_fitness is not None
+
+
 def test_sgv_puts_a_true_revisit_first(campus):
     loc, _, queries, scans = campus
     for q in queries:

@@ -373,6 +373,16 @@ class LearnedEncoderConfig(BaseModel):
         "RetrievalConfig.combine; the default, chosen by SGV R@1 on held-out data, "
         "docs/RESULTS.md)",
     )
+    local_features: Literal["network", "fpfh"] = Field(
+        "network",
+        description="scans: keypoints and local features from the network (its most "
+        "salient 0.8 m cells), or FPFH at the curvature keypoints of the 0.3 m voxel cloud "
+        "as the handcrafted encoder makes them, the global descriptor staying the "
+        "network's: for narrow-field-of-view or sparse sensors, whose scans leave the "
+        "network few cells to take keypoints from (docs/RESULTS.md, 'Narrow field of "
+        "view'; `sgvloc build-map --choose-encoder` compares both); BEV images need "
+        "'network'",
+    )
     global_rotations: Literal[1, 4] = Field(
         1,
         description="network global descriptor: the image as it is (1), or the mean over "

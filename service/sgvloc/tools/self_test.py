@@ -25,8 +25,13 @@ from typing import Any
 from sgvloc.core.encoders import EncoderSpec
 from sgvloc.core.errors import InputError
 
-#: the encoder kinds compared by default, in the order that breaks ties
-CANDIDATES = ("learned", "handcrafted", "bev")
+#: the encoders compared by default, by name, in the order that breaks ties
+CANDIDATES = ("learned", "handcrafted", "bev", "learned-fpfh")
+#: the candidates that are not a plain encoder kind: name -> EncoderSpec (JSON)
+SPECS: dict[str, dict[str, Any]] = {
+    # the network's global descriptor with FPFH keypoints: narrow or sparse scans
+    "learned-fpfh": {"kind": "learned", "learned": {"local_features": "fpfh"}},
+}
 #: format tag of a self-test report
 FORMAT = "sgvloc-self-test/1"
 RULE = (
@@ -34,6 +39,11 @@ RULE = (
     "sampled queries), then most correct poses (in coverage), then highest R@1 at 5 m, "
     "then the candidates' order"
 )
+
+
+def spec_of(name: str) -> dict[str, Any]:
+    """The EncoderSpec (JSON) of a candidate: :data:`SPECS`, else the kind ``name``."""
+    return dict(SPECS.get(name, {"kind": name}))
 
 
 def self_test(
@@ -72,7 +82,7 @@ def self_test(
             sweep=[20],
             max_queries=queries,
             cache_dir=str(cache_dir) if cache_dir else None,
-            encoder=EncoderSpec(kind=kind),
+            encoder=EncoderSpec(**spec_of(kind)),
         )
         try:
             result = run_evaluation(cfg, progress=progress)
@@ -100,6 +110,7 @@ def self_test(
             "localized_correct_pct": 100.0 * localized_correct / len(inside),
             "false_accepts": row["false_accepts"],
             "accepted_in_coverage_pct": row["accepted_in_coverage_pct"],
+            "encoder": spec_of(kind),
             "encoder_fingerprint": result.config["encoder_fingerprint"],
             "seconds": round(time.perf_counter() - t0, 1),
         }
@@ -180,4 +191,13 @@ def report_table(report: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["CANDIDATES", "FORMAT", "choose", "report_table", "self_test", "warning"]
+__all__ = [
+    "CANDIDATES",
+    "FORMAT",
+    "SPECS",
+    "choose",
+    "report_table",
+    "self_test",
+    "spec_of",
+    "warning",
+]

@@ -268,20 +268,29 @@ class HandcraftedEncoder(Encoder):
                 f"scan has no points within max_radius={c.max_radius} m of the sensor "
                 "(xy plane) after preprocessing; nothing to describe"
             )
-        # 3. normals and saliency
-        normals, saliency = normals_and_saliency(pts, c.normal_radius)
-        # 4. keypoints
-        kp_idx = select_keypoints(pts, saliency, c.num_keypoints, KEYPOINT_NMS_VOXEL)
-        # 5. local features
-        local = _l2_rows(fpfh_at(pts, normals, kp_idx, c.fpfh_radius))  # [N, 33]
+        keypoints, local = keypoint_features(pts, c)  # 3.-5.
         log.debug(
-            "encoded scan: %d points after preprocessing, %d keypoints", len(pts), len(kp_idx)
+            "encoded scan: %d points after preprocessing, %d keypoints", len(pts), len(keypoints)
         )
         return Features.validated(
             g,
-            pts[kp_idx],
+            keypoints,
             local,
             self.identity,
             global_dim=self.global_dim,
             local_dim=self.local_dim,
         )
+
+
+def keypoint_features(
+    points: np.ndarray, config: HandcraftedEncoderConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """Steps 3-5 of the module docstring on a preprocessed cloud ``[M, 3]``: keypoints
+    ``[N, 3]`` (N at most ``config.num_keypoints``, fewer on a smaller cloud) and their
+    L2-normalised FPFH rows ``[N, 33]``."""
+    if not len(points):
+        return np.zeros((0, 3), np.float32), np.zeros((0, FPFH_DIM), np.float32)
+    normals, saliency = normals_and_saliency(points, config.normal_radius)
+    kp_idx = select_keypoints(points, saliency, config.num_keypoints, KEYPOINT_NMS_VOXEL)
+    local = _l2_rows(fpfh_at(points, normals, kp_idx, config.fpfh_radius))
+    return points[kp_idx], local

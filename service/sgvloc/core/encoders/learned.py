@@ -16,6 +16,12 @@ Per scan (deterministic):
    2 x 2 pixels (``keypoint_xy``) and, for scans, at the height of the cell's lowest voxel
    (``keypoint_z``), then turned back into the sensor frame; local features are the
    descriptors of those cells;
+   With ``local_features = "fpfh"`` the scan is prepared as the handcrafted encoder
+   prepares it (range crop, 0.3 m voxels: the cloud kept for ICP), the network sees its
+   box-cropped 0.4 m voxels, and the keypoints and local features are FPFH at its
+   curvature keypoints (:func:`sgvloc.core.encoders.handcrafted.keypoint_features`): a
+   70-degree scan leaves the network 20-34 cells to take keypoints from, too few for the
+   pose step, while the network's global descriptor still finds the place;
 6. global descriptor (``global_descriptor``): the network's, with ``global_rotations = 4``
    the mean of the descriptors of the image turned by 0, 90, 180 and 270 degrees about the
    sensor (exact pixel turns, as the sensor is the centre of the padded input),
@@ -63,6 +69,7 @@ from ..errors import EmptyScanError, InputError
 from ..features import EncoderIdentity, Features
 from .base import Encoder
 from .bev import polar_fft_descriptor, polar_fft_descriptors
+from .handcrafted import keypoint_features
 from .torchscript import file_sha256
 
 log = logging.getLogger(__name__)
@@ -299,6 +306,18 @@ class LearnedEncoder(Encoder):
         self.global_dim = sum(self.global_blocks)
         self.local_dim = int(model.local_dim)
         self.preprocess_config = None  # prepare() is overridden: box crop + 0.4 m voxels
+        #: with local_features "fpfh": the handcrafted encoder whose preprocessing,
+        #: keypoints and FPFH make the local part
+        self.fpfh: Any = None
+        encoder = self.config.model_dump()
+        if self.config.local_features == "fpfh":
+            from .handcrafted import HandcraftedEncoder
+
+            self.fpfh = HandcraftedEncoder()
+            self.preprocess_config = self.fpfh.preprocess_config
+            self.local_dim = self.fpfh.local_dim
+        else:
+            del encoder["local_features"]  # the identity of maps made before the option
         self.identity = EncoderIdentity(
             name=self.NAME,
             version=self.VERSION,
@@ -310,15 +329,20 @@ class LearnedEncoder(Encoder):
                     "global_dim": int(model.global_dim),
                 },
                 "min_grey": self.min_grey,
-                "encoder": self.config.model_dump(),
+                "encoder": encoder,
                 "raster": KITTI_BEV.model_dump(),
             },
         )
+        if self.fpfh is not None:
+            self.identity.params["fpfh"] = self.fpfh.identity.params
 
     # -- scans -------------------------------------------------------------------------
 
     def prepare(self, points: np.ndarray) -> np.ndarray:
-        """Raw scan ``[P, 3+]`` -> the 0.4 m voxel cloud in the box ``[M, 3]`` float32."""
+        """Raw scan ``[P, 3+]`` -> the 0.4 m voxel cloud in the box ``[M, 3]`` float32
+        (with ``local_features = "fpfh"``: the handcrafted encoder's 0.3 m voxel cloud)."""
+        if self.fpfh is not None:
+            return self.fpfh.prepare(points)
         return prepare_points(points, KITTI_BEV)
 
     def encode_cloud(self, cloud: np.ndarray) -> Features:
@@ -333,12 +357,34 @@ class LearnedEncoder(Encoder):
         the levelled frame; a ring of them is the same in any frame) when the global
         descriptor has one (:meth:`Encoder.encode_query`)."""
         cloud = np.asarray(cloud, dtype=np.float32)
+        if self.fpfh is None:
+            return self._encode_scan(cloud, centres)
+        # the network on the box-cropped 0.4 m voxels for the place, FPFH for the pose
+        f = self._encode_scan(prepare_points(cloud, KITTI_BEV), centres, keypoints=False)
+        kp, local = keypoint_features(cloud, self.fpfh.config)
+        g = Features.validated(
+            f.global_descriptor,
+            kp,
+            local,
+            self.identity,
+            global_dim=self.global_dim,
+            local_dim=self.local_dim,
+        )
+        return Features(
+            g.global_descriptor, g.keypoints, g.local_features, g.encoder, f.global_variants
+        )
+
+    def _encode_scan(
+        self, cloud: np.ndarray, centres: np.ndarray | None, keypoints: bool = True
+    ) -> Features:
+        """The network's features of a 0.4 m voxel cloud (levelled first when ``level``),
+        keypoints in the sensor frame; none when not ``keypoints``."""
         if not self.config.level:
             raster = rasterize_cloud(cloud, KITTI_BEV)
-            return self._encode(raster.image, raster, centres)
+            return self._encode(raster.image, raster, centres, keypoints)
         level, R = level_cloud(cloud, KITTI_BEV)
         raster = rasterize_cloud(level, KITTI_BEV)
-        f = self._encode(raster.image, raster, centres)
+        f = self._encode(raster.image, raster, centres, keypoints)
         kp = (f.keypoints.astype(np.float64) @ R).astype(np.float32)  # back to the sensor frame
         return Features(f.global_descriptor, kp, f.local_features, f.encoder, f.global_variants)
 
@@ -348,8 +394,14 @@ class LearnedEncoder(Encoder):
         """Encode a kitti-bev density image ``[151, 151]`` uint8; keypoints at ``z = 0``
         (``centres`` as for :meth:`encode_query`).
 
-        Raises :class:`InputError` if the image has the wrong shape or dtype, or is empty.
+        Raises :class:`InputError` if the image has the wrong shape or dtype, or is empty,
+        or if the local features are FPFH (an image has no points to compute them on).
         """
+        if self.fpfh is not None:
+            raise InputError(
+                "the learned encoder with local_features 'fpfh' describes 3-D scans only: "
+                "a BEV image has no points for FPFH (use local_features 'network')"
+            )
         img = np.asarray(image)
         s = KITTI_BEV.size
         if img.shape != (s, s) or img.dtype != np.uint8:
@@ -379,7 +431,11 @@ class LearnedEncoder(Encoder):
         return [(g[i : i + 1], local[i : i + 1], sal[i : i + 1]) for i in range(len(xs))]
 
     def _encode(
-        self, image: np.ndarray, raster: BEVRaster | None, centres: np.ndarray | None = None
+        self,
+        image: np.ndarray,
+        raster: BEVRaster | None,
+        centres: np.ndarray | None = None,
+        keypoints: bool = True,
     ) -> Features:
         import torch
         import torch.nn.functional as F
@@ -409,9 +465,11 @@ class LearnedEncoder(Encoder):
                 peak = s == F.max_pool2d(s[None, None], 2 * r + 1, stride=1, padding=r)[0, 0]
                 s = s.masked_fill(~peak, -math.inf)
             s = s.flatten()
-            k = int(min(c.num_keypoints, int(torch.isfinite(s).sum())))
+            k = int(min(c.num_keypoints, int(torch.isfinite(s).sum()))) if keypoints else 0
             idx = torch.topk(s, k).indices if k else torch.zeros(0, dtype=torch.long)
             feats = local[0].flatten(1)[:, idx.to(self.device)].T.float().cpu().numpy()
+            if not keypoints:
+                feats = np.zeros((0, self.local_dim), np.float32)
             parts = [
                 polar_fft_descriptor(image, KITTI_BEV, POLAR_RINGS, POLAR_SECTORS)
                 if b == "polar"
