@@ -489,7 +489,8 @@ def build_map_command(
     choose_encoder: Annotated[
         bool,
         typer.Option(
-            help="first run the encoder self-test (learned, handcrafted, bev: each localizes "
+            help="first run the encoder self-test (learned, handcrafted, bev and "
+            "learned-fpfh, the learned encoder with FPFH keypoints: each localizes "
             "a sample of the scans against the others, its own stretch of the drive left "
             "out) and build the map with the encoder that does best; recorded with the map. "
             "It looks at every scan up to where --until/--limit stop the build (--every "
