@@ -15,13 +15,13 @@ Per scan (deterministic):
    saliency, ``nms_radius``), lifted to metres at the grey-weighted centroid of the cell's
    2 x 2 pixels (``keypoint_xy``) and, for scans, at the height of the cell's lowest voxel
    (``keypoint_z``), then turned back into the sensor frame; local features are the
-   descriptors of those cells;
-   With ``local_features = "fpfh"`` the scan is prepared as the handcrafted encoder
-   prepares it (range crop, 0.3 m voxels: the cloud kept for ICP), the network sees its
-   box-cropped 0.4 m voxels, and the keypoints and local features are FPFH at its
-   curvature keypoints (:func:`sgvloc.core.encoders.handcrafted.keypoint_features`): a
-   70-degree scan leaves the network 20-34 cells to take keypoints from, too few for the
-   pose step, while the network's global descriptor still finds the place;
+   descriptors of those cells. With ``local_features = "fpfh"`` the scan is prepared as
+   the handcrafted encoder prepares it (range crop, 0.3 m voxels: the cloud kept for
+   ICP), the network sees its box-cropped 0.4 m voxels, and the keypoints and local
+   features are FPFH at its curvature keypoints
+   (:func:`sgvloc.core.encoders.handcrafted.keypoint_features`): a 70-degree scan leaves
+   the network 20-34 cells to take keypoints from, too few for the pose step, while the
+   network's global descriptor still finds the place;
 6. global descriptor (``global_descriptor``): the network's, with ``global_rotations = 4``
    the mean of the descriptors of the image turned by 0, 90, 180 and 270 degrees about the
    sensor (exact pixel turns, as the sensor is the centre of the padded input),
@@ -69,7 +69,7 @@ from ..errors import EmptyScanError, InputError
 from ..features import EncoderIdentity, Features
 from .base import Encoder
 from .bev import polar_fft_descriptor, polar_fft_descriptors
-from .handcrafted import keypoint_features
+from .handcrafted import HandcraftedEncoder, keypoint_features
 from .torchscript import file_sha256
 
 log = logging.getLogger(__name__)
@@ -311,8 +311,6 @@ class LearnedEncoder(Encoder):
         self.fpfh: Any = None
         encoder = self.config.model_dump()
         if self.config.local_features == "fpfh":
-            from .handcrafted import HandcraftedEncoder
-
             self.fpfh = HandcraftedEncoder()
             self.preprocess_config = self.fpfh.preprocess_config
             self.local_dim = self.fpfh.local_dim
