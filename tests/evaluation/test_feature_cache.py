@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from sgvloc.core.config import RetrievalConfig
 from sgvloc.core.encoders import EncoderSpec, make_encoder
@@ -41,3 +42,33 @@ def test_variants_are_cached_with_their_centres(tmp_path: Path, balm_mini_dir: P
         plain = FeatureCache(tmp_path, make_encoder(EncoderSpec.model_validate(spec)))
         assert plain.get(path, centres).global_variants is None
         assert plain.get(path, centres).global_variants is None and plain.hits == 1
+
+
+def test_fpfh_keypoints_are_taken_from_the_handcrafted_files(
+    tmp_path: Path, balm_mini_dir: Path, monkeypatch
+) -> None:
+    """The learned encoder with FPFH keypoints reuses the handcrafted encoder's cached
+    cloud and FPFH of a scan (the self-test runs both): the features are those it computes
+    alone, and FPFH is not computed again."""
+    import sgvloc.core.encoders.learned as learned
+
+    path = KittiSequence(balm_mini_dir).paths[3]
+    centres = RetrievalConfig().centres()
+    spec = EncoderSpec.model_validate({"learned": {"local_features": "fpfh"}})
+    alone = FeatureCache(tmp_path / "alone", make_encoder(spec)).get(path, centres)
+    FeatureCache(tmp_path / "shared", make_encoder(EncoderSpec(kind="handcrafted"))).get(path)
+
+    def no_fpfh(*args, **kwargs):
+        raise AssertionError("FPFH computed again")
+
+    monkeypatch.setattr(learned, "keypoint_features", no_fpfh)
+    cache = FeatureCache(tmp_path / "shared", make_encoder(spec))
+    shared = cache.get(path, centres)
+    for name in ("global_descriptor", "keypoints", "local_features", "global_variants"):
+        np.testing.assert_array_equal(getattr(shared, name), getattr(alone, name))
+    np.testing.assert_array_equal(
+        cache.cloud(path), FeatureCache(tmp_path / "alone", make_encoder(spec)).cloud(path)
+    )
+    # without the handcrafted file it computes FPFH itself
+    with pytest.raises(AssertionError, match="FPFH computed again"):
+        FeatureCache(tmp_path / "other", make_encoder(spec)).get(path)

@@ -350,16 +350,27 @@ class LearnedEncoder(Encoder):
         """
         return self.encode_query(cloud, None)
 
-    def encode_query(self, cloud: np.ndarray, centres: np.ndarray | None = None) -> Features:
+    def encode_query(
+        self,
+        cloud: np.ndarray,
+        centres: np.ndarray | None = None,
+        *,
+        local: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> Features:
         """:meth:`encode_cloud`, with the polar block about ``centres`` ``[C, 2]`` too (in
         the levelled frame; a ring of them is the same in any frame) when the global
-        descriptor has one (:meth:`Encoder.encode_query`)."""
+        descriptor has one (:meth:`Encoder.encode_query`).
+
+        ``local``: with ``local_features = "fpfh"``, the keypoints and FPFH rows that
+        :attr:`fpfh` (the handcrafted encoder) already made of this cloud, taken instead
+        of computing them again (the evaluation's feature cache holds them).
+        """
         cloud = np.asarray(cloud, dtype=np.float32)
         if self.fpfh is None:
             return self._encode_scan(cloud, centres)
         # the network on the box-cropped 0.4 m voxels for the place, FPFH for the pose
         f = self._encode_scan(prepare_points(cloud, KITTI_BEV), centres, keypoints=False)
-        kp, local = keypoint_features(cloud, self.fpfh.config)
+        kp, local = local if local is not None else keypoint_features(cloud, self.fpfh.config)
         g = Features.validated(
             f.global_descriptor,
             kp,

@@ -5,6 +5,11 @@ hash of the scan's absolute path, size and modification time, so a changed scan 
 another encoder setting never reuses stale features. Each file holds the global
 descriptor, keypoints, local features and the preprocessed cloud (for ICP refinement).
 
+The learned encoder with FPFH keypoints (``local_features = "fpfh"``) takes the cloud,
+keypoints and FPFH of a scan from the handcrafted encoder's files when they are there
+(the same preprocessing and features: the encoder self-test runs both), and computes only
+the network's part.
+
 With ``fov_deg`` every scan (and image) is first cropped to that horizontal field of view
 about the sensor's forward axis (a forward-looking sensor emulated on 360-degree data);
 those features live in ``<fingerprint>-fov<deg>/``.
@@ -60,6 +65,10 @@ class FeatureCache:
             ident.write_text(json.dumps(encoder.identity.to_dict(), indent=1, default=str))
         self.hits = 0
         self.misses = 0
+        #: the cache of the encoder that makes this one's local part (the learned encoder
+        #: with FPFH keypoints: the handcrafted encoder's), whose files are reused
+        local = getattr(encoder, "fpfh", None)
+        self.local_from = FeatureCache(root, local, fov_deg) if local is not None else None
 
     def path_for(self, scan_path: str | os.PathLike) -> Path:
         """The cache file of a scan file (depends on its path, size and mtime)."""
@@ -120,6 +129,18 @@ class FeatureCache:
             if centres is not None and self.encoder.describes_displaced:
                 return encode_image(image, centres=centres), np.zeros((0, 3), np.float32)
             return encode_image(image), np.zeros((0, 3), np.float32)
+        if self.local_from is not None:  # that encoder's cloud and FPFH, if cached
+            donor, parts = self.local_from.path_for(path), None
+            try:
+                with np.load(donor) as z:
+                    parts = z["keypoints"], z["local_features"], z["cloud"]
+            except FileNotFoundError:
+                pass
+            except (OSError, KeyError, ValueError) as exc:  # damaged file: compute
+                log.warning("feature cache file %s unreadable (%s); recomputing", donor, exc)
+            if parts is not None:
+                kp, local, cloud = parts
+                return self.encoder.encode_query(cloud, centres, local=(kp, local)), cloud
         from sgvloc.core.io import read_scan
         from sgvloc.core.preprocess import crop_azimuth
 
