@@ -476,9 +476,11 @@ class LearnedEncoder(Encoder):
             s = s.flatten()
             k = int(min(c.num_keypoints, int(torch.isfinite(s).sum()))) if keypoints else 0
             idx = torch.topk(s, k).indices if k else torch.zeros(0, dtype=torch.long)
-            feats = local[0].flatten(1)[:, idx.to(self.device)].T.float().cpu().numpy()
-            if not keypoints:
-                feats = np.zeros((0, self.local_dim), np.float32)
+            feats = (
+                local[0].flatten(1)[:, idx.to(self.device)].T.float().cpu().numpy()
+                if keypoints
+                else np.zeros((0, self.local_dim), np.float32)  # the caller's local part
+            )
             parts = [
                 polar_fft_descriptor(image, KITTI_BEV, POLAR_RINGS, POLAR_SECTORS)
                 if b == "polar"
