@@ -704,14 +704,17 @@ class BaseClient:
         gap_s: float,
         gap_keyframes: int,
         radius_m: float,
+        encoders: Sequence[str] | None,
         timeout: float | None,
     ) -> Call[dict[str, Any]]:
-        body = {
+        body: dict[str, Any] = {
             "queries": queries,
             "gap_s": gap_s,
             "gap_keyframes": gap_keyframes,
             "radius_m": radius_m,
         }
+        if encoders is not None:
+            body["encoders"] = list(encoders)
         # Not resent: it only records a summary, but a timed-out one may still be running
         # on the server, and each try would start another.
         call = self._call(

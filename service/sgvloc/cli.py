@@ -1863,6 +1863,14 @@ def map_self_test_command(
         int, typer.Option(min=1, help="the same in insertion order, without timestamps")
     ] = 30,
     radius_m: Annotated[float, typer.Option(help="a keyframe this close is a revisit")] = 5.0,
+    encoders: Annotated[
+        str | None,
+        typer.Option(
+            help="also measure these encoders (comma-separated: learned, handcrafted, "
+            "bev, learned-fpfh; or all) on the same queries, from the keyframes' stored "
+            "clouds, and name the best"
+        ),
+    ] = None,
     as_json: Annotated[
         bool, typer.Option("--json", help="print the whole report (with per-query records)")
     ] = False,
@@ -1872,7 +1880,16 @@ def map_self_test_command(
 ) -> None:
     """Localize a sample of a served map's own keyframes against the others, each one's
     own stretch of the drive left out (POST /v1/maps/{map}/self-test): Recall@1, pose
-    success, correct answers accepted and false accepts; recorded with the map."""
+    success, correct answers accepted and false accepts; recorded with the map. With
+    --encoders, other encoders are measured alike and the best is named."""
+    from .core import leave_out
+
+    names = None
+    if encoders is not None:
+        names = [e.strip() for e in encoders.split(",") if e.strip()]
+        names = list(leave_out.CANDIDATES) if names == ["all"] else names
+        if not names:
+            raise typer.BadParameter("name at least one encoder", param_hint="--encoders")
     with _sdk(url, api_key, timeout) as c:
         rep = _sdk_call(
             "self-test",
@@ -1882,6 +1899,7 @@ def map_self_test_command(
                 gap_s=gap_s,
                 gap_keyframes=gap_keyframes,
                 radius_m=radius_m,
+                encoders=names,
                 timeout=timeout,
             ),
         )
@@ -1907,6 +1925,25 @@ def map_self_test_command(
         f"{pct(f['pose_success'])} | {pct(f['accepted_of_correct'])} | "
         f"{f['false_accepts']} | {pct(f['median_ms'])} |"
     )
+    if not rep.get("encoders"):
+        return
+    typer.echo("")
+    typer.echo(
+        "| encoder | R@1 % | pose success % | localized correctly | false accepts | "
+        "not encoded | seconds |"
+    )
+    typer.echo("|---|---:|---:|---:|---:|---:|---:|")
+    for name, e in rep["encoders"].items():
+        g = e["figures"]
+        mark = " (chosen)" if name == rep["chosen"] else ""
+        typer.echo(
+            f"| {name}{mark} | {pct(g['recall_at_1'])} | {pct(g['pose_success'])} | "
+            f"{g['localized_correct']} of {g['queries']} | {g['false_accepts']} | "
+            f"{e['unencoded']} | {e['seconds']:.1f} |"
+        )
+    typer.echo(f"chosen: {rep['chosen']} ({rep['rule']})")
+    if rep.get("warning"):
+        typer.echo(f"warning: {rep['warning']}")
 
 
 @map_app.command("keyframes")

@@ -377,6 +377,85 @@ def test_self_test_of_a_served_map(service_url: str, balm_mini_dir: Path) -> Non
         c.delete_map("st")
 
 
+def test_a_served_map_compares_encoders_on_its_stored_clouds(
+    service_url: str, balm_mini_dir: Path
+) -> None:
+    """With ``encoders``, the self-test measures each on the same queries from the
+    keyframes' stored clouds encoded again (the map's own encoder as served), names the
+    best by the build's rule and records the comparison without its records; unknown or
+    repeated names, and a map that keeps no clouds, get a 422 naming ``encoders``."""
+    from sgvloc.core import leave_out
+    from sgvloc.core.encoders import EncoderSpec, make_encoder
+    from sgvloc_client import BadRequest
+
+    runner = CliRunner()
+    args = ["build-map", "--data", str(balm_mini_dir), "--map", "st-enc", "--url", service_url]
+    out = runner.invoke(app, [*args, "--no-progress"])
+    assert out.exit_code == 0, out.output
+    order = ["handcrafted", "learned", "bev", "learned-fpfh"]
+    with Client(service_url) as c:
+        rep = c.self_test_map("st-enc", queries=4, encoders=order)
+        info = c.get_map("st-enc")
+        enc = rep["encoders"]
+        assert list(enc) == order
+        own = enc["learned"]  # the map's own encoder: its answers as served
+        assert own["fingerprint"] == info.encoder.fingerprint
+        assert own["records"] == rep["records"] and own["figures"] == rep["figures"]
+        queried = [r["keyframe"] for r in rep["records"]]
+        for name in order:
+            e = enc[name]
+            assert e["encoder"] == leave_out.spec_of(name) and e["unencoded"] == 0
+            made = make_encoder(EncoderSpec(**leave_out.spec_of(name)))
+            assert e["fingerprint"] == made.identity.fingerprint
+            assert [r["keyframe"] for r in e["records"]] == queried  # the same queries
+            assert e["figures"] == leave_out.summarise(e["records"])
+            for r in e["records"]:  # none answered by a keyframe of its own 30 s
+                assert r["top1"] is None or r["top1"] != r["keyframe"]
+        assert len({e["fingerprint"] for e in enc.values()}) == 4
+        # real scans with revisits: every encoder finds most of them from the clouds
+        assert all(e["figures"]["recall_at_1"] >= 50 for e in enc.values())
+        figures = {n: e["figures"] for n, e in enc.items()}
+        assert rep["chosen"] == leave_out.choose(figures, tuple(order))
+        assert rep["warning"] == leave_out.warning(figures, rep["chosen"])
+        kept = info.last_self_test
+        assert kept["chosen"] == rep["chosen"] and kept["rule"] == leave_out.RULE
+        assert kept["encoders"]["bev"] == {k: v for k, v in enc["bev"].items() if k != "records"}
+        out = runner.invoke(
+            app,
+            [
+                "map",
+                "self-test",
+                "st-enc",
+                "--queries",
+                "4",
+                "--encoders",
+                "all",
+                "--url",
+                service_url,
+            ],
+        )
+        assert out.exit_code == 0, out.output
+        first = leave_out.choose(figures, leave_out.CANDIDATES)  # ties: the order given
+        assert f"| {first} (chosen) |" in out.output and f"chosen: {first} (" in out.output
+        for bad in (["nope"], ["bev", "bev"], []):
+            with pytest.raises(BadRequest) as err:
+                c.self_test_map("st-enc", queries=4, encoders=bad)
+            assert err.value.status == 422 and err.value.field == "encoders", bad
+        out = runner.invoke(
+            app, ["map", "self-test", "st-enc", "--encoders", ",", "--url", service_url]
+        )
+        assert out.exit_code == 2 and "--encoders" in out.output
+        c.create_map("st-nc", keep_clouds=False)
+        build_map(balm_mini_dir, c, "st-nc", create=False, progress=False)
+        assert c.self_test_map("st-nc", queries=4)["figures"]["queries"] == 4
+        with pytest.raises(BadRequest) as err:
+            c.self_test_map("st-nc", queries=4, encoders=["bev"])
+        assert err.value.status == 422 and err.value.field == "encoders"
+        assert "keep_clouds" in str(err.value)
+        c.delete_map("st-nc")
+        c.delete_map("st-enc")
+
+
 def test_scans_the_encoder_cannot_describe_are_skipped(
     service_url: str, balm_mini_dir: Path, tmp_path: Path
 ) -> None:

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from svc_helpers import random_features
 
-from sgvloc.core.encoders import EncoderSpec
-from sgvloc.core.errors import ConflictError, NotFoundError
+from sgvloc.core.encoders import EncoderSpec, make_encoder
+from sgvloc.core.errors import ConflictError, InputError, NotFoundError
 from sgvloc.server.maps import FeaturesIn, KeyframeIn, MapManager
 from sgvloc.server.store import KeyframeFilter, open_backend
 
@@ -155,6 +155,46 @@ def test_a_self_test_runs_on_the_stored_map_and_its_summary_survives_a_restart(
     assert h.record.last_self_test == summary
     assert h.record.localizer_config.top_k == 3 and h.record.settings_version == 2
     assert h.version == version  # the keyframes did not change
+
+
+def test_a_self_test_encodes_the_stored_clouds_again_for_another_encoder(
+    managers: Factory, rng: np.random.Generator
+) -> None:
+    """Comparing encoders, each keyframe's stored cloud is encoded again by the candidate
+    (pose and id kept), also when clouds are fetched from the store per use; a map that
+    keeps no clouds, one over the keyframe limit, or one that changed is refused."""
+    m = managers()
+    m.create("b", EncoderSpec(kind="bev"))
+    items = []
+    for i in range(6):
+        T = np.eye(4)
+        T[:3, 3] = [3.0 * i, 0.0, 0.0]
+        pts = rng.uniform([-20, -20, 0], [20, 20, 3], (3000, 3)).astype(np.float32)
+        items.append(KeyframeIn(T_map_sensor=T, points=pts, metadata={"timestamp": float(i)}))
+    ids = m.insert("b", items).ids
+    spec = {"kind": "handcrafted"}
+    want = make_encoder(EncoderSpec(**spec))
+    for manager in (m, managers(features_in_memory=False, feature_cache=2)):
+        version = manager.get("b").version
+        candidate = manager.self_test_candidate("b", version, spec, max_keyframes=6)
+        assert manager.self_test_encode("b", version, candidate, ids) == 0
+        for i in ids:
+            stored = m.get("b").localizer.keyframe(i)
+            kf = candidate.keyframe(i)
+            np.testing.assert_array_equal(kf.T_map_sensor, stored.T_map_sensor)
+            f = want.encode_cloud(want.prepare(stored.cloud))
+            np.testing.assert_array_equal(kf.features.global_descriptor, f.global_descriptor)
+            np.testing.assert_array_equal(kf.features.local_features, f.local_features)
+    with pytest.raises(InputError, match="max_self_test_keyframes") as err:
+        m.self_test_candidate("b", version, spec, max_keyframes=5)
+    assert err.value.field == "encoders"
+    m.insert("b", items[:1])
+    with pytest.raises(ConflictError, match="changed during the self-test"):
+        m.self_test_encode("b", version, candidate, ids)
+    m.create("a", SPEC)
+    with pytest.raises(InputError, match="keeps no keyframe clouds") as err:
+        m.self_test_candidate("a", m.get("a").version, spec, max_keyframes=6)
+    assert err.value.field == "encoders"
 
 
 def test_replicas_settings_changes_never_undo_each_other(managers: Factory) -> None:

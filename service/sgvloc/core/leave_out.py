@@ -13,9 +13,12 @@ queries are sampled alike: accepting one of them with a wrong pose is a false ac
 Figures (:func:`summarise`): Recall@1 (re-ranked top-1 within ``radius_m``) and pose
 success (within 2 m and 5 deg of the keyframe's recorded pose) over the in-coverage
 queries, the share of correct answers accepted, and false accepts over all queries:
-the figures of ``sgvloc eval``, on the map as it is served. Only the map's own encoder
-can be measured this way (stored features); comparing encoders needs the raw scans
-(``sgvloc build-map --choose-encoder --dry-run``).
+the figures of ``sgvloc eval``, on the map as it is served.
+
+Other encoders (:data:`CANDIDATES`) can be measured on the same plan from the keyframes'
+stored clouds, each encoded again by the candidate; :func:`choose` picks the encoder a
+vehicle could act on most often (:data:`RULE`), as ``sgvloc build-map --choose-encoder``
+does from the raw scans.
 """
 
 from __future__ import annotations
@@ -31,6 +34,61 @@ from .pose import rotation_angle_deg
 
 #: format tag of a map's self-test report
 FORMAT = "sgvloc-map-self-test/1"
+#: the encoders a self-test compares by default, by name, in the order that breaks ties
+CANDIDATES = ("learned", "handcrafted", "bev", "learned-fpfh")
+#: the candidates that are not a plain encoder kind: name -> EncoderSpec (JSON)
+SPECS: dict[str, dict[str, Any]] = {
+    # the network's global descriptor with FPFH keypoints: narrow or sparse scans
+    "learned-fpfh": {"kind": "learned", "learned": {"local_features": "fpfh"}},
+}
+#: how :func:`choose` ranks encoders
+RULE = (
+    "most queries localized correctly (in coverage), then fewest false accepts (all "
+    "sampled queries), then most correct poses (in coverage), then highest R@1 at 5 m, "
+    "then the candidates' order"
+)
+
+
+def spec_of(name: str) -> dict[str, Any]:
+    """The EncoderSpec (JSON) of a candidate: :data:`SPECS`, else the kind ``name``."""
+    return dict(SPECS.get(name, {"kind": name}))
+
+
+def choose(figures: dict[str, dict[str, Any]], order: tuple[str, ...]) -> str:
+    """The encoder :data:`RULE` picks from per-encoder ``figures`` (``localized_correct``,
+    ``false_accepts``, ``correct_poses``, ``recall_at_1``); deterministic."""
+
+    def key(name: str) -> tuple[float, ...]:
+        f = figures[name]
+        return (
+            f["localized_correct"],
+            -f["false_accepts"],
+            f["correct_poses"],
+            f["recall_at_1"] or 0.0,
+            -order.index(name),
+        )
+
+    return max((k for k in order if k in figures), key=key)
+
+
+def warning(figures: dict[str, dict[str, Any]], chosen: str) -> str | None:
+    """What to tell before serving a map on ``chosen``: None when it localizes at least
+    half of the queries with a revisit correctly, else why its figures need a look."""
+    f = figures[chosen]
+    n, q = f["localized_correct"], f["queries"]
+    if 2 * n >= q:
+        return None
+    head = (
+        f"no encoder localizes any of the {q} scans with a revisit correctly (the choice "
+        "rests on the rule's later figures)"
+        if n == 0
+        else f"{chosen}, the best, localizes only {n} of the {q} scans with a revisit correctly"
+    )
+    return (
+        f"{head}: revisits that face other ways (a narrow field of view), scans far apart "
+        "or a sensor unlike the calibration's leave few answers to act on; look at the "
+        "figures before serving this map"
+    )
 
 
 @dataclass(frozen=True)
@@ -141,6 +199,23 @@ def record(
     }
 
 
+def unanswered(keyframe_id: int, in_coverage: bool) -> dict[str, Any]:
+    """The record of a query that could not be asked: an encoder compared on the map's
+    stored clouds found nothing to describe in its cloud (or it has none)."""
+    return {
+        "keyframe": int(keyframe_id),
+        "in_coverage": bool(in_coverage),
+        "top1": None,
+        "found": False,
+        "localized": False,
+        "confidence": 0.0,
+        "correct": False,
+        "rte_m": None,
+        "rre_deg": None,
+        "ms": 0.0,
+    }
+
+
 def summarise(records: list[dict[str, Any]]) -> dict[str, Any]:
     """The self-test's figures over its per-query records (percentages to 0.1)."""
 
@@ -155,6 +230,8 @@ def summarise(records: list[dict[str, Any]]) -> dict[str, Any]:
         "negatives": len(records) - len(inside),
         "recall_at_1": pct(sum(r["found"] for r in inside), len(inside)),
         "pose_success": pct(sum(r["correct"] for r in inside), len(inside)),
+        "correct_poses": sum(r["correct"] for r in inside),
+        "localized_correct": sum(r["correct"] and r["localized"] for r in inside),
         "accepted_of_correct": pct(sum(r["localized"] for r in correct), len(correct)),
         "false_accepts": sum(r["localized"] and not r["correct"] for r in records),
         "median_ms": round(float(np.median(ms)), 1) if ms else None,

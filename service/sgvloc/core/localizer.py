@@ -191,6 +191,9 @@ class Localizer:
         except KeyError:
             raise NotFoundError(f"keyframe {keyframe_id} does not exist") from None
 
+    def holds(self, keyframe_id: int) -> bool:
+        return int(keyframe_id) in self._keyframes
+
     def keyframe_ids(self) -> list[int]:
         return sorted(self._keyframes)
 
@@ -225,6 +228,13 @@ class Localizer:
             variants = self.encoder.encode_query(kf.cloud, centres).global_variants
             features = replace(features, global_variants=variants)
         return kf, self.localize(features=features, cloud=kf.cloud, among=among)
+
+    def whole_keyframes(self, ids: list[int]) -> dict[int, Keyframe]:
+        """The keyframes ``ids`` that exist, with their features and clouds (from memory
+        or the keyframe source)."""
+        with self._lock.read():
+            held = [int(i) for i in ids if int(i) in self._keyframes]
+            return self._whole(held, gone_ok=True)
 
     def encode(self, scan: np.ndarray) -> Features:
         """Features of a raw scan ``[P, 3+]`` with this map's encoder."""

@@ -1295,21 +1295,94 @@ class MapManager:
         )
         return version, plan
 
-    def self_test_query(
-        self, name: str, version: int, plan: leave_out.Plan, keyframe_id: int, radius_m: float
-    ) -> dict[str, Any]:
-        """One query of a self-test: its record (409 if the map changed since the plan)."""
+    def _unchanged(self, name: str, version: int) -> MapHandle:
+        """The map, if still at the self-test's ``version`` (else 409)."""
         handle = self.get(name, load=True)
         if handle.version != version:
             raise ConflictError(
                 f"map {name!r} changed during the self-test (version {version} -> "
                 f"{handle.version}); run it again"
             )
-        kf, result = handle.localizer.localize_keyframe(keyframe_id, plan.searched(keyframe_id))
-        top = result.reranked[0].keyframe_id if result.reranked else None
-        at = None if top is None else handle.localizer.keyframe(top).T_map_sensor[:3, 3]
+        return handle
+
+    def self_test_query(
+        self,
+        name: str,
+        version: int,
+        plan: leave_out.Plan,
+        keyframe_id: int,
+        radius_m: float,
+        candidate: Localizer | None = None,
+    ) -> dict[str, Any]:
+        """One query of a self-test: its record (409 if the map changed since the plan).
+        With ``candidate`` (:meth:`self_test_candidate`) that encoder answers it."""
+        handle = self._unchanged(name, version)
+        loc = handle.localizer if candidate is None else candidate
         inside = keyframe_id in plan.in_coverage
+        if candidate is not None and not candidate.holds(keyframe_id):
+            return leave_out.unanswered(keyframe_id, inside)
+        kf, result = loc.localize_keyframe(keyframe_id, plan.searched(keyframe_id))
+        top = result.reranked[0].keyframe_id if result.reranked else None
+        at = None if top is None else loc.keyframe(top).T_map_sensor[:3, 3]
         return leave_out.record(keyframe_id, inside, kf.T_map_sensor, result, at, radius_m)
+
+    def self_test_candidate(
+        self, name: str, version: int, spec: dict[str, Any], max_keyframes: int
+    ) -> Localizer:
+        """An empty localizer with the encoder ``spec`` and the map's localizer settings
+        (its verdict from the shipped calibration of that encoder's kind), to measure
+        that encoder on the map's keyframes (:meth:`self_test_encode`). 422 on
+        ``encoders`` if the map keeps no clouds to encode again or has more than
+        ``max_keyframes`` (the candidate holds its own copy of every keyframe)."""
+        handle = self._unchanged(name, version)
+        if handle.num_keyframes > max_keyframes:
+            raise field_error(
+                InputError(
+                    f"map {name!r} has {handle.num_keyframes} keyframes; encoders are "
+                    f"compared on maps of at most {max_keyframes} (max_self_test_keyframes): "
+                    "leave out encoders, or compare them on a sample of the raw scans "
+                    "(sgvloc build-map --choose-encoder --dry-run --limit N)"
+                ),
+                "encoders",
+            )
+        if not handle.record.keep_clouds:
+            raise field_error(
+                InputError(
+                    f"map {name!r} keeps no keyframe clouds (keep_clouds is false): other "
+                    "encoders cannot be measured on it; leave out encoders, or compare "
+                    "them on the raw scans (sgvloc build-map --choose-encoder --dry-run)"
+                ),
+                "encoders",
+            )
+        with at_field("encoders"):
+            encoder = make_encoder(EncoderSpec(**spec))
+        return Localizer(encoder, handle.record.localizer_config)
+
+    def self_test_encode(
+        self, name: str, version: int, candidate: Localizer, ids: list[int]
+    ) -> int:
+        """Encode the map's keyframes ``ids`` again from their stored clouds into
+        ``candidate``, ids and poses kept. Returns how many it could not encode: stored
+        without a cloud (inserted as features), or nothing in the cloud the candidate
+        can describe (an empty BEV image, too few points)."""
+        handle = self._unchanged(name, version)
+        whole = handle.localizer.whole_keyframes(ids)
+        made, skipped = [], 0
+        for i in ids:
+            kf = whole.get(int(i))
+            if kf is None:
+                raise ConflictError(f"keyframe {i} was removed during the self-test")
+            if kf.cloud is None:
+                skipped += 1
+                continue
+            try:
+                made.append(
+                    candidate.make_keyframe(kf.T_map_sensor, scan=kf.cloud, keyframe_id=int(i))
+                )
+            except InputError:
+                skipped += 1
+        candidate.add_keyframes(made)
+        return skipped
 
     def record_self_test(self, name: str, summary: dict[str, Any]) -> MapHandle:
         """Store a self-test's summary with the map's settings (``last_self_test``)."""

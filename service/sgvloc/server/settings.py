@@ -133,6 +133,12 @@ class Settings(BaseSettings):
         "map's encoder num_keypoints (the encoders make at most 512 by default). Re-ranking "
         "costs grow with its square",
     )
+    max_self_test_keyframes: int = Field(
+        2000,
+        ge=1,
+        description="a self-test compares encoders (encoders) only on maps of at most "
+        "this many keyframes: each candidate holds its own copy of them",
+    )
     max_top_k: int = Field(100, ge=1, description="largest top_k a localize request may ask")
     snapshot_every: int = Field(
         1000,

@@ -22,28 +22,13 @@ import time
 from pathlib import Path
 from typing import Any
 
+from sgvloc.core import leave_out
 from sgvloc.core.encoders import EncoderSpec
 from sgvloc.core.errors import InputError
+from sgvloc.core.leave_out import CANDIDATES, RULE, SPECS, spec_of, warning
 
-#: the encoders compared by default, by name, in the order that breaks ties
-CANDIDATES = ("learned", "handcrafted", "bev", "learned-fpfh")
-#: the candidates that are not a plain encoder kind: name -> EncoderSpec (JSON)
-SPECS: dict[str, dict[str, Any]] = {
-    # the network's global descriptor with FPFH keypoints: narrow or sparse scans
-    "learned-fpfh": {"kind": "learned", "learned": {"local_features": "fpfh"}},
-}
 #: format tag of a self-test report
 FORMAT = "sgvloc-self-test/1"
-RULE = (
-    "most queries localized correctly (in coverage), then fewest false accepts (all "
-    "sampled queries), then most correct poses (in coverage), then highest R@1 at 5 m, "
-    "then the candidates' order"
-)
-
-
-def spec_of(name: str) -> dict[str, Any]:
-    """The EncoderSpec (JSON) of a candidate: :data:`SPECS`, else the kind ``name``."""
-    return dict(SPECS.get(name, {"kind": name}))
 
 
 def self_test(
@@ -131,40 +116,10 @@ def self_test(
     }
 
 
-def warning(figures: dict[str, dict[str, Any]], chosen: str) -> str | None:
-    """What to tell before a map is built on ``chosen``: None when it localizes at least
-    half of the scans with a revisit correctly, else why its figures need a look."""
-    f = figures[chosen]
-    n, q = f["localized_correct"], f["queries"]
-    if 2 * n >= q:
-        return None
-    head = (
-        f"no encoder localizes any of the {q} scans with a revisit correctly (the choice "
-        "rests on the rule's later figures)"
-        if n == 0
-        else f"{chosen}, the best, localizes only {n} of the {q} scans with a revisit correctly"
-    )
-    return (
-        f"{head}: revisits that face other ways (a narrow field of view), scans far apart "
-        "or a sensor unlike the calibration's leave few answers to act on; look at the "
-        "figures before serving this map"
-    )
-
-
 def choose(figures: dict[str, dict[str, Any]], order: tuple[str, ...]) -> str:
-    """The encoder :data:`RULE` picks from per-encoder ``figures`` (deterministic)."""
-
-    def key(kind: str) -> tuple[float, ...]:
-        f = figures[kind]
-        return (
-            f["localized_correct"],
-            -f["false_accepts"],
-            f["correct_poses"],
-            f["recall_at_1_pct"],
-            -order.index(kind),
-        )
-
-    return max((k for k in order if k in figures), key=key)
+    """The encoder :data:`RULE` picks from the report's per-encoder ``figures``."""
+    named = {k: f | {"recall_at_1": f["recall_at_1_pct"]} for k, f in figures.items()}
+    return leave_out.choose(named, order)
 
 
 def report_table(report: dict[str, Any]) -> str:

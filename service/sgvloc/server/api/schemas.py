@@ -31,6 +31,7 @@ from pydantic import (
 )
 from pydantic.json_schema import SkipJsonSchema
 
+from sgvloc.core import leave_out
 from sgvloc.core.confidence import Calibration
 from sgvloc.core.config import LocalizerConfig, RerankMethod, RetrievalConfig
 from sgvloc.core.encoders import EncoderSpec
@@ -347,6 +348,29 @@ class SelfTestRequest(BaseModel):
     radius_m: float = Field(
         5.0, gt=0, le=100, description="a keyframe left to search within this is a revisit"
     )
+    encoders: list[str] | None = Field(
+        None,
+        min_length=1,
+        max_length=len(leave_out.CANDIDATES),
+        description="also measure these encoders on the same queries, each from the "
+        "keyframes' stored clouds encoded again, and name the best: any of "
+        + ", ".join(leave_out.CANDIDATES)
+        + " (maps that keep clouds, of at most max_self_test_keyframes keyframes)",
+    )
+
+    @field_validator("encoders")
+    @classmethod
+    def _candidates(cls, v: list[str] | None) -> list[str] | None:
+        if v is None:
+            return v
+        unknown = [n for n in v if n not in leave_out.CANDIDATES]
+        if unknown:
+            raise ValueError(
+                f"unknown encoder {unknown[0]!r}: choose from {', '.join(leave_out.CANDIDATES)}"
+            )
+        if len(set(v)) != len(v):
+            raise ValueError("names an encoder twice")
+        return v
 
 
 class SelfTestReport(BaseModel):
@@ -363,6 +387,17 @@ class SelfTestReport(BaseModel):
     )
     seconds: float
     records: list[dict[str, Any]]
+    encoders: dict[str, dict[str, Any]] | None = Field(
+        None,
+        description="with encoders asked for: per encoder its spec, fingerprint, figures "
+        "(as figures), keyframes it could not encode (unencoded), seconds and records "
+        "(the records are not kept in last_self_test)",
+    )
+    chosen: str | None = Field(None, description="the best of encoders, by rule")
+    rule: str | None = Field(None, description="how chosen was picked")
+    warning: str | None = Field(
+        None, description="set when even the chosen encoder localizes under half the queries"
+    )
 
 
 class MapList(BaseModel):

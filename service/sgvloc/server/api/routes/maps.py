@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Awaitable, Callable
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any, TypeVar
 
 import anyio.to_thread
 from fastapi import APIRouter, Depends, Query, Request, Response
@@ -13,6 +14,7 @@ from sgvloc.core import leave_out
 from sgvloc.core.confidence import shipped_calibration
 from sgvloc.core.encoders import EncoderSpec
 from sgvloc.core.errors import InputError
+from sgvloc.core.localizer import Localizer
 
 from ...maps import MapHandle
 from ...settings import Settings
@@ -46,6 +48,10 @@ from ..schemas import (
 )
 
 router = APIRouter(prefix="/v1/maps", tags=["maps"], dependencies=[Depends(authorize)])
+
+T = TypeVar("T")
+#: keyframes a self-test encodes again per worker task when it compares encoders
+SELF_TEST_ENCODE_BATCH = 8
 
 
 def map_info(handle: MapHandle) -> MapInfo:
@@ -291,9 +297,11 @@ async def self_test_map(
 ) -> Response:
     """Localize a sample of the map's own keyframes against the others, leaving out each
     one's own stretch of the drive: Recall@1, pose success and false accepts of the map as
-    it is served (:mod:`sgvloc.core.leave_out`). Each query takes a worker on its own, so
-    localizations go on beside it; the summary is recorded with the map
-    (``last_self_test``). 409 if keyframes change meanwhile."""
+    it is served (:mod:`sgvloc.core.leave_out`). With ``encoders``, each of them is
+    measured on the same queries from the keyframes' stored clouds, and the best is
+    named. Each query and each batch of keyframes encoded takes a worker on its own, so
+    localizations go on beside it; a client that leaves stops it. The summary is
+    recorded with the map (``last_self_test``). 409 if keyframes change meanwhile."""
     # parsed in a worker thread, as every body (a large one would hold the event loop)
     req = await worker.run(lambda: validated(SelfTestRequest, body.decode()))
     t0 = time.monotonic()
@@ -302,14 +310,22 @@ async def self_test_map(
             map_name, req.queries, req.gap_s, req.gap_keyframes, req.radius_m
         )
     )
-    records = []
-    for kf in plan.in_coverage + plan.out_of_coverage:
-        records.append(
-            await worker.run(
-                lambda kf=kf: manager.self_test_query(map_name, version, plan, kf, req.radius_m),
-                deadline_at=time.monotonic() + settings.request_timeout_s,
+
+    def step(fn: Callable[[], T]) -> Awaitable[T]:
+        deadline = time.monotonic() + settings.request_timeout_s
+        return worker.run(fn, deadline_at=deadline, request=request)
+
+    async def answers(candidate: Localizer | None = None) -> list[dict[str, Any]]:
+        return [
+            await step(
+                lambda kf=kf: manager.self_test_query(
+                    map_name, version, plan, kf, req.radius_m, candidate
+                )
             )
-        )
+            for kf in plan.in_coverage + plan.out_of_coverage
+        ]
+
+    records = await answers()
     handle = manager.get(map_name)
     summary = {
         "format": leave_out.FORMAT,
@@ -318,10 +334,53 @@ async def self_test_map(
         "basis": plan.basis,
         "settings": req.model_dump(),
         "figures": leave_out.summarise(records),
-        "seconds": round(time.monotonic() - t0, 2),
     }
+    candidate_records: dict[str, list[dict[str, Any]]] = {}  # answered, not recorded
+    if req.encoders:
+        compared: dict[str, dict[str, Any]] = {}
+        for name in req.encoders:
+            t1, spec = time.monotonic(), leave_out.spec_of(name)
+            candidate = await step(
+                lambda spec=spec: manager.self_test_candidate(
+                    map_name, version, spec, settings.max_self_test_keyframes
+                )
+            )
+            fingerprint, unencoded = candidate.encoder.identity.fingerprint, 0
+            if fingerprint == handle.record.encoder_fingerprint:
+                answered = records  # the map's own encoder: as served
+            else:
+                ids = [int(i) for i in plan.ids]
+                for at in range(0, len(ids), SELF_TEST_ENCODE_BATCH):
+                    batch = ids[at : at + SELF_TEST_ENCODE_BATCH]
+                    unencoded += await step(
+                        lambda batch=batch, c=candidate: manager.self_test_encode(
+                            map_name, version, c, batch
+                        )
+                    )
+                answered = await answers(candidate)
+            del candidate  # its copy of the map is not kept past its turn
+            compared[name] = {
+                "encoder": spec,
+                "fingerprint": fingerprint,
+                "figures": leave_out.summarise(answered),
+                "unencoded": unencoded,
+                "seconds": round(time.monotonic() - t1, 2),
+            }
+            candidate_records[name] = answered
+        figures_of = {n: c["figures"] for n, c in compared.items()}
+        chosen = leave_out.choose(figures_of, tuple(req.encoders))
+        summary |= {
+            "encoders": compared,
+            "chosen": chosen,
+            "rule": leave_out.RULE,
+            "warning": leave_out.warning(figures_of, chosen),
+        }
+    summary["seconds"] = round(time.monotonic() - t0, 2)
     await worker.run(lambda: manager.record_self_test(map_name, summary))
-    return encode(request, SelfTestReport(**summary, records=records))
+    report = SelfTestReport(**summary, records=records)
+    for name, recs in candidate_records.items():
+        report.encoders[name] = report.encoders[name] | {"records": recs}  # type: ignore[index]
+    return encode(request, report)
 
 
 @router.post(
