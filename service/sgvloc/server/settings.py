@@ -134,7 +134,7 @@ class Settings(BaseSettings):
         "costs grow with its square",
     )
     max_self_test_keyframes: int = Field(
-        2000,
+        1000,
         ge=1,
         description="a self-test compares encoders (encoders) only on maps of at most "
         "this many keyframes: each candidate holds its own copy of them",
