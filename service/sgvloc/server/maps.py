@@ -1334,7 +1334,15 @@ class MapManager:
         that encoder on the map's keyframes (:meth:`self_test_encode`). 422 on
         ``encoders`` if the map keeps no clouds to encode again or has more than
         ``max_keyframes`` (the candidate holds its own copy of every keyframe)."""
-        handle = self._unchanged(name, version)
+        self.check_comparable(self._unchanged(name, version), max_keyframes)
+        with at_field("encoders"):
+            encoder = make_encoder(EncoderSpec(**spec))
+        return Localizer(encoder, self.get(name).record.localizer_config)
+
+    def check_comparable(self, handle: MapHandle, max_keyframes: int) -> None:
+        """422 on ``encoders`` unless other encoders can be measured on the map: it keeps
+        its keyframes' clouds and has at most ``max_keyframes``."""
+        name = handle.name
         if handle.num_keyframes > max_keyframes:
             raise field_error(
                 InputError(
@@ -1354,9 +1362,6 @@ class MapManager:
                 ),
                 "encoders",
             )
-        with at_field("encoders"):
-            encoder = make_encoder(EncoderSpec(**spec))
-        return Localizer(encoder, handle.record.localizer_config)
 
     def self_test_encode(
         self, name: str, version: int, candidate: Localizer, ids: list[int]

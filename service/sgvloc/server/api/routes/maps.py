@@ -310,6 +310,8 @@ async def self_test_map(
             map_name, req.queries, req.gap_s, req.gap_keyframes, req.radius_m
         )
     )
+    if req.encoders:  # refused before any work, not after the map's own queries
+        manager.check_comparable(manager.get(map_name), settings.max_self_test_keyframes)
 
     def step(fn: Callable[[], T]) -> Awaitable[T]:
         deadline = time.monotonic() + settings.request_timeout_s
