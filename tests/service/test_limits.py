@@ -51,6 +51,7 @@ def test_config_reports_the_limits(client: httpx.Client) -> None:
         "max_batch": MAX_BATCH,
         "max_top_k": MAX_TOP_K,
         "max_import_bytes": 64 * 1024**3,
+        "max_self_test_keyframes": 1000,
         "max_inflight_localize": 8,  # 4 x 2 workers
         "request_timeout_s": 30.0,
         "retry_after_s": 1,

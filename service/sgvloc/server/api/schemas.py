@@ -855,6 +855,9 @@ class LimitsOut(BaseModel):
         description="largest top_k of a localize request and of a map's settings (422)"
     )
     max_import_bytes: int = Field(description="largest map archive an import takes (413)")
+    max_self_test_keyframes: int = Field(
+        description="largest map a self-test compares encoders on (422 on encoders)"
+    )
     max_inflight_localize: int = Field(description="localize requests admitted at once (429)")
     request_timeout_s: float = Field(description="longest wait for a worker thread (503)")
     retry_after_s: int = Field(description="Retry-After of 429/503 answers")

@@ -47,6 +47,7 @@ async def get_config(request: Request, settings: SettingsDep) -> Response:
                 max_batch=s.max_batch,
                 max_top_k=s.max_top_k,
                 max_import_bytes=s.max_import_bytes,
+                max_self_test_keyframes=s.max_self_test_keyframes,
                 max_inflight_localize=s.inflight_limit,
                 request_timeout_s=s.request_timeout_s,
                 retry_after_s=s.retry_after_s,
