@@ -272,18 +272,7 @@ class AsyncClient(BaseClient):
         encoders: Sequence[str] | None = None,
         timeout: float | None = 600.0,
     ) -> dict[str, Any]:
-        """Localize a sample of the map's own keyframes against the others (each one's
-        own stretch of the drive left out: ``gap_s`` seconds by ``metadata.timestamp``,
-        else ``gap_keyframes`` in insertion order): the report's ``figures`` hold
-        Recall@1, pose success, the share of correct answers accepted and false accepts;
-        ``records`` one entry per query. ``encoders`` (e.g. ``["learned", "handcrafted",
-        "bev", "learned-fpfh"]``) also measures those encoders on the same queries, each
-        from the keyframes' stored clouds encoded again: the report's ``encoders`` holds
-        their figures and ``chosen`` the best. The summary is recorded with the map
-        (``MapInfo.last_self_test``). ``timeout``: seconds for this call (a few per
-        hundred queries on two cores, and per encoder compared about what encoding the
-        map's keyframes takes). Needs a mapper or admin key.
-        """
+        """See :meth:`Client.self_test_map`."""
         return await self._send(
             self._self_test_map(name, queries, gap_s, gap_keyframes, radius_m, encoders, timeout)
         )
