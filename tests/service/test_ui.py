@@ -10,6 +10,7 @@ temporary directory.
 
 from __future__ import annotations
 
+import html
 import json
 import os
 import re
@@ -358,3 +359,56 @@ def test_an_address_the_key_cannot_follow_falls_back_to_what_it_can_see(
     assert re.search(r'<section id="auth" hidden', dom)
     dom = render(f"{many_maps.url}/ui#key={KEYS['viewer']}&filter={'m' * 65}")
     assert _rows(dom) == [f"m-{i:03d}" for i in range(20)], dom[:3000]
+
+
+def test_page_shows_the_selected_maps_self_test(ui_server: Server) -> None:
+    """A map's latest self-test (``last_self_test``) is told in words above its drawing:
+    the figures, the encoders compared and the best of them, and a warning when there is
+    one; a map never tested shows no such line. Runs last: the map it makes is deleted."""
+    rng = np.random.default_rng(3)
+    name = "sensor-check"
+    places = [rng.uniform([-20, -20, 0], [20, 20, 3], (3000, 3)) for _ in range(12)]
+    admin = {"Authorization": f"Bearer {KEYS['admin']}"}
+    with httpx.Client(base_url=ui_server.url, timeout=120, headers=admin) as c:
+        assert (
+            c.post("/v1/maps", json={"name": name, "encoder": {"kind": "bev"}}).status_code == 201
+        )
+        dom = render(f"{ui_server.url}/ui#key={KEYS['viewer']}&map={name}")
+        assert re.search(r'<p id="map-self-test" hidden', dom), dom[:3000]
+        batch = []
+        for lap in range(2):  # the same places twice, 20 s apart: every keyframe a revisit
+            for i, pts in enumerate(places):
+                T = np.eye(4)
+                T[:3, 3] = [8.0 * i, 0.0, 0.0]
+                seen = pts + rng.normal(0.0, 0.02, pts.shape)
+                stamp = 20.0 * lap + i
+                batch.append({"T_map_sensor": T, "points": seen.astype(np.float32),
+                              "metadata": {"timestamp": stamp}})  # fmt: skip
+        r = post_msgpack(c, f"/v1/maps/{name}/keyframes", {"keyframes": batch})
+        assert r.status_code == 201, r.text
+        body = {"queries": 6, "gap_s": 10, "encoders": ["handcrafted", "bev"]}
+        r = c.post(f"/v1/maps/{name}/self-test", json=body)
+        assert r.status_code == 200, r.text
+        rep = r.json()
+        info = c.get(f"/v1/maps/{name}").json()
+    f, enc = rep["figures"], rep["encoders"]
+    hand, bev = enc["handcrafted"]["figures"], enc["bev"]["figures"]
+    want = (
+        f"Self-test of version {info['version']}: R@1 {f['recall_at_1']:.1f} %, pose "
+        f"success {f['pose_success']:.1f} %, {f['false_accepts']} false accepts over "
+        f"{f['queries']} keyframes with a revisit and {f['negatives']} without. Localized "
+        f"correctly by encoder: handcrafted {hand['localized_correct']}, bev (this map's) "
+        f"{bev['localized_correct']}; best: {rep['chosen']}"
+    )
+    rule = ("localized_correct", "false_accepts", "correct_poses", "recall_at_1")
+    tied = rep["chosen"] != "bev" and all(hand[k] == bev[k] for k in rule)
+    want += ", tied with this map's bev." if tied else "."
+    if rep["warning"]:
+        want += f" Warning: {rep['warning']}"
+    dom = render(f"{ui_server.url}/ui#key={KEYS['viewer']}&map={name}")
+    shown = re.search(r'<p id="map-self-test"[^>]*>([^<]*)<', dom)
+    assert shown and html.unescape(shown.group(1)) == want, (shown and shown.group(0), want)
+    assert f["queries"] == 6 and f["recall_at_1"] == 100.0  # the places are found again
+    assert tied  # both find and pose every place: handcrafted, asked first, is named
+    with httpx.Client(base_url=ui_server.url, timeout=60, headers=admin) as c:
+        assert c.delete(f"/v1/maps/{name}").status_code == 204

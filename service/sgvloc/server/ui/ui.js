@@ -453,6 +453,7 @@
         $("map-section").hidden = true;
       } else {
         state.selectedInfo = info;
+        renderSelfTest();
         if (info.version !== state.keyframesVersion) await loadKeyframes(generation);
         return;
       }
@@ -484,6 +485,46 @@
 
   // -- the selected map -----------------------------------------------------------------
 
+  // the latest self-test of a map (MapInfo.last_self_test) in a sentence or two, null if none
+  function selfTestText(info) {
+    const st = info && info.last_self_test;
+    if (!st || !st.figures) return null;
+    const f = st.figures;
+    const pct = (v) => (typeof v === "number" ? `${v.toFixed(1)} %` : "–");
+    let text =
+      `Self-test of version ${st.map_version}` +
+      (st.map_version === info.version ? "" : " (the map has changed since)") +
+      `: R@1 ${pct(f.recall_at_1)}, pose success ${pct(f.pose_success)}, ` +
+      `${f.false_accepts} false accepts over ${f.queries} keyframes with a revisit and ` +
+      `${f.negatives} without.`;
+    if (st.encoders && st.chosen && st.encoders[st.chosen]) {
+      const rows = Object.entries(st.encoders);
+      const fp = info.encoder ? info.encoder.fingerprint : null;
+      const own = rows.find(([, e]) => e.fingerprint === fp);
+      const parts = rows.map(
+        ([name, e]) => `${name}${own && own[0] === name ? " (this map's)" : ""} ${e.figures.localized_correct}`,
+      );
+      // the rule's figures, in its order: equal on all of them, the order asked decided
+      const key = (g) => [g.localized_correct, -g.false_accepts, g.correct_poses, g.recall_at_1 || 0];
+      const tied =
+        own && own[0] !== st.chosen &&
+        key(own[1].figures).every((v, i) => v === key(st.encoders[st.chosen].figures)[i]);
+      text +=
+        ` Localized correctly by encoder: ${parts.join(", ")}; best: ${st.chosen}` +
+        (tied ? `, tied with this map's ${own[0]}.` : ".");
+    }
+    if (st.warning) text += ` Warning: ${st.warning}`;
+    return text;
+  }
+
+  function renderSelfTest() {
+    const text = selfTestText(state.selectedInfo);
+    const el = $("map-self-test");
+    el.textContent = text || "";
+    el.hidden = !text;
+    el.classList.toggle("warn", Boolean(text && state.selectedInfo.last_self_test.warning));
+  }
+
   async function select(name, info = null) {
     state.selected = name;
     state.selectedInfo = info || state.maps.find((m) => m.name === name) || null;
@@ -495,6 +536,7 @@
       else row.removeAttribute("aria-current");
     }
     $("map-title").textContent = name;
+    renderSelfTest();
     $("map-section").hidden = false;
     state.keyframes = [];
     state.keyframeById = new Map();
