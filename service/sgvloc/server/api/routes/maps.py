@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Awaitable, Callable
 from pathlib import Path
@@ -49,6 +50,7 @@ from ..schemas import (
 
 router = APIRouter(prefix="/v1/maps", tags=["maps"], dependencies=[Depends(authorize)])
 
+log = logging.getLogger(__name__)
 T = TypeVar("T")
 #: keyframes a self-test encodes again per worker task when it compares encoders
 SELF_TEST_ENCODE_BATCH = 8
@@ -370,6 +372,15 @@ async def self_test_map(
                 "seconds": seconds or round(time.monotonic() - t1, 2),
             }
             candidate_records[name] = answered
+            log.info(
+                "map %r: self-test measured encoder %s (%d of %d): %s in %.1f s",
+                map_name,
+                name,
+                len(compared),
+                len(req.encoders),
+                compared[name]["figures"],
+                compared[name]["seconds"],
+            )
         figures_of = {n: c["figures"] for n, c in compared.items()}
         chosen = leave_out.choose(figures_of, tuple(req.encoders))
         summary |= {
