@@ -3,10 +3,12 @@ or a data directory."""
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from contextlib import AbstractContextManager
 from pathlib import Path
 
+import httpx
 import numpy as np
 import pytest
 from typer.testing import CliRunner
@@ -445,6 +447,16 @@ def test_a_served_map_compares_encoders_on_its_stored_clouds(
             app, ["map", "self-test", "st-enc", "--encoders", ",", "--url", service_url]
         )
         assert out.exit_code == 2 and "--encoders" in out.output
+        # a client that gives up stops the job: the summary it would record never is
+        from sgvloc_client import TransportError
+
+        with pytest.raises(TransportError):
+            c.self_test_map("st-enc", queries=4, encoders=["handcrafted"], timeout=0.3)
+        time.sleep(8)  # the whole run takes about 3 s here
+        assert list(c.get_map("st-enc").last_self_test["encoders"]) == list(leave_out.CANDIDATES)
+        metrics = httpx.get(f"{service_url}/metrics").text
+        gone = 'sgvloc_errors_total{code="caller_gone",route="/v1/maps/{map}/self-test"} 1.0'
+        assert gone in metrics
         c.create_map("st-nc", keep_clouds=False)
         build_map(balm_mini_dir, c, "st-nc", create=False, progress=False)
         assert c.self_test_map("st-nc", queries=4)["figures"]["queries"] == 4
@@ -464,8 +476,6 @@ def test_scans_the_encoder_cannot_describe_are_skipped(
     scan file with no point, says which, and inserts the rest, into a service and into a
     data directory alike."""
     import shutil
-
-    import httpx
 
     data = tmp_path / "seq"
     shutil.copytree(balm_mini_dir, data)
