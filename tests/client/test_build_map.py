@@ -3,6 +3,7 @@ or a data directory."""
 
 from __future__ import annotations
 
+import concurrent.futures
 import time
 from collections.abc import Callable
 from contextlib import AbstractContextManager
@@ -447,13 +448,27 @@ def test_a_served_map_compares_encoders_on_its_stored_clouds(
             app, ["map", "self-test", "st-enc", "--encoders", ",", "--url", service_url]
         )
         assert out.exit_code == 2 and "--encoders" in out.output
+        # one comparison at a time: another meanwhile is a 429, a plain self-test is not
+        with concurrent.futures.ThreadPoolExecutor(1) as pool:
+            first = pool.submit(c.self_test_map, "st-enc", queries=4, encoders=order)
+            time.sleep(1.0)
+            r = httpx.post(f"{service_url}/v1/maps/st-enc/self-test", json={"encoders": ["bev"]})
+            plain = c.self_test_map("st-enc", queries=4)
+            assert first.result()["chosen"] == rep["chosen"]
+        assert r.status_code == 429 and r.json()["error"]["code"] == "overloaded", r.text
+        assert "one runs at a time" in r.json()["error"]["message"] and r.headers["Retry-After"]
+        untimed = [
+            {k: v for k, v in x["figures"].items() if k != "median_ms"} for x in (plain, rep)
+        ]
+        assert untimed[0] == untimed[1]
         # a client that gives up stops the job: the summary it would record never is
         from sgvloc_client import TransportError
 
+        before = c.get_map("st-enc").last_self_test
         with pytest.raises(TransportError):
             c.self_test_map("st-enc", queries=4, encoders=["handcrafted"], timeout=0.3)
         time.sleep(8)  # the whole run takes about 3 s here
-        assert list(c.get_map("st-enc").last_self_test["encoders"]) == list(leave_out.CANDIDATES)
+        assert c.get_map("st-enc").last_self_test == before
         metrics = httpx.get(f"{service_url}/metrics").text
         gone = 'sgvloc_errors_total{code="caller_gone",route="/v1/maps/{map}/self-test"} 1.0'
         assert gone in metrics

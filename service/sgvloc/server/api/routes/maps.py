@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import time
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Iterator
 from pathlib import Path
 from typing import Annotated, Any, TypeVar
 
@@ -17,7 +18,7 @@ from sgvloc.core.encoders import EncoderSpec
 from sgvloc.core.errors import InputError
 from sgvloc.core.localizer import Localizer
 
-from ...maps import MapHandle
+from ...maps import MapHandle, MapManager
 from ...settings import Settings
 from ..auth import authorize, principal_of
 from ..body import encode
@@ -26,8 +27,10 @@ from ..deps import (
     ManagerDep,
     MapName,
     SettingsDep,
+    Worker,
     WorkerDep,
     WriteWorkerDep,
+    busy,
     served_map,
 )
 from ..errors import ApiError, validated
@@ -287,7 +290,7 @@ async def update_map(
     response_model=SelfTestReport,
     operation_id="self_test_map",
     openapi_extra=body_doc(SelfTestRequest),
-    responses=error_responses(400, 404, 409, 413, 415, 422),
+    responses=error_responses(400, 404, 409, 413, 415, 422, 429),
 )
 async def self_test_map(
     request: Request,
@@ -306,14 +309,53 @@ async def self_test_map(
     recorded with the map (``last_self_test``). 409 if keyframes change meanwhile."""
     # parsed in a worker thread, as every body (a large one would hold the event loop)
     req = await worker.run(lambda: validated(SelfTestRequest, body.decode()))
-    t0 = time.monotonic()
     version, plan = await worker.run(
         lambda: manager.self_test_plan(
             map_name, req.queries, req.gap_s, req.gap_keyframes, req.radius_m
         )
     )
+    guard = contextlib.ExitStack()
     if req.encoders:  # refused before any work, not after the map's own queries
         manager.check_comparable(manager.get(map_name), settings.max_self_test_keyframes)
+        guard.enter_context(_one_comparison(request, map_name, settings))
+    with guard:
+        return await _self_test(request, map_name, req, version, plan, manager, settings, worker)
+
+
+@contextlib.contextmanager
+def _one_comparison(request: Request, map_name: str, settings: Settings) -> Iterator[None]:
+    """One self-test that compares encoders at a time in this process (429 otherwise):
+    each holds a copy of its map's keyframes per candidate, so that concurrent ones
+    cannot add up past what one is bounded to (max_self_test_keyframes)."""
+    state = request.app.state
+    running = getattr(state, "comparing_encoders", None)
+    if running is not None:
+        raise busy(
+            429,
+            "overloaded",
+            f"a self-test comparing encoders is running (map {running!r}); one runs at a "
+            "time: retry when it ends, or leave out encoders",
+            settings,
+        )
+    state.comparing_encoders = map_name  # no await between the check and this
+    try:
+        yield
+    finally:
+        state.comparing_encoders = None
+
+
+async def _self_test(
+    request: Request,
+    map_name: str,
+    req: SelfTestRequest,
+    version: int,
+    plan: leave_out.Plan,
+    manager: MapManager,
+    settings: Settings,
+    worker: Worker,
+) -> Response:
+    """The self-test's queries, those of each encoder compared, and its record."""
+    t0 = time.monotonic()
 
     def step(fn: Callable[[], T]) -> Awaitable[T]:
         deadline = time.monotonic() + settings.request_timeout_s
