@@ -463,7 +463,8 @@ def build_map_command(
     encoder: Annotated[
         str | None,
         typer.Option(
-            help="encoder of a new map: a kind (learned, handcrafted, bev) or a JSON "
+            help="encoder of a new map: a kind (learned, handcrafted, bev), learned-fpfh "
+            "(the self-test's name for the learned encoder with FPFH keypoints) or a JSON "
             "EncoderSpec (default: learned)"
         ),
     ] = None,
@@ -590,7 +591,7 @@ def build_map_command(
             write_text_whole(self_test_out, json.dumps(report, indent=1))
         if dry_run:
             return
-        encoder = json.dumps(report["encoders"][report["chosen"]]["encoder"])
+        encoder = report["chosen"]  # a candidate's name: parse_encoder gives its spec
     options = dict(create=create, encoder=encoder, batch_size=batch_size, every=every)
     options.update(limit=limit, until=until, progress=progress, self_test=report)
     options.update(key_prefix=key_prefix)

@@ -47,6 +47,8 @@ def test_select_frames_and_encoder_option() -> None:
         select_frames(10, until=2.0)
     assert parse_encoder(None) is None
     assert parse_encoder("handcrafted") == {"kind": "handcrafted"}
+    learned_fpfh = {"kind": "learned", "learned": {"local_features": "fpfh"}}
+    assert parse_encoder("learned-fpfh") == learned_fpfh  # the self-test's names too
     assert parse_encoder('{"kind": "handcrafted", "num_keypoints": 64}')["num_keypoints"] == 64
     with pytest.raises(InputError, match="JSON"):
         parse_encoder("{kind")

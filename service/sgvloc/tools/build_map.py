@@ -41,6 +41,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 from tqdm import tqdm
 
+from sgvloc.core import leave_out
 from sgvloc.core.errors import ConflictError, EmptyScanError, InputError, NotFoundError
 from sgvloc.core.sequence import KittiSequence
 from sgvloc_client import Client, Conflict, NotFound, Overloaded
@@ -129,7 +130,9 @@ def _self_test_not_recorded(name: str, self_test: Mapping[str, Any] | None) -> N
 
 
 def parse_encoder(value: str | Mapping[str, Any] | None) -> dict[str, Any] | None:
-    """An encoder option: None, a kind (``"handcrafted"``), or a JSON EncoderSpec object."""
+    """An encoder option: None, a kind (``"handcrafted"``) or a self-test candidate's name
+    (``"learned-fpfh"``, :data:`sgvloc.core.leave_out.SPECS`), or a JSON EncoderSpec
+    object."""
     if value is None or isinstance(value, Mapping):
         return None if value is None else dict(value)
     text = value.strip()
@@ -141,7 +144,7 @@ def parse_encoder(value: str | Mapping[str, Any] | None) -> dict[str, Any] | Non
         if not isinstance(spec, dict):
             raise InputError("encoder: the JSON must be an object")
         return spec
-    return {"kind": text}
+    return leave_out.spec_of(text)
 
 
 def select_frames(
