@@ -288,8 +288,9 @@ class Client(BaseClient):
         Recall@1, pose success, the share of correct answers accepted and false accepts;
         ``records`` one entry per query. ``encoders`` (e.g. ``["learned", "handcrafted",
         "bev", "learned-fpfh"]``) also measures those encoders on the same queries, each
-        from the keyframes' stored clouds encoded again: the report's ``encoders`` holds
-        their figures and ``chosen`` the best. The summary is recorded with the map
+        from the keyframes' stored clouds encoded again (the map's own encoder among
+        them, as served): the report's ``encoders`` holds their figures and ``chosen``
+        the best (the map's own on a tie). The summary is recorded with the map
         (``MapInfo.last_self_test``). ``timeout``: seconds for this call (a few per
         hundred queries on two cores, and per encoder compared about what encoding the
         map's keyframes takes). Needs a mapper or admin key.

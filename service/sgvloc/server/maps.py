@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import functools
 import json
 import logging
 import os
@@ -170,6 +171,13 @@ def check_runnable(config: LocalizerConfig) -> None:
         sgv_check_runnable(config.sgv)
     except ConflictError as exc:
         raise field_error(InputError(str(exc)), "localizer.sgv") from None
+
+
+@functools.cache
+def _candidate_fingerprint(name: str) -> str:
+    """The encoder fingerprint a self-test candidate's spec builds (fixed per process:
+    the code and the shipped weights)."""
+    return make_encoder(EncoderSpec(**leave_out.spec_of(name))).identity.fingerprint
 
 
 @contextmanager
@@ -1338,6 +1346,14 @@ class MapManager:
         with at_field("encoders"):
             encoder = make_encoder(EncoderSpec(**spec))
         return Localizer(encoder, self.get(name).record.localizer_config)
+
+    def own_candidate(self, name: str) -> str | None:
+        """The self-test candidate (:data:`sgvloc.core.leave_out.CANDIDATES`) whose spec
+        builds the map's encoder (the same fingerprint), or None."""
+        fingerprint = self.get(name, load=True).record.encoder_fingerprint
+        return next(
+            (c for c in leave_out.CANDIDATES if _candidate_fingerprint(c) == fingerprint), None
+        )
 
     def check_comparable(self, handle: MapHandle, max_keyframes: int) -> None:
         """422 on ``encoders`` unless other encoders can be measured on the map: it keeps

@@ -393,7 +393,9 @@ class SelfTestReport(BaseModel):
         "(as figures), keyframes it could not encode (unencoded), seconds and records "
         "(the records are not kept in last_self_test)",
     )
-    chosen: str | None = Field(None, description="the best of encoders, by rule")
+    chosen: str | None = Field(
+        None, description="the best of encoders, by rule (ties: the map's own, then the order asked)"
+    )
     rule: str | None = Field(None, description="how chosen was picked")
     warning: str | None = Field(
         None, description="set when even the chosen encoder localizes under half the queries"

@@ -504,14 +504,11 @@
       const parts = rows.map(
         ([name, e]) => `${name}${own && own[0] === name ? " (this map's)" : ""} ${e.figures.localized_correct}`,
       );
-      // the rule's figures, in its order: equal on all of them, the order asked decided
-      const key = (g) => [g.localized_correct, -g.false_accepts, g.correct_poses, g.recall_at_1 || 0];
-      const tied =
-        own && own[0] !== st.chosen &&
-        key(own[1].figures).every((v, i) => v === key(st.encoders[st.chosen].figures)[i]);
-      text +=
-        ` Localized correctly by encoder: ${parts.join(", ")}; best: ${st.chosen}` +
-        (tied ? `, tied with this map's ${own[0]}.` : ".");
+      text += ` Localized correctly by encoder: ${parts.join(", ")}; best: ${st.chosen}.`;
+      // the map's own encoder wins ties: another one chosen did better by the rule
+      if (own && own[0] !== st.chosen) {
+        text += ` ${st.chosen} does better on this map's keyframes than its own encoder.`;
+      }
     }
     if (st.warning) text += ` Warning: ${st.warning}`;
     return text;

@@ -385,7 +385,11 @@ async def _self_test(
     candidate_records: dict[str, list[dict[str, Any]]] = {}  # answered, not recorded
     if req.encoders:
         compared: dict[str, dict[str, Any]] = {}
-        for name in req.encoders:
+        # the map's own encoder, when it is a candidate, is measured too (its answers as
+        # served, at no cost) and wins ties: a rebuild is worth it only for a better one
+        own = await step(lambda: manager.own_candidate(map_name))
+        order = ([own] if own else []) + [n for n in req.encoders if n != own]
+        for name in order:
             t1, spec = time.monotonic(), leave_out.spec_of(name)
             candidate = await step(
                 lambda spec=spec: manager.self_test_candidate(
@@ -419,12 +423,12 @@ async def _self_test(
                 map_name,
                 name,
                 len(compared),
-                len(req.encoders),
+                len(order),
                 compared[name]["figures"],
                 compared[name]["seconds"],
             )
         figures_of = {n: c["figures"] for n, c in compared.items()}
-        chosen = leave_out.choose(figures_of, tuple(req.encoders))
+        chosen = leave_out.choose(figures_of, tuple(order))
         summary |= {
             "encoders": compared,
             "chosen": chosen,
