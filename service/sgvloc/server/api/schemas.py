@@ -394,7 +394,8 @@ class SelfTestReport(BaseModel):
         "(the records are not kept in last_self_test)",
     )
     chosen: str | None = Field(
-        None, description="the best of encoders, by rule (ties: the map's own, then the order asked)"
+        None,
+        description="the best of encoders, by rule (ties: the map's own, then the order asked)",
     )
     rule: str | None = Field(None, description="how chosen was picked")
     warning: str | None = Field(
