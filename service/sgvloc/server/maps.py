@@ -1342,10 +1342,11 @@ class MapManager:
         that encoder on the map's keyframes (:meth:`self_test_encode`). 422 on
         ``encoders`` if the map keeps no clouds to encode again or has more than
         ``max_keyframes`` (the candidate holds its own copy of every keyframe)."""
-        self.check_comparable(self._unchanged(name, version), max_keyframes)
+        handle = self._unchanged(name, version)
+        self.check_comparable(handle, max_keyframes)
         with at_field("encoders"):
             encoder = make_encoder(EncoderSpec(**spec))
-        return Localizer(encoder, self.get(name).record.localizer_config)
+        return Localizer(encoder, handle.record.localizer_config)
 
     def own_candidate(self, name: str) -> str | None:
         """The self-test candidate (:data:`sgvloc.core.leave_out.CANDIDATES`) whose spec
