@@ -62,6 +62,9 @@ def test_metrics_after_traffic(client: httpx.Client, balm_map: BalmMap) -> None:
         assert _value(text, key) == _value(before, key) + 1
     assert _value(text, 'sgvloc_map_keyframes{map="balm"}') == len(balm_map.ids)
     assert np.isfinite(_value(text, "sgvloc_rerank_top1_changed_total"))
+    # no start-time series beside each counter and histogram
+    assert not re.search(r"^\w+_created[{ ]", text, re.M)
+    assert re.search(r"^process_start_time_seconds ", text, re.M)
 
 
 def test_openapi_documents_bodies(client: httpx.Client) -> None:
