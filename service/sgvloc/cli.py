@@ -899,6 +899,13 @@ def eval_command(
             "database and any accepted answer counts as a false accept (repeatable)"
         ),
     ] = None,
+    planar_distance: Annotated[
+        bool,
+        typer.Option(
+            help="measure the 5 m and 20 m revisit distances in the plane, ignoring height "
+            "(for ground truth whose heights disagree between passes)"
+        ),
+    ] = False,
     prior_noise: Annotated[
         float | None,
         typer.Option(
@@ -969,6 +976,7 @@ def eval_command(
             frames=_frames(frames),
             negatives=negatives,
             foreign=foreign or [],
+            planar_distance=planar_distance,
             prior_noise=prior_noise,
             prior_radius=prior_radius,
             calibration=calibration,

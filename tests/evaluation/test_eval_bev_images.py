@@ -139,3 +139,31 @@ def test_a_bev_folder_with_missing_poses_is_refused(bev_dir, tmp_path):
     (bad / "pose.txt").write_text("\n".join(lines) + "\n")
     res, _ = _eval(bad, tmp_path, "--min-gap", "0.2", "--encoder", '{"kind":"bev"}')
     assert res.exit_code == 2 and "5 images" in res.output and "4 poses" in res.output
+
+
+def test_planar_distance_ignores_heights_that_disagree_between_passes(bev_dir, tmp_path):
+    """The second lap's ground truth 6 m higher (an image cannot show it): measured in
+    3-D its revisits are out of coverage; in the plane they are queries again."""
+    high = tmp_path / "high"
+    (high / "imgs").mkdir(parents=True)
+    for f in (bev_dir / "imgs").iterdir():
+        (high / "imgs" / f.name).write_bytes(f.read_bytes())
+    poses = np.loadtxt(bev_dir / "pose.txt").reshape(SCANS, 3, 4)
+    poses[LAP:, 2, 3] += 6.0
+    np.savetxt(high / "pose.txt", poses.reshape(SCANS, 12))
+    common = ("--min-gap", "2.5", "--encoder", '{"kind":"bev"}', "--no-negatives")
+
+    res, out = _eval(high, tmp_path / "3d", *common)
+    assert res.exit_code == 0, res.output
+    report = json.loads((out / "eval.json").read_text())
+    assert report["split"]["query_indices"] == [28, 29]
+    assert report["config"]["planar_distance"] is False
+
+    res, out = _eval(high, tmp_path / "plane", *common, "--planar-distance")
+    assert res.exit_code == 0, res.output
+    report = json.loads((out / "eval.json").read_text())
+    assert report["config"]["planar_distance"] is True
+    assert report["split"]["query_indices"] == [28, 29, *range(LAP, SCANS)]
+    assert any("in the plane, heights ignored" in n for n in report["notes"])
+    rows = {(r["method"], r["k"]): r for r in report["rows"]}
+    assert rows[("sgv", 2)]["R@1_5m"] >= 80.0 and rows[("sgv", 2)]["mean_rte_m"] < 2.0

@@ -87,6 +87,12 @@ class EvalConfig(BaseModel):
     methods: list[str] = Field(default_factory=lambda: list(METHODS))
     topk: list[int] = Field(default_factory=lambda: [2, 20])
     thresholds: list[float] = Field(default_factory=lambda: [5.0, 20.0])
+    planar_distance: bool = Field(
+        False,
+        description="measure the revisit thresholds (coverage, recall, the ceiling) in the "
+        "plane, ignoring height: for data whose ground-truth heights disagree between "
+        "passes; RTE/RRE and the verdict's correctness are unchanged",
+    )
     sweep: list[int] = Field(default_factory=lambda: list(DEFAULT_SWEEP))
     sweep_rir: list[int] | None = Field(None, description="RIR sweep k values (None: topk)")
     refine: str = Field("icp", description="pose refinement after RANSAC: icp | none")
@@ -234,9 +240,18 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
         diff = headings[np.asarray(ids, dtype=np.int64)] - q_heading
         return np.abs((diff + 180.0) % 360.0 - 180.0) <= max_turn
 
+    # where each scan stands for the revisit thresholds (heights zeroed in the plane)
+    positions = poses[:, :3, 3].copy()
+    if cfg.planar_distance:
+        positions[:, 2] = 0.0
+
+    def at(T: np.ndarray) -> np.ndarray:
+        """A query pose's position as ``positions`` holds them."""
+        return T[:3, 3] * (1.0, 1.0, 0.0) if cfg.planar_distance else T[:3, 3]
+
     split = make_split(
         seq.times,
-        poses[:, :3, 3],
+        positions,
         db_until=cfg.db_until,
         min_gap=cfg.min_gap,
         db_range=cfg.db_range,
@@ -507,7 +522,7 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
                     rec["foreign"] = cfg.foreign[src - 1]
                 for thr in cfg.thresholds:
                     rec[f"rank@{thr:g}m"] = (
-                        first_true_rank(poses[ids, :3, 3], gt[:3, 3], thr, facing(ids, gt))
+                        first_true_rank(positions[ids], at(gt), thr, facing(ids, gt))
                         if covered
                         else None
                     )
@@ -516,8 +531,8 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
                 start_ids = [c.keyframe_id for c in start]
                 rec["start_rank"] = (
                     first_true_rank(
-                        poses[start_ids, :3, 3],
-                        gt[:3, 3],
+                        positions[start_ids],
+                        at(gt),
                         cfg.thresholds[0],
                         facing(start_ids, gt),
                     )
@@ -531,7 +546,7 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
             continue
 
         # encoder diagnostics: matches on the true pair, SGV scores of true/false candidates
-        d = np.linalg.norm(poses[visible, :3, 3] - gt[:3, 3], axis=1)
+        d = np.linalg.norm(positions[visible] - at(gt), axis=1)
         seen = facing(visible, gt)  # the true pair shares the query's view (--fov)
         if seen is not None and seen.any():
             d = np.where(seen, d, np.inf)
@@ -551,7 +566,7 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
         if sgv_out is None:
             sgv_out = rerank("sgv", fq, candidates(k_scores), feats.__getitem__, index, loc_cfg)
         ids = [c.keyframe_id for c in sgv_out.candidates]
-        dist = np.linalg.norm(poses[ids, :3, 3] - gt[:3, 3], axis=1) if ids else np.zeros(0)
+        dist = np.linalg.norm(positions[ids] - at(gt), axis=1) if ids else np.zeros(0)
         true = dist <= cfg.thresholds[0]
         if ids and (seen_ids := facing(ids, gt)) is not None:
             true &= seen_ids
@@ -604,7 +619,9 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
         + (", refined by ICP on the preprocessed clouds" if refine == "icp" else "")
         + "; the same estimator for every method",
         "recall, S and RTE/RRE: over the in-coverage queries (a database scan within "
-        f"{split.threshold:g} m); RTE/RRE are means, a query that is not localized keeps its "
+        f"{split.threshold:g} m"
+        + (" in the plane, heights ignored: --planar-distance" if cfg.planar_distance else "")
+        + "); RTE/RRE are means, a query that is not localized keeps its "
         "estimate; with no estimate at all (too few correspondences) the matched keyframe's "
         "pose is used; a query with no candidate at all (nothing to describe, or none in "
         "the prior's radius) counts as a failure in S and is left out of the means",
