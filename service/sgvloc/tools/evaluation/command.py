@@ -45,7 +45,7 @@ def evaluate(
     frames: tuple[int, int | None] | None,
     negatives: bool,
     foreign: list[Path],
-    planar_distance: bool = False,
+    planar_distance: bool,
     prior_noise: float | None,
     prior_radius: float,
     calibration: Path | None,
