@@ -240,14 +240,12 @@ def run_evaluation(cfg: EvalConfig, *, progress: bool = True) -> EvalResult:
         diff = headings[np.asarray(ids, dtype=np.int64)] - q_heading
         return np.abs((diff + 180.0) % 360.0 - 180.0) <= max_turn
 
-    # where each scan stands for the revisit thresholds (heights zeroed in the plane)
-    positions = poses[:, :3, 3].copy()
-    if cfg.planar_distance:
-        positions[:, 2] = 0.0
-
     def at(T: np.ndarray) -> np.ndarray:
-        """A query pose's position as ``positions`` holds them."""
-        return T[:3, 3] * (1.0, 1.0, 0.0) if cfg.planar_distance else T[:3, 3]
+        """Where poses ``[..., 4, 4]`` stand for the revisit thresholds (height zeroed
+        with ``planar_distance``)."""
+        return T[..., :3, 3] * (1.0, 1.0, 0.0) if cfg.planar_distance else T[..., :3, 3]
+
+    positions = at(poses)  # [F, 3]
 
     split = make_split(
         seq.times,
